@@ -1,0 +1,37 @@
+//! Error types of the core, one enum per layer, each variant carrying the context a caller needs.
+
+/// Errors of the feature layer: decoding, detection, description, client-supplied keypoints.
+#[derive(Debug, thiserror::Error)]
+pub enum FeatureError {
+    #[error("the image is empty (0 bytes)")]
+    EmptyImage,
+    #[error("unsupported image format: only PNG and JPEG are accepted")]
+    UnsupportedFormat,
+    #[error("corrupt image: {reason}")]
+    CorruptImage { reason: String },
+    #[error("image too large: {what} is {value}, the limit is {max}")]
+    ImageTooLarge { what: &'static str, value: u64, max: u64 },
+    #[error("too many keypoints: {count}, the limit is {max}")]
+    TooManyKeypoints { count: usize, max: usize },
+    #[error("keypoint {index}: {field} {reason}")]
+    InvalidKeypoint { index: usize, field: &'static str, reason: String },
+    #[error("descriptors: {reason}")]
+    InvalidDescriptors { reason: String },
+    #[error("invalid extractor setting {field}: {reason}")]
+    InvalidConfig { field: &'static str, reason: String },
+    #[error("OpenCV failed: {0}")]
+    OpenCv(#[from] opencv::Error),
+}
+
+/// Errors reading a scene on disk (TUM RGB-D layout).
+#[derive(Debug, thiserror::Error)]
+pub enum SceneError {
+    #[error("{path}: {source}")]
+    Io { path: std::path::PathBuf, source: std::io::Error },
+    #[error("{path}:{line}: {reason}")]
+    Parse { path: std::path::PathBuf, line: usize, reason: String },
+    #[error("{path}: {reason}")]
+    Invalid { path: std::path::PathBuf, reason: String },
+    #[error("frame {frame}: {source}")]
+    Feature { frame: String, source: FeatureError },
+}

@@ -1,0 +1,150 @@
+//! Training-data export: the service's own extraction run over a scene, written as one `.npz` file.
+//!
+//! Layout (all arrays row-major; `NNNN` is the frame's index in `rgb.txt`, zero-padded to 4 digits):
+//!
+//! | key | dtype | shape | content |
+//! |---|---|---|---|
+//! | `meta_json` | uint8 | (bytes) | UTF-8 JSON: format version, scene, extractor settings, k, per-frame stamp/file/size/count |
+//! | `fNNNN_keypoints` | float32 | (N, 6) | x, y, size, angle (degrees), response, octave |
+//! | `fNNNN_descriptors` | uint8 | (N, 64) | FREAK bits, least significant bit first |
+//! | `fNNNN_neighbours` | int32 | (N, k) | constellation member indices, nearest first |
+//! | `fNNNN_mask` | uint8 | (N, k) | 1 = real neighbour, 0 = padding |
+//! | `fNNNN_relative` | float32 | (N, k, 4) | u, v, dθ, ln scale ratio (see `constellation`) |
+//!
+//! Python: `z = np.load(path); meta = json.loads(bytes(z["meta_json"]))`.
+
+use std::fs::File;
+use std::io::BufWriter;
+use std::path::Path;
+
+use ndarray::{Array1, Array2, Array3};
+use ndarray_npy::NpzWriter;
+use serde::Serialize;
+
+use crate::constellation::{self, Constellations, GEOMETRY_DIM};
+use crate::decode::{decode_grey, ImageLimits};
+use crate::error::SceneError;
+use crate::features::{extract, ExtractorConfig, Features, DESCRIPTOR_BYTES};
+use crate::scene::Scene;
+
+/// Version of the export layout; bumped on any change of keys, dtypes or meanings.
+pub const EXPORT_FORMAT_VERSION: u32 = 1;
+
+#[derive(Debug, Serialize)]
+struct FrameMeta {
+    index: usize,
+    stamp: String,
+    file: String,
+    width: u32,
+    height: u32,
+    keypoints: usize,
+}
+
+#[derive(Debug, Serialize)]
+struct ExportMeta<'a> {
+    format: &'static str,
+    version: u32,
+    scone_version: &'static str,
+    scene: &'a str,
+    extractor: &'a ExtractorConfig,
+    k: usize,
+    frames: Vec<FrameMeta>,
+}
+
+/// Per-frame summary returned by [`export_scene`].
+#[derive(Debug, Clone, Serialize)]
+pub struct ExportSummary {
+    pub frames: usize,
+    pub keypoints_min: usize,
+    pub keypoints_max: usize,
+    pub keypoints_mean: f64,
+}
+
+fn npz_err(path: &Path, e: impl std::fmt::Display) -> SceneError {
+    SceneError::Invalid { path: path.into(), reason: format!("writing npz: {e}") }
+}
+
+/// Adds one frame's arrays to the archive.
+fn write_frame(
+    npz: &mut NpzWriter<BufWriter<File>>,
+    out: &Path,
+    index: usize,
+    f: &Features,
+    c: &Constellations,
+) -> Result<(), SceneError> {
+    let n = f.len();
+    let k = c.k;
+    let kp = Array2::from_shape_fn((n, 6), |(i, j)| {
+        let p = &f.keypoints[i];
+        [p.x, p.y, p.size, p.angle, p.response, p.octave as f32][j]
+    });
+    let desc = Array2::from_shape_vec((n, DESCRIPTOR_BYTES), f.descriptors.as_flattened().to_vec())
+        .map_err(|e| npz_err(out, e))?;
+    let nb = Array2::from_shape_vec((n, k), c.neighbours.iter().map(|&j| j as i32).collect())
+        .map_err(|e| npz_err(out, e))?;
+    let mask = Array2::from_shape_vec((n, k), c.mask.clone()).map_err(|e| npz_err(out, e))?;
+    let rel = Array3::from_shape_vec((n, k, GEOMETRY_DIM), c.relative.as_flattened().to_vec())
+        .map_err(|e| npz_err(out, e))?;
+    let name = |what: &str| format!("f{index:04}_{what}");
+    npz.add_array(name("keypoints"), &kp).map_err(|e| npz_err(out, e))?;
+    npz.add_array(name("descriptors"), &desc).map_err(|e| npz_err(out, e))?;
+    npz.add_array(name("neighbours"), &nb).map_err(|e| npz_err(out, e))?;
+    npz.add_array(name("mask"), &mask).map_err(|e| npz_err(out, e))?;
+    npz.add_array(name("relative"), &rel).map_err(|e| npz_err(out, e))?;
+    Ok(())
+}
+
+/// Extracts features and constellations for every frame of `scene` and writes them to `out`.
+pub fn export_scene(
+    scene: &Scene,
+    config: &ExtractorConfig,
+    k: usize,
+    limits: &ImageLimits,
+    out: &Path,
+) -> Result<ExportSummary, SceneError> {
+    config.validate().map_err(|source| SceneError::Feature { frame: "(settings)".into(), source })?;
+    let tmp = out.with_extension("npz.partial");
+    let file = File::create(&tmp).map_err(|source| SceneError::Io { path: tmp.clone(), source })?;
+    let mut npz = NpzWriter::new(BufWriter::new(file));
+    let mut frames = Vec::with_capacity(scene.frames.len());
+    for (index, frame) in scene.frames.iter().enumerate() {
+        let bytes = std::fs::read(&frame.rgb).map_err(|source| SceneError::Io { path: frame.rgb.clone(), source })?;
+        let feature_err = |source| SceneError::Feature { frame: frame.stamp.clone(), source };
+        let image = decode_grey(&bytes, limits).map_err(feature_err)?;
+        let features = extract(&image, config).map_err(feature_err)?;
+        let constellations = constellation::build(&features.keypoints, k);
+        write_frame(&mut npz, out, index, &features, &constellations)?;
+        tracing::info!(frame = %frame.stamp, keypoints = features.len(), "extracted");
+        frames.push(FrameMeta {
+            index,
+            stamp: frame.stamp.clone(),
+            file: frame.rgb.strip_prefix(&scene.root).unwrap_or(&frame.rgb).to_string_lossy().into_owned(),
+            width: features.width,
+            height: features.height,
+            keypoints: features.len(),
+        });
+    }
+    let counts: Vec<usize> = frames.iter().map(|f| f.keypoints).collect();
+    let summary = ExportSummary {
+        frames: counts.len(),
+        keypoints_min: counts.iter().copied().min().unwrap_or(0),
+        keypoints_max: counts.iter().copied().max().unwrap_or(0),
+        keypoints_mean: counts.iter().sum::<usize>() as f64 / counts.len().max(1) as f64,
+    };
+    let meta = ExportMeta {
+        format: "scone-features",
+        version: EXPORT_FORMAT_VERSION,
+        scone_version: env!("CARGO_PKG_VERSION"),
+        scene: &scene.name,
+        extractor: config,
+        k,
+        frames,
+    };
+    let json = serde_json::to_vec(&meta).map_err(|e| npz_err(out, e))?;
+    npz.add_array("meta_json", &Array1::from_vec(json)).map_err(|e| npz_err(out, e))?;
+    let writer = npz.finish().map_err(|e| npz_err(out, e))?;
+    let file = writer.into_inner().map_err(|e| npz_err(out, e.error()))?;
+    file.sync_all().map_err(|source| SceneError::Io { path: tmp.clone(), source })?;
+    std::fs::rename(&tmp, out).map_err(|source| SceneError::Io { path: out.into(), source })?;
+    Ok(summary)
+}

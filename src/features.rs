@@ -1,0 +1,440 @@
+//! FAST keypoints on an image pyramid, spread over the image by grid bucketing, described by FREAK.
+//!
+//! This is the one feature-extraction path of the project: the service, the evaluation commands and the
+//! training-data export all call [`extract`], so the network is trained on exactly what it sees in production.
+//!
+//! Detection runs OpenCV's FAST (9/16, non-max suppression) on every level of a pyramid built by resizing the
+//! grey image by `scale_factor^-l`. A keypoint found on level `l` at `(x_l, y_l)` is mapped to full resolution
+//! as `x = (x_l + 0.5) * W / W_l - 0.5` (likewise `y`) and gets `size = 7 * scale_factor^l` (FAST's 7-pixel
+//! circle at that level), `octave = l`. FREAK then samples its pattern on the full-resolution image at that
+//! size, so it describes the same physical patch whatever the level. With `levels = 1` and bucketing off this
+//! is the single-scale FAST + FREAK of the paper and of OpenCV's own pipeline.
+//!
+//! Budget: `max_keypoints` is split over levels in proportion to their area. Within a level, keypoints are
+//! bucketed into square cells of `grid_cell` pixels (level coordinates) and taken round-robin: every cell's
+//! strongest first (strongest of those first), then every cell's second, and so on, which spreads keypoints
+//! over the image while preferring strong corners. Keypoints whose FREAK pattern would leave the image are
+//! dropped before budgeting so they do not take places; FREAK's own border check drops any remaining ones.
+//!
+//! Descriptors: 512 bits packed into 64 bytes, bit `i` of the descriptor in byte `i / 8`, bit `i % 8`
+//! (least significant first), as OpenCV stores them; `numpy.unpackbits(..., bitorder="little")` unpacks them.
+
+use opencv::core::{KeyPoint, Mat, Size, Vector};
+use opencv::features2d::{FastFeatureDetector, FastFeatureDetector_DetectorType};
+use opencv::prelude::*;
+use opencv::{imgproc, xfeatures2d};
+use serde::{Deserialize, Serialize};
+
+use crate::decode::GreyImage;
+use crate::error::FeatureError;
+
+/// Bytes in one FREAK descriptor (512 bits).
+pub const DESCRIPTOR_BYTES: usize = 64;
+/// FAST's circle diameter in pixels: the size of a keypoint detected at full resolution.
+pub const FAST_SIZE: f32 = 7.0;
+/// FREAK's pattern scale (OpenCV's default); with `FAST_SIZE` it sets the pattern radius at each size.
+const FREAK_PATTERN_SCALE: f32 = 22.0;
+/// FREAK's octave count (OpenCV's default).
+const FREAK_OCTAVES: i32 = 4;
+
+/// Settings of detection and description. Defaults suit a 640x480 image.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct ExtractorConfig {
+    /// FAST intensity threshold.
+    pub fast_threshold: i32,
+    /// Keypoints kept at most (before FREAK's own border check).
+    pub max_keypoints: usize,
+    /// Pyramid levels (1 = single-scale FAST as in the paper).
+    pub levels: u32,
+    /// Downscale factor between consecutive levels.
+    pub scale_factor: f64,
+    /// Grid cell side in pixels for bucketing; 0 keeps the strongest keypoints with no spreading.
+    pub grid_cell: u32,
+}
+
+impl Default for ExtractorConfig {
+    fn default() -> Self {
+        Self { fast_threshold: 20, max_keypoints: 1500, levels: 6, scale_factor: 1.2, grid_cell: 32 }
+    }
+}
+
+impl ExtractorConfig {
+    /// Single-scale FAST, strongest `max_keypoints`, no bucketing: the paper's and OpenCV's pipeline.
+    pub fn single_scale(fast_threshold: i32, max_keypoints: usize) -> Self {
+        Self { fast_threshold, max_keypoints, levels: 1, scale_factor: 1.2, grid_cell: 0 }
+    }
+
+    /// Checks ranges; called before any extraction.
+    pub fn validate(&self) -> Result<(), FeatureError> {
+        let bad = |field, reason: &str| Err(FeatureError::InvalidConfig { field, reason: reason.into() });
+        if !(1..=254).contains(&self.fast_threshold) {
+            return bad("fast_threshold", "must be in 1..=254");
+        }
+        if self.max_keypoints == 0 || self.max_keypoints > 100_000 {
+            return bad("max_keypoints", "must be in 1..=100000");
+        }
+        if !(1..=16).contains(&self.levels) {
+            return bad("levels", "must be in 1..=16");
+        }
+        if !(self.scale_factor > 1.0 && self.scale_factor <= 2.0) {
+            return bad("scale_factor", "must be in (1, 2]");
+        }
+        if self.grid_cell > 1024 {
+            return bad("grid_cell", "must be at most 1024 (0 = off)");
+        }
+        Ok(())
+    }
+}
+
+/// A keypoint in full-resolution pixel coordinates, with OpenCV's conventions.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct Keypoint {
+    /// Column, pixels (0 = centre of the first pixel).
+    pub x: f32,
+    /// Row, pixels.
+    pub y: f32,
+    /// Diameter of the described region, pixels.
+    pub size: f32,
+    /// Orientation in degrees, [0, 360), measured from +x towards +y (image axes, y down).
+    pub angle: f32,
+    /// Detector response (FAST score).
+    pub response: f32,
+    /// Pyramid level the keypoint was found on.
+    pub octave: i32,
+}
+
+impl Keypoint {
+    fn from_cv(kp: &KeyPoint) -> Self {
+        let p = kp.pt();
+        // FREAK reports atan2 in degrees, (-180, 180]; normalise to [0, 360) like client input.
+        let angle = kp.angle().rem_euclid(360.0);
+        Self { x: p.x, y: p.y, size: kp.size(), angle, response: kp.response(), octave: kp.octave() }
+    }
+
+    fn to_cv(self) -> opencv::Result<KeyPoint> {
+        KeyPoint::new_coords(self.x, self.y, self.size, self.angle, self.response, self.octave, -1)
+    }
+}
+
+/// Keypoints of one image with their FREAK descriptors (row `i` describes keypoint `i`).
+#[derive(Debug, Clone, PartialEq)]
+pub struct Features {
+    pub width: u32,
+    pub height: u32,
+    pub keypoints: Vec<Keypoint>,
+    pub descriptors: Vec<[u8; DESCRIPTOR_BYTES]>,
+}
+
+impl Features {
+    pub fn len(&self) -> usize {
+        self.keypoints.len()
+    }
+
+    pub fn is_empty(&self) -> bool {
+        self.keypoints.is_empty()
+    }
+
+    /// Descriptors as an OpenCV matrix [N, 64] of u8, for OpenCV's matchers.
+    pub fn descriptor_mat(&self) -> Result<Mat, FeatureError> {
+        if self.descriptors.is_empty() {
+            return Ok(Mat::default());
+        }
+        let flat: &[u8] = self.descriptors.as_flattened();
+        let mat = Mat::new_rows_cols_with_data(self.descriptors.len() as i32, DESCRIPTOR_BYTES as i32, flat)?;
+        Ok(mat.try_clone()?)
+    }
+}
+
+/// Limits on client-supplied keypoints.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct KeypointLimits {
+    pub max_keypoints: usize,
+    /// Largest accepted keypoint size in pixels.
+    pub max_size: f32,
+}
+
+impl Default for KeypointLimits {
+    fn default() -> Self {
+        Self { max_keypoints: 10_000, max_size: 1024.0 }
+    }
+}
+
+/// Radius in pixels that FREAK's pattern needs around a keypoint of `size` (its border check, conservatively).
+fn freak_border(size: f32) -> f32 {
+    FREAK_PATTERN_SCALE * size / FAST_SIZE + 2.0
+}
+
+/// Detects and describes keypoints on a grey image.
+pub fn extract(image: &GreyImage, config: &ExtractorConfig) -> Result<Features, FeatureError> {
+    config.validate()?;
+    let mut candidates = detect(image, config)?;
+    describe(image, &mut candidates)
+}
+
+/// FAST on every pyramid level, border-filtered and budgeted; keypoints in full-resolution coordinates.
+pub fn detect(image: &GreyImage, config: &ExtractorConfig) -> Result<Vector<KeyPoint>, FeatureError> {
+    let full = image.mat();
+    let (w, h) = (full.cols(), full.rows());
+    let level_weights: Vec<f64> = (0..config.levels).map(|l| config.scale_factor.powi(-2 * l as i32)).collect();
+    let weight_sum: f64 = level_weights.iter().sum();
+    let mut detector =
+        FastFeatureDetector::create(config.fast_threshold, true, FastFeatureDetector_DetectorType::TYPE_9_16)?;
+    let mut selected = Vector::<KeyPoint>::new();
+    let mut level_img = Mat::default();
+    let mut remaining = config.max_keypoints;
+    for (level, weight) in level_weights.iter().enumerate() {
+        let scale = config.scale_factor.powi(level as i32);
+        let lw = (w as f64 / scale).round() as i32;
+        let lh = (h as f64 / scale).round() as i32;
+        let size = FAST_SIZE * scale as f32;
+        let border = freak_border(size);
+        if lw < 16 || lh < 16 || 2.0 * border >= w.min(h) as f32 {
+            break;
+        }
+        let img: &Mat = if level == 0 {
+            full
+        } else {
+            imgproc::resize(full, &mut level_img, Size::new(lw, lh), 0.0, 0.0, imgproc::INTER_LINEAR)?;
+            &level_img
+        };
+        let mut raw = Vector::<KeyPoint>::new();
+        detector.detect(img, &mut raw, &Mat::default())?;
+        let sx = w as f32 / lw as f32;
+        let sy = h as f32 / lh as f32;
+        let mut level_kps: Vec<(KeyPoint, f32, f32)> = Vec::with_capacity(raw.len());
+        for kp in raw.iter() {
+            let p = kp.pt();
+            let x = (p.x + 0.5) * sx - 0.5;
+            let y = (p.y + 0.5) * sy - 0.5;
+            if x < border || y < border || x >= w as f32 - border || y >= h as f32 - border {
+                continue;
+            }
+            let full_kp = KeyPoint::new_coords(x, y, size, -1.0, kp.response(), level as i32, -1)?;
+            level_kps.push((full_kp, p.x, p.y));
+        }
+        let budget = if level + 1 == level_weights.len() {
+            remaining
+        } else {
+            ((config.max_keypoints as f64 * weight / weight_sum).round() as usize).min(remaining)
+        };
+        let kept = select_spread(level_kps, budget, config.grid_cell);
+        remaining -= kept.len();
+        for kp in kept {
+            selected.push(kp);
+        }
+    }
+    Ok(selected)
+}
+
+/// Keeps at most `budget` keypoints: round-robin over grid cells by response rank, or strongest-first
+/// when `cell == 0`. Ties are broken by position so the result is deterministic.
+fn select_spread(mut kps: Vec<(KeyPoint, f32, f32)>, budget: usize, cell: u32) -> Vec<KeyPoint> {
+    let stronger = |a: &(KeyPoint, f32, f32), b: &(KeyPoint, f32, f32)| {
+        b.0.response().total_cmp(&a.0.response()).then(a.2.total_cmp(&b.2)).then(a.1.total_cmp(&b.1))
+    };
+    if cell == 0 || kps.len() <= budget {
+        kps.sort_by(stronger);
+        return kps.into_iter().take(budget).map(|k| k.0).collect();
+    }
+    let c = cell as f32;
+    let cell_of = |k: &(KeyPoint, f32, f32)| ((k.2 / c) as u32, (k.1 / c) as u32);
+    kps.sort_by(|a, b| cell_of(a).cmp(&cell_of(b)).then_with(|| stronger(a, b)));
+    let mut ranked: Vec<(u32, (KeyPoint, f32, f32))> = Vec::with_capacity(kps.len());
+    let mut rank = 0u32;
+    let mut prev = None;
+    for k in kps {
+        let c = cell_of(&k);
+        rank = if prev == Some(c) { rank + 1 } else { 0 };
+        prev = Some(c);
+        ranked.push((rank, k));
+    }
+    ranked.sort_by(|a, b| a.0.cmp(&b.0).then_with(|| stronger(&a.1, &b.1)));
+    ranked.into_iter().take(budget).map(|(_, k)| k.0).collect()
+}
+
+/// Runs FREAK on `keypoints` (it assigns orientation and drops keypoints whose pattern leaves the image).
+pub fn describe(image: &GreyImage, keypoints: &mut Vector<KeyPoint>) -> Result<Features, FeatureError> {
+    let mut freak = xfeatures2d::FREAK::create(true, true, FREAK_PATTERN_SCALE, FREAK_OCTAVES, &Vector::new())?;
+    let mut desc = Mat::default();
+    freak.compute(image.mat(), keypoints, &mut desc)?;
+    let n = keypoints.len();
+    if n > 0 && (desc.rows() as usize != n || desc.cols() as usize != DESCRIPTOR_BYTES) {
+        return Err(FeatureError::OpenCv(opencv::Error::new(
+            opencv::core::StsError,
+            format!("FREAK returned {}x{} descriptors for {n} keypoints", desc.rows(), desc.cols()),
+        )));
+    }
+    let mut descriptors = Vec::with_capacity(n);
+    for i in 0..n {
+        let row = desc.at_row::<u8>(i as i32)?;
+        let mut d = [0u8; DESCRIPTOR_BYTES];
+        d.copy_from_slice(row);
+        descriptors.push(d);
+    }
+    let keypoints = keypoints.iter().map(|k| Keypoint::from_cv(&k)).collect();
+    Ok(Features { width: image.width(), height: image.height(), keypoints, descriptors })
+}
+
+/// Validates keypoints and descriptors supplied by a client (computed with the same contract on a device)
+/// and returns them as [`Features`]. Nothing is re-detected; the caller gets a precise error for the first
+/// violation found.
+pub fn from_precomputed(
+    width: u32,
+    height: u32,
+    keypoints: Vec<Keypoint>,
+    descriptors: &[u8],
+    limits: &KeypointLimits,
+) -> Result<Features, FeatureError> {
+    if width == 0 || height == 0 {
+        return Err(FeatureError::InvalidKeypoint {
+            index: 0,
+            field: "image size",
+            reason: format!("{width}x{height} must be positive"),
+        });
+    }
+    if keypoints.len() > limits.max_keypoints {
+        return Err(FeatureError::TooManyKeypoints { count: keypoints.len(), max: limits.max_keypoints });
+    }
+    if descriptors.len() != keypoints.len() * DESCRIPTOR_BYTES {
+        return Err(FeatureError::InvalidDescriptors {
+            reason: format!(
+                "expected {} bytes ({} keypoints x {DESCRIPTOR_BYTES}), got {}",
+                keypoints.len() * DESCRIPTOR_BYTES,
+                keypoints.len(),
+                descriptors.len()
+            ),
+        });
+    }
+    let mut out = Vec::with_capacity(keypoints.len());
+    for (index, mut k) in keypoints.into_iter().enumerate() {
+        let bad = |field, reason: String| FeatureError::InvalidKeypoint { index, field, reason };
+        for (field, v) in [("x", k.x), ("y", k.y), ("size", k.size), ("angle", k.angle), ("response", k.response)] {
+            if !v.is_finite() {
+                return Err(bad(field, format!("is not finite ({v})")));
+            }
+        }
+        if k.x < 0.0 || k.x > (width - 1) as f32 {
+            return Err(bad("x", format!("{} is outside [0, {}]", k.x, width - 1)));
+        }
+        if k.y < 0.0 || k.y > (height - 1) as f32 {
+            return Err(bad("y", format!("{} is outside [0, {}]", k.y, height - 1)));
+        }
+        if k.size <= 0.0 || k.size > limits.max_size {
+            return Err(bad("size", format!("{} is outside (0, {}]", k.size, limits.max_size)));
+        }
+        if !(-360.0..=360.0).contains(&k.angle) {
+            return Err(bad("angle", format!("{} degrees is outside [-360, 360]", k.angle)));
+        }
+        if !(0..=31).contains(&k.octave) {
+            return Err(bad("octave", format!("{} is outside 0..=31", k.octave)));
+        }
+        k.angle = k.angle.rem_euclid(360.0);
+        out.push(k);
+    }
+    let descriptors = descriptors
+        .chunks_exact(DESCRIPTOR_BYTES)
+        .map(|c| {
+            let mut d = [0u8; DESCRIPTOR_BYTES];
+            d.copy_from_slice(c);
+            d
+        })
+        .collect();
+    Ok(Features { width, height, keypoints: out, descriptors })
+}
+
+/// Re-describes client keypoints on an image (used to check a client's extraction against the server's).
+pub fn describe_keypoints(image: &GreyImage, keypoints: &[Keypoint]) -> Result<Features, FeatureError> {
+    let mut cv = Vector::<KeyPoint>::with_capacity(keypoints.len());
+    for k in keypoints {
+        cv.push(k.to_cv()?);
+    }
+    describe(image, &mut cv)
+}
+
+/// Sets the size of OpenCV's internal thread pool (0 = OpenCV's default, all cores).
+///
+/// The service parallelises across requests on its own bounded pool, so it runs OpenCV single-threaded by
+/// default: two layers of pools on two cores would only contend.
+pub fn set_opencv_threads(threads: usize) -> Result<(), FeatureError> {
+    opencv::core::set_num_threads(if threads == 0 { -1 } else { threads as i32 })?;
+    Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn kp(x: f32, y: f32, response: f32) -> (KeyPoint, f32, f32) {
+        (KeyPoint::new_coords(x, y, 7.0, -1.0, response, 0, -1).unwrap(), x, y)
+    }
+
+    #[test]
+    fn strongest_first_without_grid() {
+        let kps = vec![kp(1.0, 1.0, 5.0), kp(2.0, 2.0, 9.0), kp(3.0, 3.0, 7.0)];
+        let out = select_spread(kps, 2, 0);
+        assert_eq!(out.iter().map(|k| k.response()).collect::<Vec<_>>(), vec![9.0, 7.0]);
+    }
+
+    #[test]
+    fn grid_spreads_before_taking_second_best() {
+        // Cell (0,0) has three strong corners, cell (0,1) one weak one: the weak one is taken second.
+        let kps = vec![kp(1.0, 1.0, 50.0), kp(2.0, 2.0, 40.0), kp(3.0, 3.0, 30.0), kp(40.0, 1.0, 10.0)];
+        let out = select_spread(kps, 2, 32);
+        assert_eq!(out.iter().map(|k| k.response()).collect::<Vec<_>>(), vec![50.0, 10.0]);
+    }
+
+    #[test]
+    fn config_validation_names_the_field() {
+        let cfg = ExtractorConfig { scale_factor: 0.5, ..ExtractorConfig::default() };
+        assert!(matches!(cfg.validate(), Err(FeatureError::InvalidConfig { field: "scale_factor", .. })));
+        let cfg = ExtractorConfig { levels: 0, ..ExtractorConfig::default() };
+        assert!(matches!(cfg.validate(), Err(FeatureError::InvalidConfig { field: "levels", .. })));
+        assert!(ExtractorConfig::default().validate().is_ok());
+    }
+
+    fn good_kp() -> Keypoint {
+        Keypoint { x: 10.0, y: 20.0, size: 7.0, angle: 45.0, response: 30.0, octave: 0 }
+    }
+
+    #[test]
+    fn precomputed_accepts_valid_input() {
+        let f = from_precomputed(64, 48, vec![good_kp(); 2], &[7u8; 128], &KeypointLimits::default()).unwrap();
+        assert_eq!(f.len(), 2);
+        assert_eq!(f.descriptors[1], [7u8; 64]);
+    }
+
+    #[test]
+    fn precomputed_rejects_each_violation() {
+        let limits = KeypointLimits::default();
+        let check = |k: Keypoint, field: &str| {
+            let err = from_precomputed(64, 48, vec![good_kp(), k], &[0u8; 128], &limits).unwrap_err();
+            match err {
+                FeatureError::InvalidKeypoint { index: 1, field: f, .. } => assert_eq!(f, field),
+                other => panic!("expected {field} error, got {other}"),
+            }
+        };
+        check(Keypoint { x: f32::NAN, ..good_kp() }, "x");
+        check(Keypoint { y: f32::INFINITY, ..good_kp() }, "y");
+        check(Keypoint { x: 64.0, ..good_kp() }, "x");
+        check(Keypoint { y: -0.5, ..good_kp() }, "y");
+        check(Keypoint { size: 0.0, ..good_kp() }, "size");
+        check(Keypoint { size: 5000.0, ..good_kp() }, "size");
+        check(Keypoint { angle: 720.0, ..good_kp() }, "angle");
+        check(Keypoint { octave: -1, ..good_kp() }, "octave");
+        check(Keypoint { response: f32::NAN, ..good_kp() }, "response");
+        let err = from_precomputed(64, 48, vec![good_kp(); 2], &[0u8; 127], &limits).unwrap_err();
+        assert!(matches!(err, FeatureError::InvalidDescriptors { .. }), "{err}");
+        let small = KeypointLimits { max_keypoints: 1, ..limits };
+        let err = from_precomputed(64, 48, vec![good_kp(); 2], &[0u8; 128], &small).unwrap_err();
+        assert!(matches!(err, FeatureError::TooManyKeypoints { count: 2, max: 1 }), "{err}");
+    }
+
+    #[test]
+    fn negative_angles_are_normalised() {
+        let k = Keypoint { angle: -90.0, ..good_kp() };
+        let f = from_precomputed(64, 48, vec![k], &[0u8; 64], &KeypointLimits::default()).unwrap();
+        assert_eq!(f.keypoints[0].angle, 270.0);
+    }
+}

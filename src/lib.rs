@@ -1,0 +1,25 @@
+//! scone: image matching and relocalisation with the SConE constellation descriptor
+//! (Trzcinski et al., "SConE: Siamese Constellation Embedding Descriptor for Image Matching").
+//!
+//! Layout of the core (no transport code lives here):
+//!
+//! - [`decode`]: encoded image bytes -> grey image, with size limits checked before decoding.
+//! - [`features`]: FAST on an image pyramid with grid bucketing, FREAK descriptors; validation of keypoints
+//!   supplied by clients. The single extraction path for the service, evaluation and training export.
+//! - [`constellation`]: each keypoint's k nearest keypoints with relative geometry in its own frame.
+//! - [`matching`]: nearest-neighbour matching with ratio test (and mutual check).
+//! - [`scene`]: scenes on disk in the TUM RGB-D layout (frames, poses, intrinsics, depth).
+//! - [`export`]: a scene's features and constellations as `.npz` for training.
+//!
+//! Path of an image: bytes -> [`decode::decode_grey`] -> [`features::extract`] -> [`constellation::build`]
+//! -> (the embedding network) -> matching and pose estimation.
+
+pub mod constellation;
+pub mod decode;
+pub mod error;
+pub mod export;
+pub mod features;
+pub mod matching;
+pub mod scene;
+
+pub use error::{FeatureError, SceneError};

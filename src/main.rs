@@ -1,0 +1,122 @@
+use std::path::PathBuf;
+
+use anyhow::Context;
+use clap::{Args, Parser, Subcommand};
+
+use scone::constellation::{self, DEFAULT_K};
+use scone::decode::{decode_grey, ImageLimits};
+use scone::features::{self, ExtractorConfig};
+use scone::scene::Scene;
+
+#[derive(Parser)]
+#[command(name = "scone", version, about = "SConE image matching and relocalisation")]
+struct Cli {
+    #[command(subcommand)]
+    command: Command,
+}
+
+#[derive(Subcommand)]
+enum Command {
+    /// Extract FAST + FREAK features and constellations from one image and print a summary as JSON.
+    Extract {
+        /// PNG or JPEG file.
+        image: PathBuf,
+        #[command(flatten)]
+        extractor: ExtractorArgs,
+    },
+    /// Export a scene's features and constellations to an .npz file for training.
+    Features {
+        /// Scene directory in the TUM RGB-D layout.
+        #[arg(long)]
+        scene: PathBuf,
+        /// Output .npz file.
+        #[arg(long)]
+        out: PathBuf,
+        #[command(flatten)]
+        extractor: ExtractorArgs,
+    },
+}
+
+/// Extraction settings on the command line; unset flags keep [`ExtractorConfig::default`].
+#[derive(Args, Clone)]
+struct ExtractorArgs {
+    /// FAST threshold.
+    #[arg(long)]
+    fast_threshold: Option<i32>,
+    /// Keypoints kept at most.
+    #[arg(long)]
+    max_keypoints: Option<usize>,
+    /// Pyramid levels (1 = single-scale FAST, as in the paper).
+    #[arg(long)]
+    levels: Option<u32>,
+    /// Downscale factor between pyramid levels.
+    #[arg(long)]
+    scale_factor: Option<f64>,
+    /// Grid cell size for bucketing in pixels (0 = off).
+    #[arg(long)]
+    grid_cell: Option<u32>,
+    /// Constellation size.
+    #[arg(long, default_value_t = DEFAULT_K)]
+    k: usize,
+    /// OpenCV threads (0 = all cores).
+    #[arg(long, default_value_t = 0)]
+    opencv_threads: usize,
+}
+
+impl ExtractorArgs {
+    fn config(&self) -> anyhow::Result<ExtractorConfig> {
+        let d = ExtractorConfig::default();
+        let cfg = ExtractorConfig {
+            fast_threshold: self.fast_threshold.unwrap_or(d.fast_threshold),
+            max_keypoints: self.max_keypoints.unwrap_or(d.max_keypoints),
+            levels: self.levels.unwrap_or(d.levels),
+            scale_factor: self.scale_factor.unwrap_or(d.scale_factor),
+            grid_cell: self.grid_cell.unwrap_or(d.grid_cell),
+        };
+        cfg.validate()?;
+        anyhow::ensure!(self.k >= 1 && self.k <= 64, "--k must be in 1..=64");
+        features::set_opencv_threads(self.opencv_threads)?;
+        Ok(cfg)
+    }
+}
+
+fn main() -> anyhow::Result<()> {
+    tracing_subscriber::fmt()
+        .with_env_filter(tracing_subscriber::EnvFilter::try_from_default_env().unwrap_or_else(|_| "info".into()))
+        .with_writer(std::io::stderr)
+        .init();
+    let cli = Cli::parse();
+    match cli.command {
+        Command::Extract { image, extractor } => {
+            let cfg = extractor.config()?;
+            let bytes = std::fs::read(&image).with_context(|| format!("reading {}", image.display()))?;
+            let t0 = std::time::Instant::now();
+            let grey = decode_grey(&bytes, &ImageLimits::default())?;
+            let f = features::extract(&grey, &cfg)?;
+            let c = constellation::build(&f.keypoints, extractor.k);
+            let ms = t0.elapsed().as_secs_f64() * 1e3;
+            let per_level = (0..cfg.levels as i32)
+                .map(|l| f.keypoints.iter().filter(|k| k.octave == l).count())
+                .collect::<Vec<_>>();
+            let summary = serde_json::json!({
+                "image": image,
+                "width": f.width,
+                "height": f.height,
+                "keypoints": f.len(),
+                "keypoints_per_level": per_level,
+                "constellations": c.len(),
+                "k": c.k,
+                "milliseconds": (ms * 10.0).round() / 10.0,
+                "extractor": cfg,
+            });
+            println!("{}", serde_json::to_string_pretty(&summary)?);
+        }
+        Command::Features { scene, out, extractor } => {
+            let cfg = extractor.config()?;
+            let s = Scene::load(&scene)?;
+            let summary = scone::export::export_scene(&s, &cfg, extractor.k, &ImageLimits::default(), &out)?;
+            println!("{}", serde_json::to_string_pretty(&summary)?);
+        }
+    }
+    Ok(())
+}
