@@ -79,32 +79,130 @@ pub fn relative_geometry(centre: &Keypoint, neighbour: &Keypoint) -> [f32; GEOME
     ]
 }
 
-/// Builds the constellation of every keypoint (exact k-nearest neighbours in pixel distance).
+/// A uniform grid over keypoint positions for exact k-nearest-neighbour search.
+struct Grid {
+    x0: f32,
+    y0: f32,
+    cell: f32,
+    cols: i64,
+    rows: i64,
+    /// Keypoint indices sorted by cell; `starts[c]..starts[c + 1]` are the members of cell `c`.
+    order: Vec<u32>,
+    starts: Vec<u32>,
+}
+
+impl Grid {
+    /// Cells sized so that one holds about `per_cell` keypoints on average.
+    fn new(keypoints: &[Keypoint], per_cell: f32) -> Self {
+        let (mut x0, mut y0, mut x1, mut y1) = (f32::MAX, f32::MAX, f32::MIN, f32::MIN);
+        for p in keypoints {
+            x0 = x0.min(p.x);
+            y0 = y0.min(p.y);
+            x1 = x1.max(p.x);
+            y1 = y1.max(p.y);
+        }
+        let area = ((x1 - x0).max(1.0)) * ((y1 - y0).max(1.0));
+        let cell = (area * per_cell / keypoints.len().max(1) as f32).sqrt().max(1.0);
+        let cols = ((x1 - x0) / cell) as i64 + 1;
+        let rows = ((y1 - y0) / cell) as i64 + 1;
+        let mut grid = Self { x0, y0, cell, cols, rows, order: Vec::new(), starts: Vec::new() };
+        let cell_of: Vec<u32> = keypoints.iter().map(|p| grid.cell_index(p) as u32).collect();
+        let mut counts = vec![0u32; (cols * rows) as usize + 1];
+        for &c in &cell_of {
+            counts[c as usize + 1] += 1;
+        }
+        for i in 1..counts.len() {
+            counts[i] += counts[i - 1];
+        }
+        let mut fill = counts.clone();
+        let mut order = vec![0u32; keypoints.len()];
+        for (i, &c) in cell_of.iter().enumerate() {
+            order[fill[c as usize] as usize] = i as u32;
+            fill[c as usize] += 1;
+        }
+        grid.order = order;
+        grid.starts = counts;
+        grid
+    }
+
+    fn coords(&self, p: &Keypoint) -> (i64, i64) {
+        (((p.x - self.x0) / self.cell) as i64, ((p.y - self.y0) / self.cell) as i64)
+    }
+
+    fn cell_index(&self, p: &Keypoint) -> i64 {
+        let (cx, cy) = self.coords(p);
+        cy * self.cols + cx
+    }
+
+    /// Members of cell (cx, cy), empty outside the grid.
+    fn members(&self, cx: i64, cy: i64) -> &[u32] {
+        if cx < 0 || cy < 0 || cx >= self.cols || cy >= self.rows {
+            return &[];
+        }
+        let c = (cy * self.cols + cx) as usize;
+        &self.order[self.starts[c] as usize..self.starts[c + 1] as usize]
+    }
+
+    /// The `k` nearest keypoints to keypoint `i` (itself excluded), ordered by (distance, index), written to
+    /// `out`. Rings of cells are visited outwards until the k-th candidate is closer than any unvisited cell.
+    fn nearest(&self, keypoints: &[Keypoint], i: usize, k: usize, out: &mut Vec<(f32, u32)>) {
+        out.clear();
+        let c = &keypoints[i];
+        let (cx, cy) = self.coords(c);
+        let order = |a: &(f32, u32), b: &(f32, u32)| a.0.total_cmp(&b.0).then(a.1.cmp(&b.1));
+        let max_ring = self.cols.max(self.rows);
+        for r in 0..=max_ring {
+            for gy in cy - r..=cy + r {
+                for gx in cx - r..=cx + r {
+                    if (gy - cy).abs() != r && (gx - cx).abs() != r {
+                        continue;
+                    }
+                    for &j in self.members(gx, gy) {
+                        if j as usize != i {
+                            let p = &keypoints[j as usize];
+                            let (dx, dy) = (p.x - c.x, p.y - c.y);
+                            out.push((dx * dx + dy * dy, j));
+                        }
+                    }
+                }
+            }
+            if out.len() >= k {
+                if out.len() > k {
+                    out.select_nth_unstable_by(k - 1, order);
+                    out.truncate(k);
+                }
+                // Every keypoint outside rings 0..=r is at least r cells away from c.
+                let reach = r as f32 * self.cell;
+                let kth = out.iter().map(|d| d.0).fold(0.0f32, f32::max);
+                if kth < reach * reach {
+                    break;
+                }
+            }
+        }
+        out.sort_unstable_by(order);
+        out.truncate(k);
+    }
+}
+
+/// Builds the constellation of every keypoint (exact k-nearest neighbours in pixel distance, found with a
+/// uniform grid: about `N·k` distance evaluations instead of `N²`).
 pub fn build(keypoints: &[Keypoint], k: usize) -> Constellations {
     let n = keypoints.len();
     let mut neighbours = Vec::with_capacity(n * k);
     let mut mask = Vec::with_capacity(n * k);
     let mut relative = Vec::with_capacity(n * k);
-    let mut dist: Vec<(f32, u32)> = Vec::with_capacity(n);
+    let grid = Grid::new(keypoints, (k as f32 / 4.0).max(1.0));
+    let mut nearest: Vec<(f32, u32)> = Vec::with_capacity(4 * k);
     for (i, c) in keypoints.iter().enumerate() {
-        dist.clear();
-        dist.extend(keypoints.iter().enumerate().filter(|&(j, _)| j != i).map(|(j, p)| {
-            let dx = p.x - c.x;
-            let dy = p.y - c.y;
-            (dx * dx + dy * dy, j as u32)
-        }));
-        let order = |a: &(f32, u32), b: &(f32, u32)| a.0.total_cmp(&b.0).then(a.1.cmp(&b.1));
-        let take = k.min(dist.len());
-        if take > 0 && take < dist.len() {
-            dist.select_nth_unstable_by(take - 1, order);
+        if k > 0 {
+            grid.nearest(keypoints, i, k, &mut nearest);
         }
-        dist[..take].sort_unstable_by(order);
-        for &(_, j) in &dist[..take] {
+        for &(_, j) in &nearest {
             neighbours.push(j);
             mask.push(1);
             relative.push(relative_geometry(c, &keypoints[j as usize]));
         }
-        for _ in take..k {
+        for _ in nearest.len()..k {
             neighbours.push(i as u32);
             mask.push(0);
             relative.push([0.0; GEOMETRY_DIM]);
@@ -155,6 +253,33 @@ mod tests {
             let far = d(nb[19]);
             let closer = (0..kps.len() as u32).filter(|&j| j != i as u32 && d(j) < far).count();
             assert!(closer <= 19, "keypoint {i}: {closer} keypoints closer than the 20th neighbour");
+        }
+    }
+
+    /// The grid search returns exactly what brute force returns, clustered and duplicated positions included.
+    #[test]
+    fn grid_search_equals_brute_force() {
+        let mut kps = keypoints(700, 5);
+        // A dense cluster, exact duplicates and a far outlier stress the ring stopping rule.
+        for i in 0..60 {
+            kps.push(Keypoint { x: 300.0 + (i % 8) as f32 * 0.5, y: 200.0 + (i / 8) as f32 * 0.5, ..kps[0] });
+        }
+        kps.push(kps[3]);
+        kps.push(kps[3]);
+        kps.push(Keypoint { x: 5000.0, y: -3000.0, ..kps[0] });
+        for k in [1, 5, 20, 40] {
+            let c = build(&kps, k);
+            for (i, p) in kps.iter().enumerate() {
+                let mut d: Vec<(f32, u32)> = kps
+                    .iter()
+                    .enumerate()
+                    .filter(|&(j, _)| j != i)
+                    .map(|(j, q)| ((q.x - p.x).powi(2) + (q.y - p.y).powi(2), j as u32))
+                    .collect();
+                d.sort_by(|a, b| a.0.total_cmp(&b.0).then(a.1.cmp(&b.1)));
+                let want: Vec<u32> = d.iter().take(k).map(|x| x.1).collect();
+                assert_eq!(c.neighbours_of(i), &want[..], "keypoint {i}, k = {k}");
+            }
         }
     }
 

@@ -254,11 +254,27 @@ fn select_spread(mut kps: Vec<(KeyPoint, f32, f32)>, budget: usize, cell: u32) -
     ranked.into_iter().take(budget).map(|(_, k)| k.0).collect()
 }
 
+thread_local! {
+    /// One FREAK per thread: OpenCV builds its sampling-pattern lookup table (64 scales x 256 orientations)
+    /// on first use, which costs more than describing an image, so the instance is kept.
+    static FREAK: std::cell::RefCell<Option<opencv::core::Ptr<xfeatures2d::FREAK>>> =
+        const { std::cell::RefCell::new(None) };
+}
+
 /// Runs FREAK on `keypoints` (it assigns orientation and drops keypoints whose pattern leaves the image).
 pub fn describe(image: &GreyImage, keypoints: &mut Vector<KeyPoint>) -> Result<Features, FeatureError> {
-    let mut freak = xfeatures2d::FREAK::create(true, true, FREAK_PATTERN_SCALE, FREAK_OCTAVES, &Vector::new())?;
     let mut desc = Mat::default();
-    freak.compute(image.mat(), keypoints, &mut desc)?;
+    FREAK.with(|cell| -> Result<(), FeatureError> {
+        let mut slot = cell.borrow_mut();
+        let freak = match slot.as_mut() {
+            Some(f) => f,
+            None => {
+                slot.insert(xfeatures2d::FREAK::create(true, true, FREAK_PATTERN_SCALE, FREAK_OCTAVES, &Vector::new())?)
+            }
+        };
+        freak.compute(image.mat(), keypoints, &mut desc)?;
+        Ok(())
+    })?;
     let n = keypoints.len();
     if n > 0 && (desc.rows() as usize != n || desc.cols() as usize != DESCRIPTOR_BYTES) {
         return Err(FeatureError::OpenCv(opencv::Error::new(
