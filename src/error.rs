@@ -35,3 +35,18 @@ pub enum SceneError {
     #[error("frame {frame}: {source}")]
     Feature { frame: String, source: FeatureError },
 }
+
+/// Errors of the embedding layer (ONNX Runtime and the model contract).
+#[derive(Debug, thiserror::Error)]
+pub enum EmbeddingError {
+    #[error("cannot load the ONNX Runtime library {path}: {reason}")]
+    Runtime { path: std::path::PathBuf, reason: String },
+    #[error("cannot load the model {path}: {reason}")]
+    Model { path: std::path::PathBuf, reason: String },
+    #[error("the model {path} does not follow the SConE input contract: {reason}")]
+    Contract { path: std::path::PathBuf, reason: String },
+    #[error("inputs do not fit the model: {reason}")]
+    Input { reason: String },
+    #[error("inference failed: {0}")]
+    Inference(String),
+}

@@ -94,6 +94,46 @@ fn write_frame(
     Ok(())
 }
 
+/// Writes one image's features and constellations to `out` in the layout above (a single frame, index 0).
+pub fn export_image(
+    name: &str,
+    features: &Features,
+    constellations: &Constellations,
+    config: &ExtractorConfig,
+    out: &Path,
+) -> Result<(), SceneError> {
+    let file = File::create(out).map_err(|source| SceneError::Io { path: out.into(), source })?;
+    let mut npz = NpzWriter::new(BufWriter::new(file));
+    write_frame(&mut npz, out, 0, features, constellations)?;
+    let meta = ExportMeta {
+        format: "scone-features",
+        version: EXPORT_FORMAT_VERSION,
+        scone_version: env!("CARGO_PKG_VERSION"),
+        scene: name,
+        extractor: config,
+        k: constellations.k,
+        frames: vec![FrameMeta {
+            index: 0,
+            stamp: "0".into(),
+            file: name.into(),
+            width: features.width,
+            height: features.height,
+            keypoints: features.len(),
+        }],
+    };
+    finish(npz, out, &meta)?;
+    Ok(())
+}
+
+fn finish(mut npz: NpzWriter<BufWriter<File>>, out: &Path, meta: &ExportMeta) -> Result<File, SceneError> {
+    let json = serde_json::to_vec(meta).map_err(|e| npz_err(out, e))?;
+    npz.add_array("meta_json", &Array1::from_vec(json)).map_err(|e| npz_err(out, e))?;
+    let writer = npz.finish().map_err(|e| npz_err(out, e))?;
+    let file = writer.into_inner().map_err(|e| npz_err(out, e.error()))?;
+    file.sync_all().map_err(|source| SceneError::Io { path: out.into(), source })?;
+    Ok(file)
+}
+
 /// Extracts features and constellations for every frame of `scene` and writes them to `out`.
 pub fn export_scene(
     scene: &Scene,
@@ -140,11 +180,7 @@ pub fn export_scene(
         k,
         frames,
     };
-    let json = serde_json::to_vec(&meta).map_err(|e| npz_err(out, e))?;
-    npz.add_array("meta_json", &Array1::from_vec(json)).map_err(|e| npz_err(out, e))?;
-    let writer = npz.finish().map_err(|e| npz_err(out, e))?;
-    let file = writer.into_inner().map_err(|e| npz_err(out, e.error()))?;
-    file.sync_all().map_err(|source| SceneError::Io { path: tmp.clone(), source })?;
+    finish(npz, &tmp, &meta)?;
     std::fs::rename(&tmp, out).map_err(|source| SceneError::Io { path: out.into(), source })?;
     Ok(summary)
 }

@@ -16,10 +16,11 @@
 
 pub mod constellation;
 pub mod decode;
+pub mod embedding;
 pub mod error;
 pub mod export;
 pub mod features;
 pub mod matching;
 pub mod scene;
 
-pub use error::{FeatureError, SceneError};
+pub use error::{EmbeddingError, FeatureError, SceneError};

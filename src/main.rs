@@ -21,6 +21,9 @@ enum Command {
     Extract {
         /// PNG or JPEG file.
         image: PathBuf,
+        /// Also write the features and constellations to this .npz (the export layout, one frame).
+        #[arg(long)]
+        out: Option<PathBuf>,
         #[command(flatten)]
         extractor: ExtractorArgs,
     },
@@ -87,7 +90,7 @@ fn main() -> anyhow::Result<()> {
         .init();
     let cli = Cli::parse();
     match cli.command {
-        Command::Extract { image, extractor } => {
+        Command::Extract { image, out, extractor } => {
             let cfg = extractor.config()?;
             let bytes = std::fs::read(&image).with_context(|| format!("reading {}", image.display()))?;
             let t0 = std::time::Instant::now();
@@ -110,6 +113,10 @@ fn main() -> anyhow::Result<()> {
                 "extractor": cfg,
             });
             println!("{}", serde_json::to_string_pretty(&summary)?);
+            if let Some(out) = out {
+                let name = image.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_default();
+                scone::export::export_image(&name, &f, &c, &cfg, &out)?;
+            }
         }
         Command::Features { scene, out, extractor } => {
             let cfg = extractor.config()?;

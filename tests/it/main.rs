@@ -2,4 +2,5 @@
 //! skip when the data is absent, except under `CI=true`, where missing data is a failure.
 
 mod common;
+
 mod pipeline;

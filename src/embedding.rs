@@ -1,0 +1,303 @@
+//! SConE embeddings with ONNX Runtime: one call per image (or per batch of keypoints) through `ort`.
+//!
+//! The model contract (checked when the model loads; any mismatch fails with a message naming it):
+//!
+//! | input | dtype | shape |
+//! |---|---|---|
+//! | `descriptors` | uint8 | [N, 64] FREAK bytes |
+//! | `keypoints` | float32 | [N, 2] central angle (degrees), size (pixels) |
+//! | `neighbours` | int64 | [N, k] |
+//! | `mask` | float32 | [N, k] |
+//! | `relative` | float32 | [N, k, 4] |
+//!
+//! Output `embeddings`, float32 [N, D] (D = 48 for the shipped model), L2-normalised. All normalisation of the
+//! raw values happens inside the graph.
+//!
+//! Concurrency: `Session::run` needs exclusive access, so the embedder owns a small pool of sessions, one per
+//! CPU worker of the service, each with its own intra-op thread count. Workers take a free session without
+//! waiting when one exists; otherwise they wait for one. Sessions x intra-op threads should not exceed the
+//! cores (default: as many sessions as workers, one thread each).
+
+use std::path::{Path, PathBuf};
+use std::sync::OnceLock;
+
+use ort::session::builder::GraphOptimizationLevel;
+use ort::session::Session;
+use ort::value::{Tensor, TensorElementType, ValueType};
+use parking_lot::Mutex;
+use serde::{Deserialize, Serialize};
+use sha2::{Digest, Sha256};
+
+use crate::constellation::{Constellations, GEOMETRY_DIM};
+use crate::error::EmbeddingError;
+use crate::features::{Features, DESCRIPTOR_BYTES};
+
+/// Settings of the embedding runtime.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct EmbedderConfig {
+    /// ONNX model file.
+    pub model: PathBuf,
+    /// ONNX Runtime shared library (`libonnxruntime.so`).
+    pub runtime_library: PathBuf,
+    /// Sessions in the pool (concurrent inferences).
+    pub sessions: usize,
+    /// Intra-op threads per session.
+    pub intra_threads: usize,
+}
+
+impl Default for EmbedderConfig {
+    fn default() -> Self {
+        Self {
+            model: default_model_path(),
+            runtime_library: PathBuf::from(env!("SCONE_DEFAULT_ORT_LIB")),
+            sessions: 1,
+            intra_threads: 2,
+        }
+    }
+}
+
+/// The committed model, next to the sources.
+pub fn default_model_path() -> PathBuf {
+    PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("models/scone-freak-k20.onnx")
+}
+
+static ENVIRONMENT: OnceLock<Result<ort::environment::Environment, String>> = OnceLock::new();
+
+fn environment(lib: &Path) -> Result<&'static ort::environment::Environment, EmbeddingError> {
+    ENVIRONMENT
+        .get_or_init(|| {
+            let builder = ort::init_from(lib).map_err(|e| e.to_string())?;
+            builder.with_name("scone").build().map_err(|e| e.to_string())
+        })
+        .as_ref()
+        .map_err(|reason| EmbeddingError::Runtime { path: lib.to_path_buf(), reason: reason.clone() })
+}
+
+/// Loaded model with a pool of sessions.
+pub struct Embedder {
+    sessions: Vec<Mutex<Session>>,
+    k: usize,
+    dim: usize,
+    model_id: String,
+    path: PathBuf,
+}
+
+impl std::fmt::Debug for Embedder {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("Embedder")
+            .field("path", &self.path)
+            .field("model_id", &self.model_id)
+            .field("k", &self.k)
+            .field("dim", &self.dim)
+            .field("sessions", &self.sessions.len())
+            .finish()
+    }
+}
+
+/// Dimensions of a tensor outlet, or a contract error naming it.
+fn tensor_spec(path: &Path, name: &str, ty: &ValueType) -> Result<(TensorElementType, Vec<i64>), EmbeddingError> {
+    match ty {
+        ValueType::Tensor { ty, shape, .. } => Ok((*ty, shape.iter().copied().collect())),
+        other => {
+            Err(EmbeddingError::Contract { path: path.into(), reason: format!("{name} is {other:?}, not a tensor") })
+        }
+    }
+}
+
+/// Checks names, element types and static dimensions; returns (k, embedding dimension).
+fn check_contract(path: &Path, session: &Session) -> Result<(usize, usize), EmbeddingError> {
+    let err = |reason: String| EmbeddingError::Contract { path: path.into(), reason };
+    let inputs: Vec<(String, TensorElementType, Vec<i64>)> = session
+        .inputs()
+        .iter()
+        .map(|o| tensor_spec(path, o.name(), o.dtype()).map(|(t, s)| (o.name().to_string(), t, s)))
+        .collect::<Result<_, _>>()?;
+    let find = |name: &str| {
+        inputs.iter().find(|i| i.0 == name).ok_or_else(|| {
+            err(format!("missing input '{name}' (inputs: {:?})", inputs.iter().map(|i| &i.0).collect::<Vec<_>>()))
+        })
+    };
+    let expect = |name: &str, ty: TensorElementType, rank: usize| -> Result<Vec<i64>, EmbeddingError> {
+        let (_, t, s) = find(name)?;
+        if *t != ty {
+            return Err(err(format!("input '{name}' has element type {t:?}, expected {ty:?}")));
+        }
+        if s.len() != rank {
+            return Err(err(format!("input '{name}' has rank {} ({s:?}), expected {rank}", s.len())));
+        }
+        Ok(s.clone())
+    };
+    let fixed = |name: &str, s: &[i64], axis: usize, want: i64| -> Result<(), EmbeddingError> {
+        if s[axis] != want {
+            return Err(err(format!("input '{name}' has dimension {axis} = {}, expected {want}", s[axis])));
+        }
+        Ok(())
+    };
+    if inputs.len() != 5 {
+        return Err(err(format!("expected 5 inputs, found {}", inputs.len())));
+    }
+    let d = expect("descriptors", TensorElementType::Uint8, 2)?;
+    fixed("descriptors", &d, 1, DESCRIPTOR_BYTES as i64)?;
+    let kp = expect("keypoints", TensorElementType::Float32, 2)?;
+    fixed("keypoints", &kp, 1, 2)?;
+    let nb = expect("neighbours", TensorElementType::Int64, 2)?;
+    if nb[1] < 1 {
+        return Err(err(format!("input 'neighbours' needs a static k, found {}", nb[1])));
+    }
+    let k = nb[1];
+    let m = expect("mask", TensorElementType::Float32, 2)?;
+    fixed("mask", &m, 1, k)?;
+    let rel = expect("relative", TensorElementType::Float32, 3)?;
+    fixed("relative", &rel, 1, k)?;
+    fixed("relative", &rel, 2, GEOMETRY_DIM as i64)?;
+    let out = session.outputs();
+    if out.len() != 1 || out[0].name() != "embeddings" {
+        return Err(err(format!(
+            "expected one output 'embeddings', found {:?}",
+            out.iter().map(|o| o.name()).collect::<Vec<_>>()
+        )));
+    }
+    let (ty, shape) = tensor_spec(path, "embeddings", out[0].dtype())?;
+    if ty != TensorElementType::Float32 || shape.len() != 2 || shape[1] < 1 {
+        return Err(err(format!("output 'embeddings' is {ty:?} {shape:?}, expected float32 [N, D]")));
+    }
+    Ok((k as usize, shape[1] as usize))
+}
+
+impl Embedder {
+    /// Loads the runtime and the model, checks the contract and runs one warm-up inference per session.
+    pub fn load(config: &EmbedderConfig) -> Result<Self, EmbeddingError> {
+        let path = config.model.clone();
+        let bytes =
+            std::fs::read(&path).map_err(|e| EmbeddingError::Model { path: path.clone(), reason: e.to_string() })?;
+        let model_id = format!("sha256:{:x}", Sha256::digest(&bytes));
+        let env = environment(&config.runtime_library)?;
+        let model_err = |e: ort::Error| EmbeddingError::Model { path: path.clone(), reason: e.to_string() };
+        let mut sessions = Vec::new();
+        let mut dims = None;
+        for _ in 0..config.sessions.max(1) {
+            let session = Session::builder(env)
+                .map_err(model_err)?
+                .with_optimization_level(GraphOptimizationLevel::Level3)
+                .map_err(|e| model_err(e.into()))?
+                .with_intra_threads(config.intra_threads.max(1))
+                .map_err(|e| model_err(e.into()))?
+                .with_inter_threads(1)
+                .map_err(|e| model_err(e.into()))?
+                .commit_from_memory(&bytes)
+                .map_err(model_err)?;
+            dims = Some(check_contract(&path, &session)?);
+            sessions.push(Mutex::new(session));
+        }
+        let (k, dim) = dims.expect("at least one session");
+        let embedder = Self { sessions, k, dim, model_id, path };
+        embedder.warm_up()?;
+        Ok(embedder)
+    }
+
+    fn warm_up(&self) -> Result<(), EmbeddingError> {
+        let n = 64usize;
+        let features = Features {
+            width: 640,
+            height: 480,
+            keypoints: (0..n)
+                .map(|i| crate::features::Keypoint {
+                    x: 10.0 + (i % 8) as f32 * 20.0,
+                    y: 10.0 + (i / 8) as f32 * 20.0,
+                    size: 7.0,
+                    angle: (i * 37 % 360) as f32,
+                    response: 1.0,
+                    octave: 0,
+                })
+                .collect(),
+            descriptors: (0..n).map(|i| [i as u8; DESCRIPTOR_BYTES]).collect(),
+        };
+        let c = crate::constellation::build(&features.keypoints, self.k);
+        for s in &self.sessions {
+            let mut session = s.lock();
+            run(&mut session, &features, &c, self.dim)?;
+        }
+        Ok(())
+    }
+
+    /// Constellation size the model was exported for.
+    pub fn k(&self) -> usize {
+        self.k
+    }
+
+    /// Embedding dimension.
+    pub fn dim(&self) -> usize {
+        self.dim
+    }
+
+    /// `sha256:<hex>` of the model file: maps record it, and refuse queries embedded by another model.
+    pub fn model_id(&self) -> &str {
+        &self.model_id
+    }
+
+    pub fn path(&self) -> &Path {
+        &self.path
+    }
+
+    /// Embeddings of every keypoint, row-major `[N, dim]`.
+    pub fn embed(&self, features: &Features, constellations: &Constellations) -> Result<Vec<f32>, EmbeddingError> {
+        if constellations.k != self.k {
+            return Err(EmbeddingError::Input {
+                reason: format!("constellations have k = {}, the model expects {}", constellations.k, self.k),
+            });
+        }
+        if constellations.len() != features.len() {
+            return Err(EmbeddingError::Input {
+                reason: format!("{} constellations for {} keypoints", constellations.len(), features.len()),
+            });
+        }
+        if features.is_empty() {
+            return Ok(Vec::new());
+        }
+        // Prefer an idle session; otherwise wait for the one this thread hashes to.
+        for s in &self.sessions {
+            if let Some(mut session) = s.try_lock() {
+                return run(&mut session, features, constellations, self.dim);
+            }
+        }
+        let slot = thread_slot() % self.sessions.len();
+        let mut session = self.sessions[slot].lock();
+        run(&mut session, features, constellations, self.dim)
+    }
+}
+
+fn thread_slot() -> usize {
+    use std::hash::{Hash, Hasher};
+    let mut h = std::collections::hash_map::DefaultHasher::new();
+    std::thread::current().id().hash(&mut h);
+    h.finish() as usize
+}
+
+fn run(session: &mut Session, f: &Features, c: &Constellations, dim: usize) -> Result<Vec<f32>, EmbeddingError> {
+    let n = f.len();
+    let k = c.k;
+    let inference = |e: ort::Error| EmbeddingError::Inference(e.to_string());
+    let descriptors =
+        Tensor::from_array(([n, DESCRIPTOR_BYTES], f.descriptors.as_flattened().to_vec())).map_err(inference)?;
+    let keypoints: Vec<f32> = f.keypoints.iter().flat_map(|p| [p.angle, p.size]).collect();
+    let keypoints = Tensor::from_array(([n, 2], keypoints)).map_err(inference)?;
+    let neighbours =
+        Tensor::from_array(([n, k], c.neighbours.iter().map(|&j| j as i64).collect::<Vec<_>>())).map_err(inference)?;
+    let mask = Tensor::from_array(([n, k], c.mask.iter().map(|&m| m as f32).collect::<Vec<_>>())).map_err(inference)?;
+    let relative = Tensor::from_array(([n, k, GEOMETRY_DIM], c.relative.as_flattened().to_vec())).map_err(inference)?;
+    let outputs = session
+        .run(ort::inputs![
+            "descriptors" => descriptors,
+            "keypoints" => keypoints,
+            "neighbours" => neighbours,
+            "mask" => mask,
+            "relative" => relative,
+        ])
+        .map_err(inference)?;
+    let (shape, data) = outputs["embeddings"].try_extract_tensor::<f32>().map_err(inference)?;
+    if shape.len() != 2 || shape[0] as usize != n || shape[1] as usize != dim {
+        return Err(EmbeddingError::Inference(format!("output shape {shape:?}, expected [{n}, {dim}]")));
+    }
+    Ok(data.to_vec())
+}

@@ -1,0 +1,119 @@
+"""Training units (a sequence or a part of a scene) with features from the Rust export and geometric landmarks,
+and the sampler of similar/dissimilar constellation pairs."""
+
+from __future__ import annotations
+
+import hashlib
+import json
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from . import correspondences as C
+from .data import FrameFeatures, Scene, export_features, load_features, load_scene
+
+
+@dataclass
+class Unit:
+    name: str
+    frames: list[FrameFeatures]
+    ids: list[np.ndarray]  # landmark id per keypoint, -1 none
+
+    def observations(self) -> int:
+        return int(sum((i >= 0).sum() for i in self.ids))
+
+
+def subset(scene: Scene, frames: list[FrameFeatures], keep: list[int]) -> tuple[Scene, list[FrameFeatures]]:
+    s = Scene(
+        scene.root,
+        scene.name,
+        scene.K,
+        scene.width,
+        scene.height,
+        [scene.stamps[k] for k in keep],
+        [scene.rgb[k] for k in keep],
+        [scene.T_wc[k] for k in keep],
+        [scene.depth[k] for k in keep],
+    )
+    return s, [frames[k] for k in keep]
+
+
+def build_unit(
+    scene_dir: Path,
+    cache: Path,
+    keep: list[int] | None = None,
+    params: C.GeometryParams | None = None,
+    name: str | None = None,
+) -> Unit:
+    """Features (Rust export, cached) + landmarks (cached by a key of the inputs) for one scene or a part."""
+    scene_dir = Path(scene_dir)
+    cache.mkdir(parents=True, exist_ok=True)
+    npz = export_features(scene_dir, cache / f"{scene_dir.name}.features.npz")
+    scene = load_scene(scene_dir)
+    _, frames = load_features(npz)
+    if keep is not None:
+        scene, frames = subset(scene, frames, keep)
+    p = params or C.GeometryParams()
+    key = hashlib.sha256(
+        json.dumps([str(npz), npz.stat().st_mtime, keep, p.__dict__], sort_keys=True).encode()
+    ).hexdigest()[:16]
+    lm_path = cache / f"{scene_dir.name}.{key}.landmarks.npz"
+    if lm_path.exists():
+        z = np.load(lm_path)
+        ids = [z[f"f{k}"] for k in range(len(frames))]
+    else:
+        ids = C.landmarks(scene, frames, p)
+        np.savez(lm_path, **{f"f{k}": v for k, v in enumerate(ids)})
+    return Unit(name or scene_dir.name, frames, ids)
+
+
+@dataclass
+class PairBatch:
+    """One frame pair: anchors in frame a, their positives in frame b, and a pool of other keypoints of b."""
+
+    fa: FrameFeatures
+    fb: FrameFeatures
+    anchors: np.ndarray
+    positives: np.ndarray
+    pool: np.ndarray
+    anchor_ids: np.ndarray
+    pool_ids: np.ndarray
+
+
+class PairSampler:
+    """Draws frame pairs (weighted by their shared landmarks) and, per pair, anchors with their positives."""
+
+    def __init__(self, units: list[Unit], anchors: int, pool: int, seed: int, min_shared: int = 8):
+        self.anchors = anchors
+        self.pool = pool
+        self.rng = np.random.default_rng(seed)
+        self.pairs: list[tuple[Unit, int, int]] = []
+        weights = []
+        for u in units:
+            for a in range(len(u.frames)):
+                ids_a = np.unique(u.ids[a][u.ids[a] >= 0])
+                for b in range(len(u.frames)):
+                    if a == b:
+                        continue
+                    shared = len(np.intersect1d(ids_a, u.ids[b], assume_unique=False))
+                    if shared >= min_shared:
+                        self.pairs.append((u, a, b))
+                        weights.append(min(shared, anchors))
+        if not self.pairs:
+            raise RuntimeError("no frame pair with enough shared landmarks")
+        w = np.asarray(weights, dtype=np.float64)
+        self.weights = w / w.sum()
+
+    def sample(self) -> PairBatch:
+        u, a, b = self.pairs[self.rng.choice(len(self.pairs), p=self.weights)]
+        ida, idb = u.ids[a], u.ids[b]
+        shared, ia, ib = np.intersect1d(ida, idb, return_indices=True)
+        keep = shared >= 0
+        shared, ia, ib = shared[keep], ia[keep], ib[keep]
+        if len(shared) > self.anchors:
+            pick = self.rng.choice(len(shared), self.anchors, replace=False)
+            shared, ia, ib = shared[pick], ia[pick], ib[pick]
+        nb = len(u.frames[b])
+        pool = self.rng.choice(nb, min(self.pool, nb), replace=False)
+        return PairBatch(u.frames[a], u.frames[b], ia, ib, pool, shared, idb[pool])

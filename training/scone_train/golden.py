@@ -1,0 +1,51 @@
+"""Golden fixture for the Rust parity test: features the Rust code extracts from a committed real image, and
+the embeddings Python onnxruntime computes for exactly those features with the committed model.
+
+`python -m scone_train.golden [--model ../models/scone-freak-k20.onnx] [--image ../tests/fixtures/astronaut.jpg]`
+writes `tests/fixtures/golden/<image>.features.npz` (the export layout) and `<image>.embeddings.npy`, plus
+`golden.json` with the model's sha256. The Rust test re-extracts the image and requires identical features,
+then runs the model through `ort` and requires max |difference| <= 1e-4.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import subprocess
+from pathlib import Path
+
+import numpy as np
+
+from .data import REPO, load_features, scone_binary
+from .export import run_onnx, session, sha256
+
+
+def make_golden(model: Path, image: Path, out_dir: Path) -> dict:
+    out_dir.mkdir(parents=True, exist_ok=True)
+    stem = image.stem
+    feats_path = out_dir / f"{stem}.features.npz"
+    subprocess.run(
+        [str(scone_binary()), "extract", str(image), "--out", str(feats_path), "--opencv-threads", "1"],
+        check=True,
+        stdout=subprocess.DEVNULL,
+    )
+    _, frames = load_features(feats_path)
+    f = frames[0]
+    emb = run_onnx(session(model, threads=1), f.descriptors, f.keypoints[:, [3, 2]], f.neighbours, f.mask, f.relative)
+    np.save(out_dir / f"{stem}.embeddings.npy", emb.astype(np.float32))
+    info = {"image": image.name, "model": model.name, "model_sha256": sha256(model), "keypoints": int(len(f)), "dim": int(emb.shape[1])}
+    (out_dir / "golden.json").write_text(json.dumps(info, indent=2) + "\n")
+    return info
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--model", default=str(REPO / "models" / "scone-freak-k20.onnx"))
+    ap.add_argument("--image", default=str(REPO / "tests" / "fixtures" / "astronaut.jpg"))
+    ap.add_argument("--out", default=str(REPO / "tests" / "fixtures" / "golden"))
+    a = ap.parse_args()
+    print(json.dumps(make_golden(Path(a.model), Path(a.image), Path(a.out)), indent=2))
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,105 @@
+"""The SConE network (paper's Table 1), written as the one-pass graph that is exported.
+
+Inputs are those of a whole image, as the Rust service builds them (`src/constellation.rs`):
+
+| name | dtype | shape | meaning |
+|---|---|---|---|
+| descriptors | uint8 | [N, 64] | FREAK bits, bit i in byte i // 8 at position i % 8 (LSB first) |
+| keypoints | float32 | [N, 2] | central orientation (degrees) and size (pixels) |
+| neighbours | int64 | [N, k] | constellation member indices, nearest first (padding = own index) |
+| mask | float32 | [N, k] | 1 real neighbour, 0 padding |
+| relative | float32 | [N, k, 4] | u, v (in central sizes), dθ (rad), ln size ratio |
+
+Output `embeddings` float32 [N, 48], L2-normalised.
+
+Every normalisation happens in here, so the Rust side passes raw values and cannot drift from training:
+bits become ±1; angles become (sin, cos); u, v are divided by `UV_SCALE`; sizes become pyramid levels
+(log base 1.2 of size / 7). The descriptor MLP runs once per keypoint and neighbours are gathered by index
+(not embedded 21 times per keypoint). SELU follows every hidden fully connected layer; the last layer of
+each block is linear (the head's output is L2-normalised, the neighbourhood block feeds the head).
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+UV_SCALE = 8.0
+LEVEL_LOG = math.log(1.2)
+FAST_SIZE = 7.0
+
+
+def mlp(sizes: list[int], last_activation: bool) -> nn.Sequential:
+    layers: list[nn.Module] = []
+    for i, (a, b) in enumerate(zip(sizes[:-1], sizes[1:])):
+        lin = nn.Linear(a, b)
+        # LeCun normal initialisation, as SELU's self-normalising property assumes.
+        nn.init.normal_(lin.weight, std=1.0 / math.sqrt(a))
+        nn.init.zeros_(lin.bias)
+        layers.append(lin)
+        if i < len(sizes) - 2 or last_activation:
+            layers.append(nn.SELU())
+    return nn.Sequential(*layers)
+
+
+def unpack_bits(descriptors: torch.Tensor) -> torch.Tensor:
+    """uint8 [N, 64] -> float [N, 512] of ±1, bit order LSB first (integer ops only: exact in ONNX)."""
+    x = descriptors.to(torch.int32).unsqueeze(-1)
+    powers = torch.tensor([1, 2, 4, 8, 16, 32, 64, 128], dtype=torch.int32, device=descriptors.device)
+    bits = torch.remainder(torch.div(x, powers, rounding_mode="floor"), 2)
+    return bits.reshape(descriptors.shape[0], 512).to(torch.float32) * 2.0 - 1.0
+
+
+class SconeNet(nn.Module):
+    def __init__(self, k: int = 20, embed_dim: int = 48, desc_dim: int = 32, lstm_hidden: int = 32, use_neighbours: bool = True):
+        super().__init__()
+        self.k = k
+        self.use_neighbours = use_neighbours
+        self.desc_mlp = mlp([512, 512, 256, desc_dim], last_activation=True)
+        geo_dim = 5  # u, v, sin dθ, cos dθ, Δlevel
+        self.lstm = nn.LSTM(desc_dim + geo_dim, lstm_hidden, num_layers=2, bidirectional=True, batch_first=True)
+        self.neigh_mlp = mlp([2 * lstm_hidden, 64, 64, 32], last_activation=True)
+        self.head = mlp([32 + desc_dim + 3, 64, 64, embed_dim], last_activation=False)
+
+    def embed_descriptors(self, descriptors: torch.Tensor) -> torch.Tensor:
+        return self.desc_mlp(unpack_bits(descriptors))
+
+    def forward(
+        self,
+        descriptors: torch.Tensor,
+        keypoints: torch.Tensor,
+        neighbours: torch.Tensor,
+        mask: torch.Tensor,
+        relative: torch.Tensor,
+    ) -> torch.Tensor:
+        d = self.embed_descriptors(descriptors)
+        return self.embed_from(d, keypoints, neighbours, mask, relative)
+
+    def embed_from(self, d, keypoints, neighbours, mask, relative, rows: torch.Tensor | None = None) -> torch.Tensor:
+        """Embeddings of keypoints `rows` (all when None), given every keypoint's descriptor embedding `d`."""
+        if rows is not None:
+            keypoints, neighbours, mask, relative = keypoints[rows], neighbours[rows], mask[rows], relative[rows]
+            central = d[rows]
+        else:
+            central = d
+        angle = keypoints[:, 0:1] * (math.pi / 180.0)
+        level = torch.log(keypoints[:, 1:2] / FAST_SIZE) / LEVEL_LOG
+        central_geo = torch.cat([torch.sin(angle), torch.cos(angle), level / 5.0], dim=1)
+        m = mask.unsqueeze(-1)
+        if self.use_neighbours:
+            nd = d[neighbours]  # gather: [n, k, desc_dim]
+            rel = relative
+            geo = torch.cat(
+                [rel[..., 0:2] / UV_SCALE, torch.sin(rel[..., 2:3]), torch.cos(rel[..., 2:3]), rel[..., 3:4] / LEVEL_LOG / 5.0],
+                dim=-1,
+            )
+            seq = torch.cat([nd, geo], dim=-1) * m
+            _, (h, _) = self.lstm(seq)
+            neigh = self.neigh_mlp(torch.cat([h[-2], h[-1]], dim=-1))
+        else:
+            neigh = torch.zeros(central.shape[0], 32, dtype=central.dtype, device=central.device)
+        out = self.head(torch.cat([neigh, central, central_geo], dim=-1))
+        return F.normalize(out, dim=-1)
