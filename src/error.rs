@@ -50,3 +50,14 @@ pub enum EmbeddingError {
     #[error("inference failed: {0}")]
     Inference(String),
 }
+
+/// Errors of pose estimation.
+#[derive(Debug, thiserror::Error)]
+pub enum PoseError {
+    #[error("invalid intrinsics: {reason}")]
+    Intrinsics { reason: String },
+    #[error("{what} has {got} points, {other} has {expected}")]
+    Mismatch { what: &'static str, got: usize, other: &'static str, expected: usize },
+    #[error("OpenCV failed: {0}")]
+    OpenCv(#[from] opencv::Error),
+}

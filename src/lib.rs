@@ -18,9 +18,11 @@ pub mod constellation;
 pub mod decode;
 pub mod embedding;
 pub mod error;
+pub mod eval;
 pub mod export;
 pub mod features;
 pub mod matching;
+pub mod pose;
 pub mod scene;
 
-pub use error::{EmbeddingError, FeatureError, SceneError};
+pub use error::{EmbeddingError, FeatureError, PoseError, SceneError};

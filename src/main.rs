@@ -6,6 +6,9 @@ use clap::{Args, Parser, Subcommand};
 use scone::constellation::{self, DEFAULT_K};
 use scone::decode::{decode_grey, ImageLimits};
 use scone::features::{self, ExtractorConfig};
+use scone::embedding::{Embedder, EmbedderConfig};
+use scone::eval::methods::Method;
+use scone::eval::pairs::{self, PairsConfig};
 use scone::scene::Scene;
 
 #[derive(Parser)]
@@ -27,6 +30,9 @@ enum Command {
         #[command(flatten)]
         extractor: ExtractorArgs,
     },
+    /// Evaluate on a real scene (the paper's protocol).
+    #[command(subcommand)]
+    Eval(EvalCommand),
     /// Export a scene's features and constellations to an .npz file for training.
     Features {
         /// Scene directory in the TUM RGB-D layout.
@@ -35,6 +41,51 @@ enum Command {
         /// Output .npz file.
         #[arg(long)]
         out: PathBuf,
+        #[command(flatten)]
+        extractor: ExtractorArgs,
+    },
+}
+
+#[derive(Subcommand)]
+enum EvalCommand {
+    /// Relative pose between the first frame of each window and every later frame, per method.
+    Pairs {
+        /// Scene directory in the TUM RGB-D layout.
+        #[arg(long)]
+        scene: PathBuf,
+        /// Methods to compare.
+        #[arg(long, value_delimiter = ',', default_value = "scone,freak,freak-gms,orb,sift")]
+        methods: Vec<Method>,
+        /// Frames per window; the first is the reference.
+        #[arg(long, default_value_t = 100)]
+        window: usize,
+        /// RANSAC seeds to average over.
+        #[arg(long, default_value_t = 5)]
+        seeds: u64,
+        /// Ratio-test threshold.
+        #[arg(long, default_value_t = 0.8)]
+        ratio: f32,
+        /// Keep only mutual nearest neighbours.
+        #[arg(long)]
+        mutual: bool,
+        /// RANSAC inlier threshold in pixels.
+        #[arg(long, default_value_t = 1.0)]
+        ransac_px: f64,
+        /// Match precision: a match with depth at the reference keypoint is correct within this many pixels.
+        #[arg(long, default_value_t = 4.0)]
+        depth_px: f64,
+        /// Match precision without depth: symmetric epipolar distance threshold in pixels.
+        #[arg(long, default_value_t = 2.0)]
+        epipolar_px: f64,
+        /// Use OpenCV's single-scale FAST (threshold 20, 2,000 strongest), as the data README's baselines.
+        #[arg(long)]
+        single_scale: bool,
+        /// SConE model.
+        #[arg(long)]
+        model: Option<PathBuf>,
+        /// Write the full report (every pair) as JSON.
+        #[arg(long)]
+        json: Option<PathBuf>,
         #[command(flatten)]
         extractor: ExtractorArgs,
     },
@@ -116,6 +167,53 @@ fn main() -> anyhow::Result<()> {
             if let Some(out) = out {
                 let name = image.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_default();
                 scone::export::export_image(&name, &f, &c, &cfg, &out)?;
+            }
+        }
+        Command::Eval(EvalCommand::Pairs {
+            scene,
+            methods,
+            window,
+            seeds,
+            ratio,
+            mutual,
+            ransac_px,
+            depth_px,
+            epipolar_px,
+            single_scale,
+            model,
+            json,
+            extractor,
+        }) => {
+            let mut cfg = extractor.config()?;
+            if single_scale {
+                cfg = ExtractorConfig::single_scale(20, 2000);
+            }
+            let s = Scene::load(&scene)?;
+            let embedder = if methods.contains(&Method::Scone) {
+                let mut ec = EmbedderConfig::default();
+                if let Some(m) = model {
+                    ec.model = m;
+                }
+                Some(Embedder::load(&ec)?)
+            } else {
+                None
+            };
+            let pc = PairsConfig {
+                methods,
+                window,
+                seeds,
+                ratio,
+                mutual,
+                ransac: scone::pose::RansacParams { threshold_px: ransac_px, ..Default::default() },
+                extractor: cfg,
+                depth_px,
+                epipolar_px,
+            };
+            let report = pairs::evaluate(&s, &pc, embedder.as_ref()).map_err(|e| anyhow::anyhow!("{e}"))?;
+            print!("{}", pairs::markdown(&report));
+            if let Some(path) = json {
+                std::fs::write(&path, serde_json::to_vec_pretty(&report)?)
+                    .with_context(|| format!("writing {}", path.display()))?;
             }
         }
         Command::Features { scene, out, extractor } => {

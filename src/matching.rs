@@ -1,6 +1,6 @@
 //! Descriptor matching: nearest neighbour with Lowe's ratio test and an optional mutual check.
 
-use opencv::core::{DMatch, Mat, Vector, NORM_HAMMING};
+use opencv::core::{DMatch, Mat, Vector, NORM_HAMMING, NORM_L2};
 use opencv::features2d::BFMatcher;
 use opencv::prelude::*;
 
@@ -15,26 +15,22 @@ pub struct Match {
     pub distance: f32,
 }
 
-/// FREAK matching by exact Hamming distance (OpenCV's brute-force matcher): for each descriptor of `a` its two
-/// nearest in `b`; kept when `best < ratio * second`. With `mutual`, `b`'s nearest in `a` must be the query too.
-pub fn match_hamming(a: &Features, b: &Features, ratio: f32, mutual: bool) -> Result<Vec<Match>, FeatureError> {
-    if a.is_empty() || b.len() < 2 {
+/// Nearest neighbours of `a`'s rows in `b` with OpenCV's brute-force matcher, ratio test and optional mutual check.
+pub fn match_descriptors(a: &Mat, b: &Mat, norm: i32, ratio: f32, mutual: bool) -> Result<Vec<Match>, FeatureError> {
+    if a.rows() < 1 || b.rows() < 2 {
         return Ok(Vec::new());
     }
-    let da = a.descriptor_mat()?;
-    let db = b.descriptor_mat()?;
-    let matcher = BFMatcher::new(NORM_HAMMING, false)?;
+    let matcher = BFMatcher::new(norm, false)?;
     let mut knn = Vector::<Vector<DMatch>>::new();
-    matcher.knn_train_match(&da, &db, &mut knn, 2, &Mat::default(), false)?;
-    let reverse = if mutual {
+    matcher.knn_train_match(a, b, &mut knn, 2, &Mat::default(), false)?;
+    let reverse: Option<Vec<i32>> = if mutual {
         let mut best = Vector::<DMatch>::new();
-        matcher.train_match(&db, &da, &mut best, &Mat::default())?;
-        Some(
-            best.iter()
-                .map(|m| m.query_idx as usize)
-                .zip(best.iter().map(|m| m.train_idx as usize))
-                .collect::<std::collections::HashMap<_, _>>(),
-        )
+        matcher.train_match(b, a, &mut best, &Mat::default())?;
+        let mut rev = vec![-1; b.rows() as usize];
+        for m in best.iter() {
+            rev[m.query_idx as usize] = m.train_idx;
+        }
+        Some(rev)
     } else {
         None
     };
@@ -47,13 +43,32 @@ pub fn match_hamming(a: &Features, b: &Features, ratio: f32, mutual: bool) -> Re
         if m0.distance >= ratio * m1.distance {
             continue;
         }
-        let (q, t) = (m0.query_idx as usize, m0.train_idx as usize);
         if let Some(rev) = &reverse {
-            if rev.get(&t) != Some(&q) {
+            if rev[m0.train_idx as usize] != m0.query_idx {
                 continue;
             }
         }
-        out.push(Match { query: q, train: t, distance: m0.distance });
+        out.push(Match { query: m0.query_idx as usize, train: m0.train_idx as usize, distance: m0.distance });
     }
     Ok(out)
+}
+
+/// Embedding rows (`[N, dim]`, row-major) as an OpenCV f32 matrix.
+pub fn embedding_mat(rows: &[f32], dim: usize) -> Result<Mat, FeatureError> {
+    if rows.is_empty() {
+        return Ok(Mat::default());
+    }
+    let m = Mat::new_rows_cols_with_data((rows.len() / dim) as i32, dim as i32, rows)?;
+    Ok(m.try_clone()?)
+}
+
+/// SConE matching: L2 nearest neighbour with ratio test (and mutual check) between two embedding sets.
+pub fn match_l2(a: &[f32], b: &[f32], dim: usize, ratio: f32, mutual: bool) -> Result<Vec<Match>, FeatureError> {
+    match_descriptors(&embedding_mat(a, dim)?, &embedding_mat(b, dim)?, NORM_L2, ratio, mutual)
+}
+
+/// FREAK matching by exact Hamming distance (OpenCV's brute-force matcher): for each descriptor of `a` its two
+/// nearest in `b`; kept when `best < ratio * second`. With `mutual`, `b`'s nearest in `a` must be the query too.
+pub fn match_hamming(a: &Features, b: &Features, ratio: f32, mutual: bool) -> Result<Vec<Match>, FeatureError> {
+    match_descriptors(&a.descriptor_mat()?, &b.descriptor_mat()?, NORM_HAMMING, ratio, mutual)
 }

@@ -1,0 +1,156 @@
+//! The description methods compared by the evaluation: SConE and the paper's baselines, each producing
+//! keypoints and descriptors that OpenCV's brute-force matcher can match.
+
+use std::time::Instant;
+
+use opencv::core::{KeyPoint, Mat, Vector, NORM_HAMMING, NORM_L2};
+use opencv::features2d::{ORB_ScoreType, ORB, SIFT};
+use opencv::prelude::*;
+use serde::{Deserialize, Serialize};
+
+use crate::constellation;
+use crate::decode::GreyImage;
+use crate::embedding::Embedder;
+use crate::error::FeatureError;
+use crate::features::{self, ExtractorConfig, Keypoint};
+use crate::matching::{embedding_mat, match_descriptors, Match};
+
+/// A description method.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Serialize, Deserialize, clap::ValueEnum)]
+#[serde(rename_all = "kebab-case")]
+pub enum Method {
+    /// SConE embeddings of the project's FAST + FREAK keypoints (L2).
+    Scone,
+    /// The same keypoints' FREAK descriptors (Hamming).
+    Freak,
+    /// FREAK nearest neighbours filtered by GMS (grid-based motion statistics) instead of the ratio test.
+    FreakGms,
+    /// OpenCV ORB, 2,000 features (Hamming).
+    Orb,
+    /// OpenCV SIFT, 2,000 features (L2).
+    Sift,
+}
+
+impl Method {
+    pub fn name(&self) -> &'static str {
+        match self {
+            Method::Scone => "SConE",
+            Method::Freak => "FREAK",
+            Method::FreakGms => "FREAK+GMS",
+            Method::Orb => "ORB",
+            Method::Sift => "SIFT",
+        }
+    }
+}
+
+/// One image described by one method.
+pub struct Described {
+    pub keypoints: Vec<Keypoint>,
+    pub descriptors: Mat,
+    pub norm: i32,
+    /// Seconds spent detecting and describing (decode excluded).
+    pub seconds: f64,
+    pub width: u32,
+    pub height: u32,
+    cv_keypoints: Vector<KeyPoint>,
+}
+
+fn cv_keypoints(kps: &[Keypoint]) -> Result<Vector<KeyPoint>, FeatureError> {
+    kps.iter()
+        .map(|k| KeyPoint::new_coords(k.x, k.y, k.size, k.angle, k.response, k.octave, -1).map_err(FeatureError::from))
+        .collect()
+}
+
+fn from_cv(kps: &Vector<KeyPoint>) -> Vec<Keypoint> {
+    kps.iter()
+        .map(|k| Keypoint {
+            x: k.pt().x,
+            y: k.pt().y,
+            size: k.size(),
+            angle: k.angle(),
+            response: k.response(),
+            octave: k.octave(),
+        })
+        .collect()
+}
+
+/// Describes an image with `method`. SConE needs the embedder.
+pub fn describe(
+    method: Method,
+    image: &GreyImage,
+    extractor: &ExtractorConfig,
+    embedder: Option<&Embedder>,
+) -> Result<Described, Box<dyn std::error::Error + Send + Sync>> {
+    let t0 = Instant::now();
+    let (keypoints, descriptors, norm) = match method {
+        Method::Freak | Method::FreakGms => {
+            let f = features::extract(image, extractor)?;
+            let d = f.descriptor_mat()?;
+            (f.keypoints, d, NORM_HAMMING)
+        }
+        Method::Scone => {
+            let embedder = embedder.ok_or("SConE needs a model (--model)")?;
+            let f = features::extract(image, extractor)?;
+            let c = constellation::build(&f.keypoints, embedder.k());
+            let e = embedder.embed(&f, &c)?;
+            (f.keypoints, embedding_mat(&e, embedder.dim())?, NORM_L2)
+        }
+        Method::Orb => {
+            let mut orb = ORB::create(2000, 1.2, 8, 31, 0, 2, ORB_ScoreType::HARRIS_SCORE, 31, 20)?;
+            let mut kps = Vector::<KeyPoint>::new();
+            let mut d = Mat::default();
+            orb.detect_and_compute(image.mat(), &Mat::default(), &mut kps, &mut d, false)?;
+            (from_cv(&kps), d, NORM_HAMMING)
+        }
+        Method::Sift => {
+            let mut sift = SIFT::create(2000, 3, 0.04, 10.0, 1.6, false)?;
+            let mut kps = Vector::<KeyPoint>::new();
+            let mut d = Mat::default();
+            sift.detect_and_compute(image.mat(), &Mat::default(), &mut kps, &mut d, false)?;
+            (from_cv(&kps), d, NORM_L2)
+        }
+    };
+    let seconds = t0.elapsed().as_secs_f64();
+    let cv = cv_keypoints(&keypoints)?;
+    Ok(Described {
+        keypoints,
+        descriptors,
+        norm,
+        seconds,
+        width: image.width(),
+        height: image.height(),
+        cv_keypoints: cv,
+    })
+}
+
+/// Putative matches of `a` to `b`: ratio test (and mutual check) for every method but FREAK+GMS, which takes
+/// every nearest neighbour and keeps those GMS supports (rotation and scale enabled, threshold factor 6).
+pub fn putative_matches(
+    method: Method,
+    a: &Described,
+    b: &Described,
+    ratio: f32,
+    mutual: bool,
+) -> Result<Vec<Match>, FeatureError> {
+    if method != Method::FreakGms {
+        return match_descriptors(&a.descriptors, &b.descriptors, a.norm, ratio, mutual);
+    }
+    let all = match_descriptors(&a.descriptors, &b.descriptors, a.norm, 1.01, false)?;
+    let dm: Vector<opencv::core::DMatch> = all
+        .iter()
+        .map(|m| opencv::core::DMatch::new(m.query as i32, m.train as i32, m.distance))
+        .collect::<Result<_, _>>()?;
+    let mut kept = Vector::<opencv::core::DMatch>::new();
+    opencv::xfeatures2d::match_gms(
+        opencv::core::Size::new(a.width as i32, a.height as i32),
+        opencv::core::Size::new(b.width as i32, b.height as i32),
+        &a.cv_keypoints,
+        &b.cv_keypoints,
+        &dm,
+        &mut kept,
+        true,
+        true,
+        6.0,
+    )?;
+    Ok(kept.iter().map(|m| Match { query: m.query_idx as usize, train: m.train_idx as usize, distance: m.distance }).collect())
+}

@@ -1,0 +1,313 @@
+//! Pose estimation with OpenCV: relative pose from an essential matrix (RANSAC + recoverPose) and absolute
+//! camera pose from 2D-3D matches (solvePnPRansac + Levenberg-Marquardt refinement on the inliers).
+//!
+//! Conventions: a relative pose `(R, t)` maps points of camera 1 into camera 2, `X2 = R X1 + t`, with `t` of
+//! unit length (the scale is unobservable); absolute poses are camera-to-world, as in the map and the scenes.
+
+use nalgebra::{Isometry3, Matrix3, Rotation3, Translation3, UnitQuaternion, Vector3};
+use opencv::core::{Mat, Point2d, Point2f, Point3f, Vector};
+use opencv::prelude::*;
+use serde::{Deserialize, Serialize};
+
+use crate::error::PoseError;
+use crate::scene::Camera;
+
+/// RANSAC settings shared by both estimators.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct RansacParams {
+    /// Inlier threshold in pixels.
+    pub threshold_px: f64,
+    pub confidence: f64,
+    pub max_iters: i32,
+}
+
+impl Default for RansacParams {
+    fn default() -> Self {
+        Self { threshold_px: 1.0, confidence: 0.999, max_iters: 1000 }
+    }
+}
+
+/// A relative pose with its RANSAC support.
+#[derive(Debug, Clone)]
+pub struct RelativePose {
+    pub rotation: Rotation3<f64>,
+    /// Unit translation direction.
+    pub translation: Vector3<f64>,
+    /// One flag per input correspondence.
+    pub inliers: Vec<bool>,
+    pub inlier_count: usize,
+}
+
+/// Iterations a RANSAC with a minimal sample of `sample` points needs to find an all-inlier sample with
+/// `confidence`, at inlier ratio `w`: `ln(1 - confidence) / ln(1 - w^sample)` (the adaptive stopping rule).
+pub fn ransac_iterations_needed(w: f64, sample: i32, confidence: f64) -> f64 {
+    if w <= 0.0 {
+        return f64::INFINITY;
+    }
+    let p = w.powi(sample);
+    if p >= 1.0 {
+        return 1.0;
+    }
+    ((1.0 - confidence).ln() / (1.0 - p).ln()).max(1.0)
+}
+
+pub fn validate_camera(cam: &Camera) -> Result<(), PoseError> {
+    let ok = [cam.fx, cam.fy, cam.cx, cam.cy].iter().all(|v| v.is_finite()) && cam.fx > 0.0 && cam.fy > 0.0;
+    if !ok || cam.width == 0 || cam.height == 0 {
+        return Err(PoseError::Intrinsics { reason: format!("{cam:?} needs finite, positive focal lengths and size") });
+    }
+    Ok(())
+}
+
+fn normalised(points: &[(f32, f32)], cam: &Camera) -> Vector<Point2d> {
+    points.iter().map(|&(x, y)| Point2d::new((x as f64 - cam.cx) / cam.fx, (y as f64 - cam.cy) / cam.fy)).collect()
+}
+
+fn mat3(m: &Mat) -> Result<Matrix3<f64>, PoseError> {
+    let mut out = Matrix3::zeros();
+    for r in 0..3 {
+        for c in 0..3 {
+            out[(r, c)] = *m.at_2d::<f64>(r as i32, c as i32)?;
+        }
+    }
+    Ok(out)
+}
+
+/// Essential matrix with RANSAC on normalised coordinates (threshold converted by the mean focal length),
+/// then recoverPose. `None` when fewer than 5 correspondences or no pose has support.
+pub fn relative_pose(
+    p1: &[(f32, f32)],
+    p2: &[(f32, f32)],
+    cam1: &Camera,
+    cam2: &Camera,
+    params: &RansacParams,
+) -> Result<Option<RelativePose>, PoseError> {
+    validate_camera(cam1)?;
+    validate_camera(cam2)?;
+    if p1.len() != p2.len() {
+        return Err(PoseError::Mismatch { what: "image 1", got: p1.len(), other: "image 2", expected: p2.len() });
+    }
+    if p1.len() < 5 {
+        return Ok(None);
+    }
+    let n1 = normalised(p1, cam1);
+    let n2 = normalised(p2, cam2);
+    let focal = (cam1.fx + cam1.fy + cam2.fx + cam2.fy) / 4.0;
+    let mut mask = Mat::default();
+    let e = opencv::calib3d::find_essential_mat_1(
+        &n1,
+        &n2,
+        1.0,
+        Point2d::new(0.0, 0.0),
+        opencv::calib3d::RANSAC,
+        params.confidence,
+        params.threshold_px / focal,
+        params.max_iters,
+        &mut mask,
+    )?;
+    if e.rows() < 3 || e.cols() != 3 {
+        return Ok(None);
+    }
+    let e3 = e.row_range(&opencv::core::Range::new(0, 3)?)?.try_clone()?;
+    let mut r = Mat::default();
+    let mut t = Mat::default();
+    let identity = Mat::eye(3, 3, opencv::core::CV_64F)?.to_mat()?;
+    let count = opencv::calib3d::recover_pose_estimated(&e3, &n1, &n2, &identity, &mut r, &mut t, &mut mask)?;
+    if count < 5 {
+        return Ok(None);
+    }
+    let rotation = Rotation3::from_matrix_unchecked(mat3(&r)?);
+    let translation = Vector3::new(*t.at_2d::<f64>(0, 0)?, *t.at_2d::<f64>(1, 0)?, *t.at_2d::<f64>(2, 0)?);
+    let inliers: Vec<bool> =
+        (0..p1.len()).map(|i| mask.at::<u8>(i as i32).map(|v| *v != 0)).collect::<Result<_, _>>()?;
+    let inlier_count = inliers.iter().filter(|&&b| b).count();
+    Ok(Some(RelativePose { rotation, translation: translation.normalize(), inliers, inlier_count }))
+}
+
+/// An absolute camera pose with its RANSAC support.
+#[derive(Debug, Clone)]
+pub struct AbsolutePose {
+    /// Camera-to-world.
+    pub camera_to_world: Isometry3<f64>,
+    pub inliers: Vec<usize>,
+    /// Mean reprojection error of the inliers after refinement, pixels.
+    pub reprojection_error: f64,
+}
+
+/// solvePnPRansac (EPnP minimal solver inside RANSAC), then Levenberg-Marquardt refinement on the inliers.
+/// `None` when fewer than `min_inliers` inliers support the pose.
+pub fn absolute_pose(
+    points3d: &[[f64; 3]],
+    points2d: &[(f32, f32)],
+    cam: &Camera,
+    params: &RansacParams,
+    min_inliers: usize,
+) -> Result<Option<AbsolutePose>, PoseError> {
+    validate_camera(cam)?;
+    if points3d.len() != points2d.len() {
+        return Err(PoseError::Mismatch {
+            what: "3D points",
+            got: points3d.len(),
+            other: "2D points",
+            expected: points2d.len(),
+        });
+    }
+    if points3d.len() < min_inliers.max(4) {
+        return Ok(None);
+    }
+    let obj: Vector<Point3f> = points3d.iter().map(|p| Point3f::new(p[0] as f32, p[1] as f32, p[2] as f32)).collect();
+    let img: Vector<Point2f> = points2d.iter().map(|&(x, y)| Point2f::new(x, y)).collect();
+    let k = Mat::from_slice_2d(&[[cam.fx, 0.0, cam.cx], [0.0, cam.fy, cam.cy], [0.0, 0.0, 1.0]])?;
+    let dist = Mat::default();
+    let mut rvec = Mat::default();
+    let mut tvec = Mat::default();
+    let mut inliers = Vector::<i32>::new();
+    let found = opencv::calib3d::solve_pnp_ransac(
+        &obj,
+        &img,
+        &k,
+        &dist,
+        &mut rvec,
+        &mut tvec,
+        false,
+        params.max_iters,
+        params.threshold_px as f32,
+        params.confidence,
+        &mut inliers,
+        opencv::calib3d::SOLVEPNP_EPNP,
+    )?;
+    if !found || inliers.len() < min_inliers {
+        return Ok(None);
+    }
+    let in_obj: Vector<Point3f> = inliers.iter().map(|i| obj.get(i as usize)).collect::<Result<_, _>>()?;
+    let in_img: Vector<Point2f> = inliers.iter().map(|i| img.get(i as usize)).collect::<Result<_, _>>()?;
+    opencv::calib3d::solve_pnp_refine_lm_def(&in_obj, &in_img, &k, &dist, &mut rvec, &mut tvec)?;
+    let mut projected = Vector::<Point2f>::new();
+    opencv::calib3d::project_points_def(&in_obj, &rvec, &tvec, &k, &dist, &mut projected)?;
+    let err =
+        projected.iter().zip(in_img.iter()).map(|(a, b)| ((a.x - b.x) as f64).hypot((a.y - b.y) as f64)).sum::<f64>()
+            / in_img.len().max(1) as f64;
+    let rv = Vector3::new(*rvec.at::<f64>(0)?, *rvec.at::<f64>(1)?, *rvec.at::<f64>(2)?);
+    let tv = Vector3::new(*tvec.at::<f64>(0)?, *tvec.at::<f64>(1)?, *tvec.at::<f64>(2)?);
+    if !rv.iter().chain(tv.iter()).all(|v| v.is_finite()) {
+        return Ok(None);
+    }
+    // OpenCV returns world-to-camera; invert to camera-to-world.
+    let world_to_camera = Isometry3::from_parts(Translation3::from(tv), UnitQuaternion::from_scaled_axis(rv));
+    Ok(Some(AbsolutePose {
+        camera_to_world: world_to_camera.inverse(),
+        inliers: inliers.iter().map(|i| i as usize).collect(),
+        reprojection_error: err,
+    }))
+}
+
+/// Angle between two rotations, degrees: acos((tr(R1ᵀ R2) − 1) / 2).
+pub fn rotation_error_deg(a: &Rotation3<f64>, b: &Rotation3<f64>) -> f64 {
+    let m = a.matrix().transpose() * b.matrix();
+    ((m.trace() - 1.0) / 2.0).clamp(-1.0, 1.0).acos().to_degrees()
+}
+
+/// Angle between two translation directions, degrees.
+pub fn translation_angle_deg(a: &Vector3<f64>, b: &Vector3<f64>) -> f64 {
+    let (na, nb) = (a.norm(), b.norm());
+    if na < 1e-12 || nb < 1e-12 {
+        return 0.0;
+    }
+    (a.dot(b) / (na * nb)).clamp(-1.0, 1.0).acos().to_degrees()
+}
+
+/// Ground-truth relative motion from camera 1 to camera 2 given camera-to-world poses: `X2 = R X1 + t`.
+pub fn relative_motion(t_w1: &Isometry3<f64>, t_w2: &Isometry3<f64>) -> Isometry3<f64> {
+    t_w2.inverse() * t_w1
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn cam() -> Camera {
+        Camera { fx: 500.0, fy: 500.0, cx: 320.0, cy: 240.0, width: 640, height: 480 }
+    }
+
+    fn project(cam: &Camera, t_cw: &Isometry3<f64>, p: &Vector3<f64>) -> Option<(f32, f32)> {
+        let c = t_cw * nalgebra::Point3::from(*p);
+        (c.z > 0.1).then(|| ((cam.fx * c.x / c.z + cam.cx) as f32, (cam.fy * c.y / c.z + cam.cy) as f32))
+    }
+
+    /// Points spread in front of both cameras, a known motion, 30 % outliers: the pose comes back.
+    #[test]
+    fn relative_pose_recovers_a_known_motion() {
+        let c = cam();
+        let t_w1 = Isometry3::identity();
+        let t_w2 = Isometry3::new(Vector3::new(0.5, 0.05, 0.1), Vector3::new(0.02, -0.15, 0.03));
+        let (mut p1, mut p2) = (Vec::new(), Vec::new());
+        for i in 0..200 {
+            let x = Vector3::new(
+                ((i * 37) % 100) as f64 / 25.0 - 2.0,
+                ((i * 53) % 100) as f64 / 33.0 - 1.5,
+                4.0 + ((i * 71) % 100) as f64 / 20.0,
+            );
+            let (Some(a), Some(b)) = (project(&c, &t_w1.inverse(), &x), project(&c, &t_w2.inverse(), &x)) else {
+                continue;
+            };
+            p1.push(a);
+            p2.push(if i % 10 < 3 { (b.0 + 40.0 + (i % 7) as f32 * 9.0, b.1 - 25.0) } else { b });
+        }
+        let pose = relative_pose(&p1, &p2, &c, &c, &RansacParams::default()).unwrap().unwrap();
+        let gt = relative_motion(&t_w1, &t_w2);
+        assert!(rotation_error_deg(&pose.rotation, &gt.rotation.to_rotation_matrix()) < 0.5);
+        assert!(translation_angle_deg(&pose.translation, &gt.translation.vector) < 2.0);
+        assert!(pose.inlier_count >= p1.len() * 6 / 10);
+    }
+
+    #[test]
+    fn absolute_pose_recovers_a_known_camera() {
+        let c = cam();
+        let t_wc = Isometry3::new(Vector3::new(0.3, -0.2, -1.0), Vector3::new(0.1, 0.2, -0.05));
+        let (mut p3, mut p2) = (Vec::new(), Vec::new());
+        for i in 0..150 {
+            let x = Vector3::new(
+                ((i * 37) % 100) as f64 / 25.0 - 2.0,
+                ((i * 53) % 100) as f64 / 33.0 - 1.5,
+                3.0 + ((i * 71) % 100) as f64 / 30.0,
+            );
+            if let Some(uv) = project(&c, &t_wc.inverse(), &x) {
+                p3.push([x.x, x.y, x.z]);
+                p2.push(if i % 5 == 0 { (uv.0 + 50.0, uv.1 + 30.0) } else { uv });
+            }
+        }
+        let pose = absolute_pose(&p3, &p2, &c, &RansacParams { threshold_px: 2.0, ..Default::default() }, 10)
+            .unwrap()
+            .unwrap();
+        let d = pose.camera_to_world.inverse() * t_wc;
+        assert!(d.translation.vector.norm() < 1e-3, "{d:?}");
+        assert!(d.rotation.angle() < 1e-3);
+        assert!(pose.reprojection_error < 0.01);
+    }
+
+    #[test]
+    fn too_few_points_give_no_pose() {
+        let c = cam();
+        let p = vec![(1.0, 2.0); 4];
+        assert!(relative_pose(&p, &p, &c, &c, &RansacParams::default()).unwrap().is_none());
+        assert!(absolute_pose(&[[0.0; 3]; 4], &p, &c, &RansacParams::default(), 10).unwrap().is_none());
+    }
+
+    #[test]
+    fn nan_intrinsics_are_refused() {
+        let bad = Camera { fx: f64::NAN, ..cam() };
+        let p = vec![(1.0, 2.0); 8];
+        assert!(matches!(
+            relative_pose(&p, &p, &bad, &cam(), &RansacParams::default()),
+            Err(PoseError::Intrinsics { .. })
+        ));
+    }
+
+    #[test]
+    fn iterations_needed_follows_the_formula() {
+        assert!((ransac_iterations_needed(0.5, 5, 0.999) - 217.6).abs() < 1.0);
+        assert!(ransac_iterations_needed(0.0, 5, 0.999).is_infinite());
+        assert_eq!(ransac_iterations_needed(1.0, 5, 0.999), 1.0);
+    }
+}
