@@ -61,3 +61,34 @@ pub enum PoseError {
     #[error("OpenCV failed: {0}")]
     OpenCv(#[from] opencv::Error),
 }
+
+/// Errors of the map layer: storage, model mismatches, unknown ids.
+#[derive(Debug, thiserror::Error)]
+pub enum MapError {
+    #[error("map '{map}' does not exist")]
+    UnknownMap { map: String },
+    #[error("map '{map}' already exists")]
+    MapExists { map: String },
+    #[error("invalid map id '{map}': use 1-64 characters from [A-Za-z0-9_-]")]
+    InvalidMapId { map: String },
+    #[error("map '{map}' has no keyframe {keyframe}")]
+    UnknownKeyframe { map: String, keyframe: u64 },
+    #[error("map '{map}' already has keyframe {keyframe}")]
+    KeyframeExists { map: String, keyframe: u64 },
+    #[error("map '{map}' was embedded by model {map_model}, this service runs {model}: re-embed it first")]
+    ModelMismatch { map: String, map_model: String, model: String },
+    #[error("map '{map}' is unavailable: {reason}")]
+    Unavailable { map: String, reason: String },
+    #[error("invalid {field}: {reason}")]
+    InvalidInput { field: String, reason: String },
+    #[error("{path}: {reason}")]
+    Corrupt { path: std::path::PathBuf, reason: String },
+    #[error("{path}: {source}")]
+    Io { path: std::path::PathBuf, source: std::io::Error },
+    #[error(transparent)]
+    Feature(#[from] FeatureError),
+    #[error(transparent)]
+    Embedding(#[from] EmbeddingError),
+    #[error(transparent)]
+    Pose(#[from] PoseError),
+}

@@ -21,8 +21,9 @@ pub mod error;
 pub mod eval;
 pub mod export;
 pub mod features;
+pub mod map;
 pub mod matching;
 pub mod pose;
 pub mod scene;
 
-pub use error::{EmbeddingError, FeatureError, PoseError, SceneError};
+pub use error::{EmbeddingError, FeatureError, MapError, PoseError, SceneError};

@@ -5,10 +5,10 @@ use clap::{Args, Parser, Subcommand};
 
 use scone::constellation::{self, DEFAULT_K};
 use scone::decode::{decode_grey, ImageLimits};
-use scone::features::{self, ExtractorConfig};
 use scone::embedding::{Embedder, EmbedderConfig};
 use scone::eval::methods::Method;
 use scone::eval::pairs::{self, PairsConfig};
+use scone::features::{self, ExtractorConfig};
 use scone::scene::Scene;
 
 #[derive(Parser)]

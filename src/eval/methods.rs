@@ -152,5 +152,8 @@ pub fn putative_matches(
         true,
         6.0,
     )?;
-    Ok(kept.iter().map(|m| Match { query: m.query_idx as usize, train: m.train_idx as usize, distance: m.distance }).collect())
+    Ok(kept
+        .iter()
+        .map(|m| Match { query: m.query_idx as usize, train: m.train_idx as usize, distance: m.distance })
+        .collect())
 }

@@ -124,7 +124,12 @@ struct Truth<'a> {
 }
 
 impl Truth<'_> {
-    fn new<'a>(cam: &'a Camera, t_w1: &Isometry3<f64>, t_w2: &Isometry3<f64>, depth: Option<&'a opencv::core::Mat>) -> Truth<'a> {
+    fn new<'a>(
+        cam: &'a Camera,
+        t_w1: &Isometry3<f64>,
+        t_w2: &Isometry3<f64>,
+        depth: Option<&'a opencv::core::Mat>,
+    ) -> Truth<'a> {
         let motion = relative_motion(t_w1, t_w2);
         let t = motion.translation.vector;
         let tx = Matrix3::new(0.0, -t.z, t.y, t.z, 0.0, -t.x, -t.y, t.x, 0.0);
@@ -143,7 +148,11 @@ impl Truth<'_> {
                 let raw = *depth.at_2d::<u16>(y, x).ok()?;
                 if raw > 0 {
                     let z = raw as f64 / 5000.0;
-                    let p1 = Vector3::new((a.0 as f64 - self.cam.cx) / self.cam.fx * z, (a.1 as f64 - self.cam.cy) / self.cam.fy * z, z);
+                    let p1 = Vector3::new(
+                        (a.0 as f64 - self.cam.cx) / self.cam.fx * z,
+                        (a.1 as f64 - self.cam.cy) / self.cam.fy * z,
+                        z,
+                    );
                     let p2 = self.motion * nalgebra::Point3::from(p1);
                     if p2.z <= 0.0 {
                         return Some(false);
@@ -193,12 +202,14 @@ pub fn evaluate(scene: &Scene, cfg: &PairsConfig, embedder: Option<&Embedder>) -
     needed.dedup();
     let mut images = HashMap::new();
     for &i in &needed {
-        let bytes = std::fs::read(&scene.frames[i].rgb).map_err(|e| format!("{}: {e}", scene.frames[i].rgb.display()))?;
+        let bytes =
+            std::fs::read(&scene.frames[i].rgb).map_err(|e| format!("{}: {e}", scene.frames[i].rgb.display()))?;
         images.insert(i, decode_grey(&bytes, &limits)?);
     }
     let mut depths = HashMap::new();
     for &(i, _) in &pairs {
-        if let (Some(path), std::collections::hash_map::Entry::Vacant(slot)) = (&scene.frames[i].depth, depths.entry(i)) {
+        if let (Some(path), std::collections::hash_map::Entry::Vacant(slot)) = (&scene.frames[i].depth, depths.entry(i))
+        {
             let bytes = std::fs::read(path).map_err(|e| format!("{}: {e}", path.display()))?;
             slot.insert(decode_depth_png(&bytes, &ImageLimits::default())?);
         }
@@ -248,8 +259,10 @@ pub fn evaluate(scene: &Scene, cfg: &PairsConfig, embedder: Option<&Embedder>) -
             for seed in 0..cfg.seeds {
                 let mut order: Vec<usize> = (0..matches.len()).collect();
                 order.shuffle(&mut rand::rngs::StdRng::seed_from_u64(seed));
-                let p1: Vec<(f32, f32)> = order.iter().map(|&k| (a.keypoints[matches[k].query].x, a.keypoints[matches[k].query].y)).collect();
-                let p2: Vec<(f32, f32)> = order.iter().map(|&k| (b.keypoints[matches[k].train].x, b.keypoints[matches[k].train].y)).collect();
+                let p1: Vec<(f32, f32)> =
+                    order.iter().map(|&k| (a.keypoints[matches[k].query].x, a.keypoints[matches[k].query].y)).collect();
+                let p2: Vec<(f32, f32)> =
+                    order.iter().map(|&k| (b.keypoints[matches[k].train].x, b.keypoints[matches[k].train].y)).collect();
                 match relative_pose(&p1, &p2, &scene.camera, &scene.camera, &cfg.ransac)? {
                     Some(pose) => {
                         let r = rotation_error_deg(&pose.rotation, &gt_rot);
@@ -279,15 +292,24 @@ pub fn evaluate(scene: &Scene, cfg: &PairsConfig, embedder: Option<&Embedder>) -
     let summaries = cfg
         .methods
         .iter()
-        .map(|&m| summarise(m, &records, cfg.seeds as usize, describe_seconds.get(&m).map(Vec::as_slice).unwrap_or(&[])))
+        .map(|&m| {
+            summarise(m, &records, cfg.seeds as usize, describe_seconds.get(&m).map(Vec::as_slice).unwrap_or(&[]))
+        })
         .collect();
-    Ok(PairsReport { scene: scene.name.clone(), has_depth: !depths.is_empty(), config: cfg.clone(), summaries, pairs: records })
+    Ok(PairsReport {
+        scene: scene.name.clone(),
+        has_depth: !depths.is_empty(),
+        config: cfg.clone(),
+        summaries,
+        pairs: records,
+    })
 }
 
 fn summarise(method: Method, records: &[PairRecord], seeds: usize, describe_seconds: &[f64]) -> MethodSummary {
     let recs: Vec<&PairRecord> = records.iter().filter(|r| r.method == method).collect();
     let per_seed = |f: &dyn Fn(&[f64]) -> f64| {
-        (0..seeds).map(|s| f(&recs.iter().map(|r| r.errors_deg[s]).collect::<Vec<_>>())).sum::<f64>() / seeds.max(1) as f64
+        (0..seeds).map(|s| f(&recs.iter().map(|r| r.errors_deg[s]).collect::<Vec<_>>())).sum::<f64>()
+            / seeds.max(1) as f64
     };
     let all_rot: Vec<f64> = recs.iter().flat_map(|r| r.rotation_errors_deg.iter().copied()).collect();
     let all_trans: Vec<f64> = recs.iter().flat_map(|r| r.translation_errors_deg.iter().copied()).collect();

@@ -7,6 +7,7 @@ depth; it never detects or describes anything itself.
 
 from __future__ import annotations
 
+import hashlib
 import json
 import os
 import subprocess
@@ -140,16 +141,33 @@ def load_features(npz_path: Path) -> tuple[dict, list[FrameFeatures]]:
     return meta, frames
 
 
+# The Rust sources whose behaviour decides the exported features: a change to any of them re-exports.
+EXTRACTION_SOURCES = ["src/decode.rs", "src/features.rs", "src/constellation.rs", "src/export.rs", "Cargo.lock"]
+
+
+def extraction_key(extra_args: list[str] | None = None) -> str:
+    h = hashlib.sha256()
+    for rel in EXTRACTION_SOURCES:
+        h.update(rel.encode())
+        h.update((REPO / rel).read_bytes())
+    h.update(json.dumps(extra_args or []).encode())
+    return h.hexdigest()[:16]
+
+
 def export_features(scene_dir: Path, out: Path, extra_args: list[str] | None = None, force: bool = False) -> Path:
-    """Runs the Rust extraction on a scene (skipped when `out` exists and is newer than the binary)."""
+    """Runs the Rust extraction on a scene; skipped when `out` was made by the same extraction code (a key of
+    the extraction sources is kept beside it)."""
     out = Path(out)
     binary = scone_binary()
     if not binary.exists():
         raise FileNotFoundError(f"{binary} not found: run scripts/setup first")
-    if out.exists() and not force and out.stat().st_mtime > binary.stat().st_mtime:
+    key_path = out.with_suffix(".key")
+    key = extraction_key(extra_args)
+    if out.exists() and not force and key_path.exists() and key_path.read_text() == key:
         return out
     out.parent.mkdir(parents=True, exist_ok=True)
     cmd = [str(binary), "features", "--scene", str(scene_dir), "--out", str(out), "--opencv-threads", "1"]
     cmd += extra_args or []
     subprocess.run(cmd, check=True, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    key_path.write_text(key)
     return out

@@ -56,7 +56,7 @@ def build_unit(
         scene, frames = subset(scene, frames, keep)
     p = params or C.GeometryParams()
     key = hashlib.sha256(
-        json.dumps([str(npz), npz.stat().st_mtime, keep, p.__dict__], sort_keys=True).encode()
+        json.dumps([str(npz), npz.with_suffix(".key").read_text(), keep, p.__dict__], sort_keys=True).encode()
     ).hexdigest()[:16]
     lm_path = cache / f"{scene_dir.name}.{key}.landmarks.npz"
     if lm_path.exists():

@@ -34,9 +34,9 @@ def embed_frames(model: SconeNet, frames: list[FrameFeatures]) -> list[np.ndarra
         e = model(
             torch.from_numpy(f.descriptors),
             torch.from_numpy(np.ascontiguousarray(f.keypoints[:, [3, 2]])),
-            torch.from_numpy(f.neighbours.astype(np.int64)),
-            torch.from_numpy(f.mask.astype(np.float32)),
-            torch.from_numpy(f.relative),
+            torch.from_numpy(f.neighbours[:, : model.k].astype(np.int64)),
+            torch.from_numpy(f.mask[:, : model.k].astype(np.float32)),
+            torch.from_numpy(np.ascontiguousarray(f.relative[:, : model.k])),
         )
         out.append(e.numpy())
     return out

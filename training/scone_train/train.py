@@ -11,6 +11,7 @@ import argparse
 import json
 import math
 import os
+import sys
 import time
 from pathlib import Path
 
@@ -57,9 +58,10 @@ def load_units(cfg: dict, rendered_root: Path | None = None) -> tuple[list[Unit]
 
 
 class TensorCache:
-    """Torch views of a frame's arrays, made once."""
+    """Torch views of a frame's arrays, made once; constellations cut to the model's k (nearest first)."""
 
-    def __init__(self):
+    def __init__(self, k: int):
+        self.k = k
         self.cache: dict[int, tuple] = {}
 
     def get(self, f: FrameFeatures):
@@ -68,11 +70,19 @@ class TensorCache:
             self.cache[key] = (
                 torch.from_numpy(f.descriptors),
                 torch.from_numpy(np.ascontiguousarray(f.keypoints[:, [3, 2]])),
-                torch.from_numpy(f.neighbours.astype(np.int64)),
-                torch.from_numpy(f.mask.astype(np.float32)),
-                torch.from_numpy(f.relative),
+                torch.from_numpy(f.neighbours[:, : self.k].astype(np.int64)),
+                torch.from_numpy(f.mask[:, : self.k].astype(np.float32)),
+                torch.from_numpy(np.ascontiguousarray(f.relative[:, : self.k])),
             )
         return self.cache[key]
+
+
+def build_model(m: dict) -> SconeNet:
+    """k = 0 is the ablation without neighbours (central descriptor only)."""
+    return SconeNet(
+        k=max(m["k"], 1), embed_dim=m["embed_dim"], desc_dim=m["desc_dim"], lstm_hidden=m["lstm_hidden"],
+        use_neighbours=m["k"] > 0,
+    )
 
 
 def pair_distances(x: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
@@ -152,7 +162,7 @@ def train(cfg: dict, run_dir: Path, steps: int | None = None, units=None) -> Pat
         ).mean()
     )
     m = cfg["model"]
-    model = SconeNet(k=m["k"], embed_dim=m["embed_dim"], desc_dim=m["desc_dim"], lstm_hidden=m["lstm_hidden"])
+    model = build_model(m)
     opt = torch.optim.Adam(model.parameters(), lr=t["lr"], weight_decay=t["weight_decay"])
     sched = torch.optim.lr_scheduler.LambdaLR(
         opt, lambda s: (t["lr_final"] + 0.5 * (t["lr"] - t["lr_final"]) * (1 + math.cos(math.pi * min(s, steps) / steps))) / t["lr"]
@@ -170,10 +180,10 @@ def train(cfg: dict, run_dir: Path, steps: int | None = None, units=None) -> Pat
         gen.set_state(ck["gen"])
         start, best, log = ck["step"], ck["best"], ck["log"]
         print(f"resuming {run_dir} at step {start}")
-    tensors = TensorCache()
+    tensors = TensorCache(max(model.k, 1))
     acc = {"loss": 0.0, "pos": 0.0, "neg": 0.0, "n": 0}
     t0 = time.time()
-    bar = tqdm(range(start, steps), initial=start, total=steps, desc=cfg["name"])
+    bar = tqdm(range(start, steps), initial=start, total=steps, desc=cfg["name"], mininterval=1 if sys.stderr.isatty() else 60)
     for step in bar:
         model.train()
         opt.zero_grad()

@@ -1,0 +1,107 @@
+"""Validation of a frozen model on the real validation scenes (never used for any choice): nearest-neighbour
+precision of SConE against FREAK on the same keypoints with geometry-only ground truth, and drawings of the
+ground-truth landmark matches of one pair per scene.
+
+`python -m scone_train.validate --model ../models/scone-freak-k20.pt --out DIR`
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+
+import cv2
+import numpy as np
+import torch
+
+from . import correspondences as C
+from . import evaluate as E
+from .data import shared_data
+from .dataset import Unit, build_unit
+from .model import SconeNet
+from .train import build_model, prefix
+
+# Scene, link window (0 = all pairs). KITTI: links within 3 frames, as the issue's FREAK reference figures.
+VALIDATION = [("strecha-fountain-P11", 0), ("kitti-clip2", 3), ("rgbd-slambook-5", 0)]
+
+
+def validation_units() -> list[tuple[Unit, int]]:
+    cache = prefix() / "data" / "cache" / "real"
+    out = []
+    for name, window in VALIDATION:
+        scene = shared_data() / "scenes" / name
+        out.append((build_unit(scene, cache, None, C.GeometryParams(window=window), name), window))
+    return out
+
+
+def draw_landmark_matches(unit: Unit, scene_dir: Path, out: Path, a: int = 0, b: int = 1) -> Path:
+    """Side-by-side frames a and b with a line per ground-truth landmark seen in both."""
+    from .data import load_scene
+
+    scene = load_scene(scene_dir)
+    ia, ib = cv2.imread(str(scene.rgb[a])), cv2.imread(str(scene.rgb[b]))
+    h = max(ia.shape[0], ib.shape[0])
+    canvas = np.zeros((h, ia.shape[1] + ib.shape[1], 3), np.uint8)
+    canvas[: ia.shape[0], : ia.shape[1]] = ia
+    canvas[: ib.shape[0], ia.shape[1] :] = ib
+    ida, idb = unit.ids[a], unit.ids[b]
+    shared, pa, pb = np.intersect1d(ida, idb, return_indices=True)
+    rng = np.random.default_rng(0)
+    for lm, i, j in zip(shared, pa, pb):
+        if lm < 0:
+            continue
+        p = tuple(int(v) for v in unit.frames[a].keypoints[i, :2])
+        q = unit.frames[b].keypoints[j, :2]
+        q = (int(q[0]) + ia.shape[1], int(q[1]))
+        color = tuple(int(c) for c in rng.integers(64, 256, 3))
+        cv2.line(canvas, p, q, color, 1, cv2.LINE_AA)
+        cv2.circle(canvas, p, 3, color, 1)
+        cv2.circle(canvas, q, 3, color, 1)
+    path = out / f"{unit.name}-landmarks-{a}-{b}.png"
+    out.mkdir(parents=True, exist_ok=True)
+    cv2.imwrite(str(path), canvas)
+    return path
+
+
+def validate(model: SconeNet, out: Path | None = None) -> dict:
+    results = {}
+    for unit, window in validation_units():
+        f = E.freak_precision(unit.frames, unit.ids, window)
+        s = E.scone_precision(model, unit.frames, unit.ids, window)
+        results[unit.name] = {
+            "window": window,
+            "landmarks": C.summary(unit.ids),
+            "freak": f.as_dict(),
+            "scone": s.as_dict(),
+            "gain_points": 100 * (s.precision - f.precision),
+        }
+        if out is not None:
+            draw_landmark_matches(unit, shared_data() / "scenes" / unit.name, out)
+    results["mean"] = {
+        "freak": float(np.mean([results[n]["freak"]["precision"] for n, _ in VALIDATION])),
+        "scone": float(np.mean([results[n]["scone"]["precision"] for n, _ in VALIDATION])),
+    }
+    results["mean"]["gain_points"] = 100 * (results["mean"]["scone"] - results["mean"]["freak"])
+    return results
+
+
+def load_checkpoint(path: Path) -> SconeNet:
+    ck = torch.load(path, weights_only=False)
+    model = build_model(ck["config"]["model"])
+    model.load_state_dict(ck["model"])
+    return model.eval()
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--checkpoint", required=True)
+    ap.add_argument("--out", default=None)
+    a = ap.parse_args()
+    torch.set_num_threads(2)
+    res = validate(load_checkpoint(Path(a.checkpoint)), Path(a.out) if a.out else None)
+    print(json.dumps(res, indent=2))
+
+
+if __name__ == "__main__":
+    main()

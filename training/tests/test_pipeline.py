@@ -1,0 +1,134 @@
+"""End-to-end on tiny data: a rendered sequence -> Rust feature export -> geometric landmarks -> a few training
+steps -> ONNX export -> onnxruntime parity. Plus unit checks of the correspondence and metric code."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import onnx
+import pytest
+import torch
+import yaml
+
+from scone_train import correspondences as C
+from scone_train import evaluate as E
+from scone_train import export as X
+from scone_train.data import FrameFeatures, scone_binary
+from scone_train.dataset import PairSampler, build_unit
+from scone_train.model import SconeNet, unpack_bits
+from scone_train.render import render_sequence
+from scone_train.train import train
+
+CONFIG = Path(__file__).resolve().parents[1] / "configs" / "scone.yaml"
+
+
+@pytest.fixture(scope="module")
+def tiny_unit(tmp_path_factory):
+    if not scone_binary().exists():
+        pytest.fail(f"{scone_binary()} missing: run scripts/setup")
+    root = tmp_path_factory.mktemp("render")
+    render_sequence(root / "seq000", seed=3, frames=4, width=320, height=240)
+    return build_unit(root / "seq000", root / "cache")
+
+
+def test_rust_export_and_depth_landmarks(tiny_unit):
+    assert len(tiny_unit.frames) == 4
+    f = tiny_unit.frames[0]
+    assert f.descriptors.dtype == np.uint8 and f.descriptors.shape[1] == 64
+    assert f.neighbours.shape == (len(f), 20) and f.relative.shape == (len(f), 20, 4)
+    assert len(f) > 100
+    s = C.summary(tiny_unit.ids)
+    assert s["landmarks"] > 20, s
+    # No track holds two keypoints of one frame.
+    for ids in tiny_unit.ids:
+        valid = ids[ids >= 0]
+        assert len(valid) == len(np.unique(valid))
+
+
+def test_training_steps_export_and_parity(tiny_unit, tmp_path):
+    cfg = yaml.safe_load(CONFIG.read_text())
+    cfg["train"].update(steps=4, eval_every=2, checkpoint_every=2, pairs_per_step=2, anchors=32, pool=32, threads=1)
+    best = train(cfg, tmp_path / "run", units=([tiny_unit], [tiny_unit]))
+    assert best.exists() and (tmp_path / "run" / "log.jsonl").exists() and (tmp_path / "run" / "curves.png").exists()
+    # Resuming at the end is a no-op that keeps the log.
+    train(cfg, tmp_path / "run", units=([tiny_unit], [tiny_unit]))
+    model = SconeNet()
+    model.load_state_dict(torch.load(best, weights_only=False)["model"])
+    path = X.export_onnx(model, tmp_path / "m.onnx")
+    onnx.checker.check_model(onnx.load(str(path)))
+    assert X.check_parity(model, path, n=137) <= 1e-4
+    # Real features through onnxruntime equal PyTorch on the same features.
+    f = tiny_unit.frames[1]
+    got = X.run_onnx(X.session(path, 1), f.descriptors, f.keypoints[:, [3, 2]], f.neighbours, f.mask, f.relative)
+    ref = E.embed_frames(model, [f])[0]
+    assert np.abs(got - ref).max() <= 1e-4
+    assert np.allclose(np.linalg.norm(got, axis=1), 1.0, atol=1e-4)
+
+
+def test_unpack_bits_order_matches_numpy():
+    d = np.random.default_rng(0).integers(0, 256, (5, 64), dtype=np.uint8)
+    ours = unpack_bits(torch.from_numpy(d)).numpy()
+    ref = np.unpackbits(d, axis=1, bitorder="little").astype(np.float32) * 2 - 1
+    assert np.array_equal(ours, ref)
+
+
+def test_ties_count_against_unless_all_correct():
+    # Query 0 of frame 0 (landmark 7) ties between a correct and a wrong keypoint of frame 1.
+    v0 = np.array([[1.0, 0.0]], np.float32)
+    v1 = np.array([[1.0, 0.0], [1.0, 0.0], [-1.0, 0.0]], np.float32)
+    ids = [np.array([7]), np.array([7, 8, -1])]
+    assert not E.nn_correct([v0, v1], ids, "l2")[0]
+    ids_ok = [np.array([7]), np.array([7, 7, -1])]  # not a valid track, but checks the tie rule
+    assert E.nn_correct([v0, v1], ids_ok, "l2")[0]
+
+
+def _frame(kps: np.ndarray) -> FrameFeatures:
+    n = len(kps)
+    return FrameFeatures(kps.astype(np.float32), np.zeros((n, 64), np.uint8), np.zeros((n, 20), np.int32),
+                         np.zeros((n, 20), np.uint8), np.zeros((n, 20, 4), np.float32))
+
+
+def test_epipolar_landmarks_from_geometry_only():
+    """Three cameras see random 3D points; keypoints are their exact projections plus clutter; geometry alone
+    recovers tracks, and every track's keypoints are projections of one point."""
+    from scone_train.data import Scene
+
+    rng = np.random.default_rng(1)
+    K = np.array([[500.0, 0, 320], [0, 500, 240], [0, 0, 1]])
+    X3 = np.c_[rng.uniform(-2, 2, 60), rng.uniform(-1.5, 1.5, 60), rng.uniform(5, 9, 60)]
+    poses = []
+    for tx in (0.0, 0.6, 1.2):
+        T = np.eye(4)
+        T[0, 3] = tx
+        poses.append(T)
+    frames, truth = [], []
+    for T in poses:
+        Xc = X3 - T[:3, 3]
+        uv = Xc[:, :2] / Xc[:, 2:] * 500 + [320, 240]
+        clutter = np.c_[rng.uniform(0, 640, 40), rng.uniform(0, 480, 40)]
+        pts = np.r_[uv, clutter]
+        kps = np.c_[pts, np.full(len(pts), 7.0), np.zeros(len(pts)), np.ones(len(pts)), np.zeros(len(pts))]
+        frames.append(_frame(kps))
+        truth.append(np.r_[np.arange(60), np.full(40, -1)])
+    scene = Scene(Path("."), "synthetic", K, 640, 480, ["0", "1", "2"], [Path("a")] * 3, poses, [None] * 3)
+    ids = C.landmarks(scene, frames, C.GeometryParams(scale_tol=2.0))
+    linked = 0
+    for lm in np.unique(np.concatenate(ids)):
+        if lm < 0:
+            continue
+        members = [truth[f][ids[f] == lm] for f in range(3)]
+        points = np.concatenate(members)
+        assert len(set(points.tolist())) == 1 and points[0] >= 0, "a track mixes different 3D points or clutter"
+        linked += 1
+    assert linked >= 20
+
+
+def test_pair_sampler_gives_consistent_positives(tiny_unit):
+    s = PairSampler([tiny_unit], anchors=16, pool=16, seed=0, min_shared=4)
+    b = s.sample()
+    ida = next(u for u in [tiny_unit]).ids
+    fa = [i for i, f in enumerate(tiny_unit.frames) if f is b.fa][0]
+    fb = [i for i, f in enumerate(tiny_unit.frames) if f is b.fb][0]
+    assert np.array_equal(ida[fa][b.anchors], ida[fb][b.positives])
+    assert np.array_equal(ida[fb][b.pool], b.pool_ids)
