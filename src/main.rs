@@ -89,6 +89,26 @@ enum EvalCommand {
         #[command(flatten)]
         extractor: ExtractorArgs,
     },
+    /// Relocalisation: build a map from every S-th frame (ground-truth poses, depth when present), localise the rest.
+    Reloc {
+        /// Scene directory in the TUM RGB-D layout.
+        #[arg(long)]
+        scene: PathBuf,
+        /// Methods to compare (scone, freak, sift).
+        #[arg(long, value_delimiter = ',', default_value = "scone,freak,sift")]
+        methods: Vec<Method>,
+        /// Every S-th frame goes into the map.
+        #[arg(long, default_value_t = 3)]
+        map_stride: usize,
+        /// SConE model.
+        #[arg(long)]
+        model: Option<PathBuf>,
+        /// Write the full report as JSON.
+        #[arg(long)]
+        json: Option<PathBuf>,
+        #[command(flatten)]
+        extractor: ExtractorArgs,
+    },
 }
 
 /// Extraction settings on the command line; unset flags keep [`ExtractorConfig::default`].
@@ -132,6 +152,17 @@ impl ExtractorArgs {
         features::set_opencv_threads(self.opencv_threads)?;
         Ok(cfg)
     }
+}
+
+fn load_embedder(needed: bool, model: Option<PathBuf>) -> anyhow::Result<Option<Embedder>> {
+    if !needed {
+        return Ok(None);
+    }
+    let mut ec = EmbedderConfig::default();
+    if let Some(m) = model {
+        ec.model = m;
+    }
+    Ok(Some(Embedder::load(&ec)?))
 }
 
 fn main() -> anyhow::Result<()> {
@@ -189,15 +220,7 @@ fn main() -> anyhow::Result<()> {
                 cfg = ExtractorConfig::single_scale(20, 2000);
             }
             let s = Scene::load(&scene)?;
-            let embedder = if methods.contains(&Method::Scone) {
-                let mut ec = EmbedderConfig::default();
-                if let Some(m) = model {
-                    ec.model = m;
-                }
-                Some(Embedder::load(&ec)?)
-            } else {
-                None
-            };
+            let embedder = load_embedder(methods.contains(&Method::Scone), model)?;
             let pc = PairsConfig {
                 methods,
                 window,
@@ -211,6 +234,26 @@ fn main() -> anyhow::Result<()> {
             };
             let report = pairs::evaluate(&s, &pc, embedder.as_ref()).map_err(|e| anyhow::anyhow!("{e}"))?;
             print!("{}", pairs::markdown(&report));
+            if let Some(path) = json {
+                std::fs::write(&path, serde_json::to_vec_pretty(&report)?)
+                    .with_context(|| format!("writing {}", path.display()))?;
+            }
+        }
+        Command::Eval(EvalCommand::Reloc { scene, methods, map_stride, model, json, extractor }) => {
+            let cfg = extractor.config()?;
+            for m in &methods {
+                anyhow::ensure!(
+                    matches!(m, Method::Scone | Method::Freak | Method::Sift),
+                    "eval reloc compares scone, freak and sift"
+                );
+            }
+            let s = Scene::load(&scene)?;
+            let embedder = load_embedder(methods.contains(&Method::Scone), model)?;
+            let rc =
+                scone::eval::reloc::RelocConfig { methods, stride: map_stride, extractor: cfg, ..Default::default() };
+            let report =
+                scone::eval::reloc::evaluate(&s, &rc, embedder.as_ref()).map_err(|e| anyhow::anyhow!("{e}"))?;
+            print!("{}", scone::eval::reloc::markdown(&report));
             if let Some(path) = json {
                 std::fs::write(&path, serde_json::to_vec_pretty(&report)?)
                     .with_context(|| format!("writing {}", path.display()))?;

@@ -3,6 +3,7 @@
 
 pub mod methods;
 pub mod pairs;
+pub mod reloc;
 
 /// AUC of the error curve up to `max_deg`: the mean over pairs of `max(0, 1 − err / max_deg)` (failures
 /// count as 180 degrees, so they add 0).

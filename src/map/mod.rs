@@ -4,7 +4,9 @@
 //! Status: the data model, durable storage and the index are here; map building from posed keyframes,
 //! relocalisation and the map registry follow.
 
+pub mod builder;
 pub mod index;
+pub mod localize;
 pub mod model;
 pub mod storage;
 #[cfg(test)]

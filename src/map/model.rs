@@ -65,11 +65,17 @@ pub struct Keyframe {
     pub keypoints: Vec<Keypoint>,
     /// FREAK descriptors, `keypoints.len() x 64` bytes.
     pub descriptors: Vec<u8>,
+    /// SConE embeddings of every keypoint, `keypoints.len() x dim` (matching new keyframes against this one).
+    pub embeddings: Vec<f32>,
 }
 
 impl Keyframe {
     pub fn descriptor(&self, i: usize) -> &[u8] {
         &self.descriptors[i * DESCRIPTOR_BYTES..(i + 1) * DESCRIPTOR_BYTES]
+    }
+
+    pub fn embedding(&self, i: usize, dim: usize) -> &[f32] {
+        &self.embeddings[i * dim..(i + 1) * dim]
     }
 }
 
@@ -90,12 +96,13 @@ pub struct Landmark {
     pub observations: Vec<u64>,
 }
 
-/// A new observation carried by a record.
+/// A new observation carried by a record: keypoint `keypoint` of keyframe `keyframe` (the new keyframe or an
+/// earlier one) sees `landmark`. Its embedding is the keyframe's embedding of that keypoint.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct NewObservation {
     pub landmark: u64,
+    pub keyframe: u64,
     pub keypoint: u32,
-    pub embedding: Vec<f32>,
 }
 
 /// A change to a map: the unit of the write-ahead log.
@@ -105,8 +112,8 @@ pub enum Record {
     AddKeyframe { keyframe: Keyframe, new_landmarks: Vec<(u64, [f64; 3])>, observations: Vec<NewObservation> },
     /// Removes a keyframe; its observations become tombstones.
     RemoveKeyframe { id: u64 },
-    /// Replaces every observation's embedding (same order) after a model change.
-    Reembed { model_id: String, k: usize, dim: usize, embeddings: Vec<f32> },
+    /// Replaces every keyframe's embeddings (and so every observation's) after a model change.
+    Reembed { model_id: String, k: usize, dim: usize, keyframes: Vec<(u64, Vec<f32>)> },
 }
 
 /// The whole state of one map.
@@ -152,8 +159,17 @@ impl MapData {
                 if self.keyframes.contains_key(&keyframe.id) {
                     return Err(format!("keyframe {} exists", keyframe.id));
                 }
-                if keyframe.descriptors.len() != keyframe.keypoints.len() * DESCRIPTOR_BYTES {
+                let n = keyframe.keypoints.len();
+                // Empty descriptors: keypoints of another detector (evaluation baselines); no re-embedding then.
+                if !keyframe.descriptors.is_empty() && keyframe.descriptors.len() != n * DESCRIPTOR_BYTES {
                     return Err("descriptor bytes do not match the keypoint count".into());
+                }
+                if keyframe.embeddings.len() != n * self.meta.dim {
+                    return Err(format!(
+                        "expected {} embedding values, got {}",
+                        n * self.meta.dim,
+                        keyframe.embeddings.len()
+                    ));
                 }
                 keyframe.pose.validate()?;
                 for (id, p) in new_landmarks {
@@ -161,11 +177,24 @@ impl MapData {
                         return Err(format!("new landmark {id} exists or is not finite"));
                     }
                 }
+                let mut seen = std::collections::HashSet::new();
+                let observed = self.observed_keypoints();
                 for o in observations {
                     let known =
                         self.landmarks.contains_key(&o.landmark) || new_landmarks.iter().any(|l| l.0 == o.landmark);
-                    if !known || o.keypoint as usize >= keyframe.keypoints.len() || o.embedding.len() != self.meta.dim {
-                        return Err(format!("observation of landmark {} is inconsistent", o.landmark));
+                    let size = if o.keyframe == keyframe.id {
+                        Some(n)
+                    } else {
+                        self.keyframes.get(&o.keyframe).map(|k| k.keypoints.len())
+                    };
+                    let in_range = size.is_some_and(|s| (o.keypoint as usize) < s);
+                    let fresh =
+                        seen.insert((o.keyframe, o.keypoint)) && !observed.contains_key(&(o.keyframe, o.keypoint));
+                    if !known || !in_range || !fresh {
+                        return Err(format!(
+                            "observation of landmark {} by keyframe {} keypoint {} is inconsistent",
+                            o.landmark, o.keyframe, o.keypoint
+                        ));
                     }
                 }
                 Ok(())
@@ -177,13 +206,24 @@ impl MapData {
                     Err(format!("no keyframe {id}"))
                 }
             }
-            Record::Reembed { dim, embeddings, .. } => {
-                if embeddings.len() != self.observations.len() * dim {
-                    return Err("re-embedding size does not match the observations".into());
+            Record::Reembed { dim, keyframes, .. } => {
+                if keyframes.len() != self.keyframes.len() {
+                    return Err("re-embedding must cover every keyframe".into());
+                }
+                for (id, e) in keyframes {
+                    let Some(k) = self.keyframes.get(id) else { return Err(format!("no keyframe {id}")) };
+                    if e.len() != k.keypoints.len() * dim {
+                        return Err(format!("keyframe {id}: embedding size does not match its keypoints"));
+                    }
                 }
                 Ok(())
             }
         }
+    }
+
+    /// (keyframe, keypoint) -> landmark for every live observation.
+    pub fn observed_keypoints(&self) -> std::collections::HashMap<(u64, u32), u64> {
+        self.observations.iter().filter(|o| o.live).map(|o| ((o.keyframe, o.keypoint), o.landmark)).collect()
     }
 
     /// Applies a record (already checked).
@@ -194,20 +234,22 @@ impl MapData {
                     self.landmarks.insert(*id, Landmark { point: *p, observations: Vec::new() });
                     self.next_landmark = self.next_landmark.max(id + 1);
                 }
+                self.keyframes.insert(keyframe.id, keyframe.clone());
+                let dim = self.meta.dim;
                 for o in observations {
                     let oid = self.observations.len() as u64;
                     self.observations.push(Observation {
                         landmark: o.landmark,
-                        keyframe: keyframe.id,
+                        keyframe: o.keyframe,
                         keypoint: o.keypoint,
                         live: true,
                     });
-                    self.embeddings.extend_from_slice(&o.embedding);
+                    let e = self.keyframes[&o.keyframe].embedding(o.keypoint as usize, dim).to_vec();
+                    self.embeddings.extend_from_slice(&e);
                     if let Some(l) = self.landmarks.get_mut(&o.landmark) {
                         l.observations.push(oid);
                     }
                 }
-                self.keyframes.insert(keyframe.id, keyframe.clone());
             }
             Record::RemoveKeyframe { id } => {
                 self.keyframes.remove(id);
@@ -215,11 +257,23 @@ impl MapData {
                     o.live = false;
                 }
             }
-            Record::Reembed { model_id, k, dim, embeddings } => {
+            Record::Reembed { model_id, k, dim, keyframes } => {
                 self.meta.model_id = model_id.clone();
                 self.meta.k = *k;
                 self.meta.dim = *dim;
-                self.embeddings = embeddings.clone();
+                for (id, e) in keyframes {
+                    if let Some(kf) = self.keyframes.get_mut(id) {
+                        kf.embeddings = e.clone();
+                    }
+                }
+                let mut embeddings = Vec::with_capacity(self.observations.len() * dim);
+                for o in &self.observations {
+                    match self.keyframes.get(&o.keyframe) {
+                        Some(kf) => embeddings.extend_from_slice(kf.embedding(o.keypoint as usize, *dim)),
+                        None => embeddings.extend(std::iter::repeat_n(0.0, *dim)),
+                    }
+                }
+                self.embeddings = embeddings;
             }
         }
         self.version += 1;

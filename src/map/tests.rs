@@ -50,14 +50,11 @@ fn keyframe_record(id: u64, n: usize, first_landmark: u64, dim: usize, seed: u64
             camera: Camera { fx: 500.0, fy: 500.0, cx: 320.0, cy: 240.0, width: 640, height: 480 },
             keypoints,
             descriptors: vec![id as u8; n * DESCRIPTOR_BYTES],
+            embeddings: emb,
         },
         new_landmarks: (0..n as u64).map(|i| (first_landmark + i, [i as f64, 1.0, 5.0])).collect(),
         observations: (0..n)
-            .map(|i| NewObservation {
-                landmark: first_landmark + i as u64,
-                keypoint: i as u32,
-                embedding: emb[i * dim..(i + 1) * dim].to_vec(),
-            })
+            .map(|i| NewObservation { landmark: first_landmark + i as u64, keyframe: id, keypoint: i as u32 })
             .collect(),
     }
 }

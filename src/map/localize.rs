@@ -1,0 +1,145 @@
+//! Relocalisation: a query's keypoints and embeddings against a map -> camera-to-world pose.
+//!
+//! Each query keypoint takes its `knn` nearest observations in the map's index (optionally only those whose
+//! landmark lies within a prior's radius). The nearest landmark is accepted when its distance is below
+//! `ratio` times the distance to the nearest *other* landmark (several observations of one landmark do not
+//! make it ambiguous); when all `knn` hits belong to one landmark it is accepted. One query keypoint per
+//! landmark is kept (the closest). The 2D-3D matches go to solvePnPRansac + refinement; fewer than
+//! `min_inliers` inliers means "not localised": no pose rather than a wrong one.
+//!
+//! Confidence in [0, 1] is a heuristic of the support, `(1 - exp(-inliers / 20)) * min(1, inlier ratio / 0.3)`:
+//! it is not a calibrated probability.
+
+use serde::{Deserialize, Serialize};
+
+use crate::error::MapError;
+use crate::features::Features;
+use crate::map::index::EmbeddingIndex;
+use crate::map::model::MapData;
+use crate::pose::{absolute_pose, AbsolutePose, RansacParams};
+use crate::scene::Camera;
+
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct LocalizeParams {
+    pub ratio: f32,
+    pub knn: usize,
+    pub ransac: RansacParams,
+    pub min_inliers: usize,
+}
+
+impl Default for LocalizeParams {
+    fn default() -> Self {
+        Self {
+            ratio: 0.8,
+            knn: 4,
+            ransac: RansacParams { threshold_px: 4.0, confidence: 0.999, max_iters: 2000 },
+            min_inliers: 15,
+        }
+    }
+}
+
+/// Restricts the search to landmarks within `radius` of `position` (world units).
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct Prior {
+    pub position: [f64; 3],
+    pub radius: f64,
+}
+
+/// A 2D-3D correspondence.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct LandmarkMatch {
+    pub keypoint: usize,
+    pub landmark: u64,
+    pub distance: f32,
+}
+
+/// The outcome of a relocalisation.
+#[derive(Debug, Clone)]
+pub struct Localization {
+    pub pose: Option<AbsolutePose>,
+    pub matches: Vec<LandmarkMatch>,
+    pub confidence: f64,
+}
+
+/// 2D-3D matches of a query against the map.
+pub fn match_landmarks(
+    data: &MapData,
+    index: &EmbeddingIndex,
+    embeddings: &[f32],
+    prior: Option<&Prior>,
+    params: &LocalizeParams,
+) -> Vec<LandmarkMatch> {
+    let dim = data.meta.dim;
+    let near = |obs: usize| -> bool {
+        let Some(p) = prior else { return true };
+        let l = &data.landmarks[&data.observations[obs].landmark].point;
+        let d =
+            ((l[0] - p.position[0]).powi(2) + (l[1] - p.position[1]).powi(2) + (l[2] - p.position[2]).powi(2)).sqrt();
+        d <= p.radius
+    };
+    let mut best: std::collections::HashMap<u64, LandmarkMatch> = std::collections::HashMap::new();
+    for (i, q) in embeddings.chunks_exact(dim).enumerate() {
+        let hits = index.search(data, q, params.knn.max(2), &near);
+        let Some(first) = hits.first() else { continue };
+        let lm = data.observations[first.observation].landmark;
+        let other = hits.iter().find(|h| data.observations[h.observation].landmark != lm);
+        if let Some(o) = other {
+            if first.distance >= params.ratio * o.distance {
+                continue;
+            }
+        }
+        let m = LandmarkMatch { keypoint: i, landmark: lm, distance: first.distance };
+        best.entry(lm)
+            .and_modify(|b| {
+                if m.distance < b.distance {
+                    *b = m
+                }
+            })
+            .or_insert(m);
+    }
+    let mut out: Vec<LandmarkMatch> = best.into_values().collect();
+    out.sort_by_key(|m| m.keypoint);
+    out
+}
+
+/// Localises a query (features with their embeddings, intrinsics) against a map.
+pub fn localize(
+    data: &MapData,
+    index: &EmbeddingIndex,
+    features: &Features,
+    embeddings: &[f32],
+    camera: &Camera,
+    prior: Option<&Prior>,
+    params: &LocalizeParams,
+) -> Result<Localization, MapError> {
+    if embeddings.len() != features.len() * data.meta.dim {
+        return Err(MapError::InvalidInput {
+            field: "embeddings".into(),
+            reason: format!(
+                "{} values for {} keypoints of dimension {}",
+                embeddings.len(),
+                features.len(),
+                data.meta.dim
+            ),
+        });
+    }
+    if let Some(p) = prior {
+        if !(p.position.iter().all(|v| v.is_finite()) && p.radius.is_finite() && p.radius > 0.0) {
+            return Err(MapError::InvalidInput {
+                field: "prior".into(),
+                reason: "needs a finite position and a positive radius".into(),
+            });
+        }
+    }
+    let matches = match_landmarks(data, index, embeddings, prior, params);
+    let p3: Vec<[f64; 3]> = matches.iter().map(|m| data.landmarks[&m.landmark].point).collect();
+    let p2: Vec<(f32, f32)> =
+        matches.iter().map(|m| (features.keypoints[m.keypoint].x, features.keypoints[m.keypoint].y)).collect();
+    let pose = absolute_pose(&p3, &p2, camera, &params.ransac, params.min_inliers)?;
+    let confidence = pose.as_ref().map_or(0.0, |p| {
+        let n = p.inliers.len() as f64;
+        (1.0 - (-n / 20.0).exp()) * (n / matches.len().max(1) as f64 / 0.3).min(1.0)
+    });
+    Ok(Localization { pose, matches, confidence })
+}
