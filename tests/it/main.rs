@@ -2,5 +2,6 @@
 //! skip when the data is absent, except under `CI=true`, where missing data is a failure.
 
 mod common;
+mod embedding;
 
 mod pipeline;
