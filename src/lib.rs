@@ -23,6 +23,7 @@ pub mod export;
 pub mod features;
 pub mod map;
 pub mod matching;
+pub mod pipeline;
 pub mod pose;
 pub mod scene;
 

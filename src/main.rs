@@ -9,6 +9,9 @@ use scone::embedding::{Embedder, EmbedderConfig};
 use scone::eval::methods::Method;
 use scone::eval::pairs::{self, PairsConfig};
 use scone::features::{self, ExtractorConfig};
+use scone::map::builder::{Depth, KeyframeInput};
+use scone::map::store::{MapStore, ModelInfo, StoreConfig};
+use scone::pipeline::Describer;
 use scone::scene::Scene;
 
 #[derive(Parser)]
@@ -33,6 +36,9 @@ enum Command {
     /// Evaluate on a real scene (the paper's protocol).
     #[command(subcommand)]
     Eval(EvalCommand),
+    /// Maps on disk, through the same store the service uses.
+    #[command(subcommand)]
+    Map(MapCommand),
     /// Export a scene's features and constellations to an .npz file for training.
     Features {
         /// Scene directory in the TUM RGB-D layout.
@@ -43,6 +49,35 @@ enum Command {
         out: PathBuf,
         #[command(flatten)]
         extractor: ExtractorArgs,
+    },
+}
+
+#[derive(Subcommand)]
+enum MapCommand {
+    /// Write a scene's frames as keyframes (ground-truth poses, depth when present) into a map, printing
+    /// "ack <keyframe>" once each write is durable.
+    WriteScene {
+        #[arg(long)]
+        data_dir: PathBuf,
+        #[arg(long)]
+        map: String,
+        #[arg(long)]
+        scene: PathBuf,
+        /// Every S-th frame.
+        #[arg(long, default_value_t = 1)]
+        stride: usize,
+        /// Write the scene this many times (keyframe ids continue), for long write streams.
+        #[arg(long, default_value_t = 1)]
+        repeat: usize,
+        #[arg(long)]
+        model: Option<PathBuf>,
+    },
+    /// Print the maps of a data directory as JSON (and any held back with the reason).
+    Info {
+        #[arg(long)]
+        data_dir: PathBuf,
+        #[arg(long)]
+        model: Option<PathBuf>,
     },
 }
 
@@ -165,6 +200,62 @@ fn load_embedder(needed: bool, model: Option<PathBuf>) -> anyhow::Result<Option<
     Ok(Some(Embedder::load(&ec)?))
 }
 
+fn open_store(data_dir: PathBuf, model: Option<PathBuf>) -> anyhow::Result<(MapStore, Describer)> {
+    let embedder = std::sync::Arc::new(load_embedder(true, model)?.expect("requested"));
+    let info = ModelInfo { model_id: embedder.model_id().to_string(), k: embedder.k(), dim: embedder.dim() };
+    let store = MapStore::open(StoreConfig { data_dir, ..StoreConfig::default() }, info)?;
+    let describer = Describer { extractor: ExtractorConfig::default(), limits: ImageLimits::default(), embedder };
+    Ok((store, describer))
+}
+
+fn run_map(cmd: MapCommand) -> anyhow::Result<()> {
+    use std::io::Write;
+    match cmd {
+        MapCommand::WriteScene { data_dir, map, scene, stride, repeat, model } => {
+            let (store, describer) = open_store(data_dir, model)?;
+            if store.get(&map).is_err() {
+                store.create(&map)?;
+            }
+            let s = Scene::load(&scene)?;
+            let limits = ImageLimits::default();
+            let mut stdout = std::io::stdout().lock();
+            let mut next_id = store.summary(&map)?.keyframes as u64;
+            for _ in 0..repeat.max(1) {
+                for (i, frame) in s.frames.iter().enumerate().filter(|(i, _)| i % stride.max(1) == 0) {
+                    let Some(pose) = frame.pose else { continue };
+                    let d = describer.describe_image(&std::fs::read(&frame.rgb)?)?;
+                    let depth = match &frame.depth {
+                        Some(p) => Some(scone::decode::decode_depth_png(&std::fs::read(p)?, &limits)?),
+                        None => None,
+                    };
+                    let input = KeyframeInput {
+                        id: next_id,
+                        pose,
+                        camera: s.camera,
+                        features: &d.features,
+                        embeddings: &d.embeddings,
+                        depth: depth.as_ref().map(|m| Depth { image: m, scale: 1.0 / 5000.0 }),
+                    };
+                    let added = store.add_keyframe(&map, &input)?;
+                    writeln!(stdout, "ack {} frame {i} landmarks {}", added.keyframe, added.new_landmarks)?;
+                    stdout.flush()?;
+                    next_id += 1;
+                }
+            }
+        }
+        MapCommand::Info { data_dir, model } => {
+            let (store, _) = open_store(data_dir, model)?;
+            let held: Vec<_> =
+                store.held_back().into_iter().map(|(m, r)| serde_json::json!({"map": m, "reason": r})).collect();
+            println!(
+                "{}",
+                serde_json::to_string_pretty(&serde_json::json!({"maps": store.list(), "held_back": held}))?
+            );
+        }
+    }
+    Ok(())
+}
+
 fn main() -> anyhow::Result<()> {
     tracing_subscriber::fmt()
         .with_env_filter(tracing_subscriber::EnvFilter::try_from_default_env().unwrap_or_else(|_| "info".into()))
@@ -259,6 +350,7 @@ fn main() -> anyhow::Result<()> {
                     .with_context(|| format!("writing {}", path.display()))?;
             }
         }
+        Command::Map(cmd) => run_map(cmd)?,
         Command::Features { scene, out, extractor } => {
             let cfg = extractor.config()?;
             let s = Scene::load(&scene)?;

@@ -9,5 +9,6 @@ pub mod index;
 pub mod localize;
 pub mod model;
 pub mod storage;
+pub mod store;
 #[cfg(test)]
 mod tests;

@@ -2,6 +2,7 @@
 //! skip when the data is absent, except under `CI=true`, where missing data is a failure.
 
 mod common;
+mod durability;
 mod embedding;
 
 mod pipeline;

@@ -84,9 +84,10 @@ class PairBatch:
 class PairSampler:
     """Draws frame pairs (weighted by their shared landmarks) and, per pair, anchors with their positives."""
 
-    def __init__(self, units: list[Unit], anchors: int, pool: int, seed: int, min_shared: int = 8):
+    def __init__(self, units: list[Unit], anchors: int, pool: int, seed: int, min_shared: int = 8, near: int = 0):
         self.anchors = anchors
         self.pool = pool
+        self.near = near
         self.rng = np.random.default_rng(seed)
         self.pairs: list[tuple[Unit, int, int]] = []
         weights = []
@@ -116,4 +117,10 @@ class PairSampler:
             shared, ia, ib = shared[pick], ia[pick], ib[pick]
         nb = len(u.frames[b])
         pool = self.rng.choice(nb, min(self.pool, nb), replace=False)
+        if self.near:
+            # Spatial hard negatives: the keypoints nearest to each positive in the second frame. Their
+            # constellations overlap the positive's, so they are what an embedding confuses first.
+            fb = u.frames[b]
+            near = fb.neighbours[ib, : self.near][fb.mask[ib, : self.near] > 0]
+            pool = np.unique(np.concatenate([pool, near]))
         return PairBatch(u.frames[a], u.frames[b], ia, ib, pool, shared, idb[pool])

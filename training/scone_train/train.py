@@ -167,10 +167,14 @@ def train(cfg: dict, run_dir: Path, steps: int | None = None, units=None) -> Pat
     sched = torch.optim.lr_scheduler.LambdaLR(
         opt, lambda s: (t["lr_final"] + 0.5 * (t["lr"] - t["lr_final"]) * (1 + math.cos(math.pi * min(s, steps) / steps))) / t["lr"]
     )
-    sampler = PairSampler(train_units, t["anchors"], t["pool"], seed=cfg["seed"])
+    sampler = PairSampler(train_units, t["anchors"], t["pool"], seed=cfg["seed"], near=t.get("near_negatives", 0))
     gen = torch.Generator().manual_seed(cfg["seed"])
     start, best, log = 0, -1.0, []
     last = run_dir / "last.pt"
+    if t.get("init") and not last.exists():
+        init = Path(os.path.expandvars(t["init"]))
+        model.load_state_dict(torch.load(init, weights_only=False)["model"])
+        print(f"initialised from {init}")
     if last.exists():
         ck = torch.load(last, weights_only=False)
         model.load_state_dict(ck["model"])

@@ -1,0 +1,379 @@
+//! The registry of maps: create, list, get, delete, write keyframes, localise, export and import.
+//!
+//! Concurrency: the registry is a `RwLock<HashMap<id, Arc<Map>>>` held only to look up or insert an `Arc`;
+//! work on a map happens after the registry lock is released, so maps never wait for each other. Inside a
+//! map, one `Mutex` serialises writers (plan, log with fsync, apply) and a `RwLock` guards the state: queries
+//! take it shared; a writer takes it exclusively only to apply a planned record and update the index. None
+//! of these locks is held across an `.await` (callers run this code on blocking worker threads).
+//!
+//! Start-up loads every map directory; a map that fails to load (corruption) is held back with its reason
+//! and reported as unavailable, and the others serve.
+
+use std::collections::HashMap;
+use std::path::{Path, PathBuf};
+use std::sync::Arc;
+
+use parking_lot::{Mutex, RwLock};
+use serde::{Deserialize, Serialize};
+
+use crate::error::MapError;
+use crate::features::Features;
+use crate::map::builder::{plan_keyframe, BuildParams, KeyframeInput};
+use crate::map::index::{EmbeddingIndex, IndexParams};
+use crate::map::localize::{localize, Localization, LocalizeParams, Prior};
+use crate::map::model::{MapData, MapMeta, Record};
+use crate::map::storage::{decode_snapshot, encode_snapshot, sync_dir, write_atomic, LoadReport, MapLog};
+use crate::scene::Camera;
+
+/// Settings of the map store.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct StoreConfig {
+    /// Directory holding one sub-directory per map.
+    pub data_dir: PathBuf,
+    /// Log records between snapshots.
+    pub compact_every: usize,
+    pub index: IndexParams,
+    pub build: BuildParams,
+    pub localize: LocalizeParams,
+}
+
+impl Default for StoreConfig {
+    fn default() -> Self {
+        Self {
+            data_dir: PathBuf::from("data"),
+            compact_every: 200,
+            index: IndexParams::default(),
+            build: BuildParams::default(),
+            localize: LocalizeParams::default(),
+        }
+    }
+}
+
+/// What the model that embeds queries and keyframes is.
+#[derive(Debug, Clone, PartialEq)]
+pub struct ModelInfo {
+    pub model_id: String,
+    pub k: usize,
+    pub dim: usize,
+}
+
+/// Statistics of a map.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct MapSummary {
+    pub id: String,
+    pub model_id: String,
+    pub keyframes: usize,
+    pub landmarks: usize,
+    pub observations: usize,
+    pub live_observations: usize,
+    pub version: u64,
+    pub approximate_index: bool,
+}
+
+/// What a keyframe write added.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct KeyframeAdded {
+    pub keyframe: u64,
+    pub new_landmarks: usize,
+    pub observations: usize,
+    pub version: u64,
+}
+
+struct MapState {
+    data: MapData,
+    index: EmbeddingIndex,
+}
+
+/// One loaded map.
+pub struct Map {
+    id: String,
+    state: RwLock<MapState>,
+    log: Mutex<MapLog>,
+}
+
+impl Map {
+    fn summary(&self) -> MapSummary {
+        let s = self.state.read();
+        MapSummary {
+            id: self.id.clone(),
+            model_id: s.data.meta.model_id.clone(),
+            keyframes: s.data.keyframes.len(),
+            landmarks: s.data.landmarks.len(),
+            observations: s.data.observations.len(),
+            live_observations: s.data.live_observations(),
+            version: s.data.version,
+            approximate_index: s.index.is_approximate(),
+        }
+    }
+
+    /// Runs `f` on the map's data under the shared lock.
+    pub fn read<R>(&self, f: impl FnOnce(&MapData, &EmbeddingIndex) -> R) -> R {
+        let s = self.state.read();
+        f(&s.data, &s.index)
+    }
+}
+
+/// Map ids: 1-64 characters from `[A-Za-z0-9_-]`.
+pub fn validate_map_id(id: &str) -> Result<(), MapError> {
+    let ok =
+        !id.is_empty() && id.len() <= 64 && id.bytes().all(|b| b.is_ascii_alphanumeric() || b == b'_' || b == b'-');
+    if ok {
+        Ok(())
+    } else {
+        Err(MapError::InvalidMapId { map: id.chars().take(80).collect() })
+    }
+}
+
+/// All maps of a data directory.
+pub struct MapStore {
+    config: StoreConfig,
+    model: ModelInfo,
+    maps: RwLock<HashMap<String, Arc<Map>>>,
+    held_back: RwLock<HashMap<String, String>>,
+    /// Serialises create, delete and import (directory-level changes).
+    admin: Mutex<()>,
+}
+
+fn now_ms() -> u64 {
+    std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).map(|d| d.as_millis() as u64).unwrap_or(0)
+}
+
+impl MapStore {
+    fn maps_dir(&self) -> PathBuf {
+        self.config.data_dir.join("maps")
+    }
+
+    fn map_dir(&self, id: &str) -> PathBuf {
+        self.maps_dir().join(id)
+    }
+
+    /// Opens the data directory and loads every map with its index.
+    pub fn open(config: StoreConfig, model: ModelInfo) -> Result<Self, MapError> {
+        let store = Self {
+            config,
+            model,
+            maps: RwLock::new(HashMap::new()),
+            held_back: RwLock::new(HashMap::new()),
+            admin: Mutex::new(()),
+        };
+        let dir = store.maps_dir();
+        std::fs::create_dir_all(&dir).map_err(|source| MapError::Io { path: dir.clone(), source })?;
+        let entries = std::fs::read_dir(&dir).map_err(|source| MapError::Io { path: dir.clone(), source })?;
+        for entry in entries {
+            let entry = entry.map_err(|source| MapError::Io { path: dir.clone(), source })?;
+            let name = entry.file_name().to_string_lossy().into_owned();
+            if !entry.path().is_dir() || validate_map_id(&name).is_err() {
+                continue;
+            }
+            match store.load_map(&name) {
+                Ok((map, report)) => {
+                    tracing::info!(map = %name, replayed = report.replayed, truncated = report.truncated_bytes, "map loaded");
+                    store.maps.write().insert(name, Arc::new(map));
+                }
+                Err(e) => {
+                    tracing::error!(map = %name, error = %e, "map held back");
+                    store.held_back.write().insert(name, e.to_string());
+                }
+            }
+        }
+        Ok(store)
+    }
+
+    fn load_map(&self, id: &str) -> Result<(Map, LoadReport), MapError> {
+        let dir = self.map_dir(id);
+        let (data, log, report) = MapLog::open(&dir, self.config.compact_every)?;
+        let index = EmbeddingIndex::load_or_build(self.config.index, &dir, &data);
+        Ok((Map { id: id.to_string(), state: RwLock::new(MapState { data, index }), log: Mutex::new(log) }, report))
+    }
+
+    pub fn model(&self) -> &ModelInfo {
+        &self.model
+    }
+
+    /// The map, or why it cannot be used.
+    pub fn get(&self, id: &str) -> Result<Arc<Map>, MapError> {
+        validate_map_id(id)?;
+        if let Some(m) = self.maps.read().get(id) {
+            return Ok(Arc::clone(m));
+        }
+        if let Some(reason) = self.held_back.read().get(id) {
+            return Err(MapError::Unavailable { map: id.to_string(), reason: reason.clone() });
+        }
+        Err(MapError::UnknownMap { map: id.to_string() })
+    }
+
+    fn check_model(&self, map: &Map) -> Result<(), MapError> {
+        let model_id = map.state.read().data.meta.model_id.clone();
+        if model_id != self.model.model_id {
+            return Err(MapError::ModelMismatch {
+                map: map.id.clone(),
+                map_model: model_id,
+                model: self.model.model_id.clone(),
+            });
+        }
+        Ok(())
+    }
+
+    pub fn create(&self, id: &str) -> Result<MapSummary, MapError> {
+        validate_map_id(id)?;
+        let _admin = self.admin.lock();
+        if self.maps.read().contains_key(id) || self.held_back.read().contains_key(id) || self.map_dir(id).exists() {
+            return Err(MapError::MapExists { map: id.to_string() });
+        }
+        let data = MapData::new(MapMeta {
+            id: id.to_string(),
+            model_id: self.model.model_id.clone(),
+            k: self.model.k,
+            dim: self.model.dim,
+            created_unix_ms: now_ms(),
+        });
+        let log = MapLog::create(&self.map_dir(id), &data, self.config.compact_every)?;
+        let index = EmbeddingIndex::new(self.config.index);
+        let map =
+            Arc::new(Map { id: id.to_string(), state: RwLock::new(MapState { data, index }), log: Mutex::new(log) });
+        self.maps.write().insert(id.to_string(), Arc::clone(&map));
+        Ok(map.summary())
+    }
+
+    pub fn list(&self) -> Vec<MapSummary> {
+        let maps: Vec<Arc<Map>> = self.maps.read().values().cloned().collect();
+        let mut out: Vec<MapSummary> = maps.iter().map(|m| m.summary()).collect();
+        out.sort_by(|a, b| a.id.cmp(&b.id));
+        out
+    }
+
+    /// Ids of maps that failed to load, with the reason.
+    pub fn held_back(&self) -> Vec<(String, String)> {
+        let mut v: Vec<_> = self.held_back.read().iter().map(|(k, v)| (k.clone(), v.clone())).collect();
+        v.sort();
+        v
+    }
+
+    pub fn summary(&self, id: &str) -> Result<MapSummary, MapError> {
+        Ok(self.get(id)?.summary())
+    }
+
+    /// Deletes a map: out of the registry first, then its directory (renamed away, then removed).
+    pub fn delete(&self, id: &str) -> Result<(), MapError> {
+        validate_map_id(id)?;
+        let _admin = self.admin.lock();
+        let known = self.maps.write().remove(id).is_some() | self.held_back.write().remove(id).is_some();
+        if !known {
+            return Err(MapError::UnknownMap { map: id.to_string() });
+        }
+        let dir = self.map_dir(id);
+        let trash = self.maps_dir().join(format!(".deleted-{id}-{}", now_ms()));
+        std::fs::rename(&dir, &trash).map_err(|source| MapError::Io { path: dir.clone(), source })?;
+        sync_dir(&self.maps_dir())?;
+        std::fs::remove_dir_all(&trash).map_err(|source| MapError::Io { path: trash, source })
+    }
+
+    /// Adds a keyframe; returns after the record is durable and applied.
+    pub fn add_keyframe(&self, id: &str, input: &KeyframeInput) -> Result<KeyframeAdded, MapError> {
+        let map = self.get(id)?;
+        self.check_model(&map)?;
+        let mut log = map.log.lock();
+        let record = {
+            let s = map.state.read();
+            let r = plan_keyframe(&s.data, input, &self.config.build)?;
+            s.data.check(&r).map_err(|reason| MapError::InvalidInput { field: "keyframe".into(), reason })?;
+            r
+        };
+        let Record::AddKeyframe { new_landmarks, observations, .. } = &record else {
+            unreachable!("planned a keyframe")
+        };
+        let (new, obs) = (new_landmarks.len(), observations.len());
+        let version = self.commit(&map, &mut log, record)?;
+        Ok(KeyframeAdded { keyframe: input.id, new_landmarks: new, observations: obs, version })
+    }
+
+    pub fn remove_keyframe(&self, id: &str, keyframe: u64) -> Result<u64, MapError> {
+        let map = self.get(id)?;
+        let mut log = map.log.lock();
+        let record = Record::RemoveKeyframe { id: keyframe };
+        if map.state.read().data.check(&record).is_err() {
+            return Err(MapError::UnknownKeyframe { map: id.to_string(), keyframe });
+        }
+        self.commit(&map, &mut log, record)
+    }
+
+    /// Log (fsync) then apply; compacts and dumps the index when the log is long. Returns the new version.
+    fn commit(&self, map: &Map, log: &mut MapLog, record: Record) -> Result<u64, MapError> {
+        let seq = map.state.read().data.version + 1;
+        log.append(seq, &record)?;
+        let mut s = map.state.write();
+        s.data.apply(&record);
+        let MapState { data, index } = &mut *s;
+        index.sync(data);
+        if log.wants_compaction() {
+            log.compact(data)?;
+            index.dump(log.dir(), &data.meta.model_id)?;
+        }
+        Ok(data.version)
+    }
+
+    /// Localises a query against a map.
+    pub fn localize(
+        &self,
+        id: &str,
+        features: &Features,
+        embeddings: &[f32],
+        camera: &Camera,
+        prior: Option<&Prior>,
+    ) -> Result<Localization, MapError> {
+        let map = self.get(id)?;
+        self.check_model(&map)?;
+        map.read(|data, index| localize(data, index, features, embeddings, camera, prior, &self.config.localize))
+    }
+
+    /// The whole map in the versioned, checksummed export format.
+    pub fn export(&self, id: &str) -> Result<Vec<u8>, MapError> {
+        let map = self.get(id)?;
+        let s = map.state.read();
+        encode_snapshot(&s.data)
+    }
+
+    /// Imports an exported map under `id` (refused if it exists or was embedded by another model).
+    pub fn import(&self, id: &str, bytes: &[u8]) -> Result<MapSummary, MapError> {
+        validate_map_id(id)?;
+        let mut data = decode_snapshot(bytes, Path::new("import"))?;
+        if data.meta.model_id != self.model.model_id {
+            return Err(MapError::ModelMismatch {
+                map: id.to_string(),
+                map_model: data.meta.model_id,
+                model: self.model.model_id.clone(),
+            });
+        }
+        let _admin = self.admin.lock();
+        if self.maps.read().contains_key(id) || self.map_dir(id).exists() {
+            return Err(MapError::MapExists { map: id.to_string() });
+        }
+        data.meta.id = id.to_string();
+        let dir = self.map_dir(id);
+        let log = MapLog::create(&dir, &data, self.config.compact_every)?;
+        let mut index = EmbeddingIndex::new(self.config.index);
+        index.sync(&data);
+        let map =
+            Arc::new(Map { id: id.to_string(), state: RwLock::new(MapState { data, index }), log: Mutex::new(log) });
+        self.maps.write().insert(id.to_string(), Arc::clone(&map));
+        Ok(map.summary())
+    }
+
+    /// Snapshots every map and dumps its index (at shutdown, so the next start loads instead of rebuilding).
+    pub fn flush(&self) -> Result<(), MapError> {
+        let maps: Vec<Arc<Map>> = self.maps.read().values().cloned().collect();
+        for map in maps {
+            let mut log = map.log.lock();
+            let s = map.state.read();
+            log.compact(&s.data)?;
+            s.index.dump(log.dir(), &s.data.meta.model_id)?;
+        }
+        Ok(())
+    }
+
+    /// Writes an export file atomically.
+    pub fn export_to_file(&self, id: &str, path: &Path) -> Result<(), MapError> {
+        write_atomic(path, &self.export(id)?)
+    }
+}

@@ -1,0 +1,109 @@
+//! Durability with a real child process: `scone map write-scene` writes keyframes through the map store and
+//! prints "ack <id>" only once each write is durable; it is killed with SIGKILL mid-stream, the store is
+//! reopened, and every acknowledged keyframe must be there and the map must localise a held-out frame.
+
+use std::io::{BufRead, BufReader};
+use std::process::{Command, Stdio};
+use std::sync::Arc;
+
+use scone::decode::ImageLimits;
+use scone::embedding::{Embedder, EmbedderConfig};
+use scone::features::ExtractorConfig;
+use scone::map::store::{MapStore, ModelInfo, StoreConfig};
+use scone::pipeline::Describer;
+use scone::pose::rotation_error_deg;
+use scone::scene::Scene;
+
+use crate::common::fixture;
+
+fn open(dir: &std::path::Path) -> (MapStore, Describer) {
+    let embedder = Arc::new(Embedder::load(&EmbedderConfig::default()).unwrap());
+    let info = ModelInfo { model_id: embedder.model_id().into(), k: embedder.k(), dim: embedder.dim() };
+    let store = MapStore::open(StoreConfig { data_dir: dir.to_path_buf(), ..StoreConfig::default() }, info).unwrap();
+    (store, Describer { extractor: ExtractorConfig::default(), limits: ImageLimits::default(), embedder })
+}
+
+#[test]
+fn acknowledged_keyframes_survive_kill_9_and_the_map_localises() {
+    let dir = std::env::temp_dir().join(format!("scone-kill9-{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&dir);
+    let scene_dir = fixture("rendered");
+    let mut child = Command::new(env!("CARGO_BIN_EXE_scone"))
+        .args(["map", "write-scene", "--map", "kill", "--stride", "2", "--repeat", "40"])
+        .arg("--data-dir")
+        .arg(&dir)
+        .arg("--scene")
+        .arg(&scene_dir)
+        .stdout(Stdio::piped())
+        .stderr(Stdio::null())
+        .spawn()
+        .unwrap();
+    let mut acked = Vec::new();
+    let mut lines = BufReader::new(child.stdout.take().unwrap()).lines();
+    while acked.len() < 7 {
+        let line = lines.next().expect("child ended early").unwrap();
+        let id: u64 = line.split_whitespace().nth(1).unwrap().parse().unwrap();
+        acked.push(id);
+    }
+    child.kill().unwrap(); // SIGKILL
+    child.wait().unwrap();
+
+    let (store, describer) = open(&dir);
+    let summary = store.summary("kill").unwrap();
+    let map = store.get("kill").unwrap();
+    map.read(|data, _| {
+        for id in &acked {
+            assert!(data.keyframes.contains_key(id), "acknowledged keyframe {id} lost after kill -9");
+        }
+    });
+    assert!(summary.keyframes >= acked.len());
+
+    // Writes continue after the restart, and a frame that is not in the map localises.
+    let scene = Scene::load(&scene_dir).unwrap();
+    let frame = &scene.frames[3];
+    let d = describer.describe_image(&std::fs::read(&frame.rgb).unwrap()).unwrap();
+    let loc = store.localize("kill", &d.features, &d.embeddings, &scene.camera, None).unwrap();
+    let pose = loc.pose.expect("held-out frame not localised");
+    let gt = frame.pose.unwrap();
+    let dt = (pose.camera_to_world.translation.vector - gt.translation.vector).norm();
+    let dr = rotation_error_deg(&pose.camera_to_world.rotation.to_rotation_matrix(), &gt.rotation.to_rotation_matrix());
+    assert!(dt < 0.05 && dr < 1.0, "pose off by {dt} m, {dr} deg");
+    assert!(loc.confidence > 0.5, "confidence {}", loc.confidence);
+    std::fs::remove_dir_all(&dir).unwrap();
+}
+
+#[test]
+fn a_corrupt_map_is_held_back_and_the_others_serve() {
+    let dir = std::env::temp_dir().join(format!("scone-heldback-{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&dir);
+    let status = Command::new(env!("CARGO_BIN_EXE_scone"))
+        .args(["map", "write-scene", "--map", "good", "--stride", "3"])
+        .arg("--data-dir")
+        .arg(&dir)
+        .arg("--scene")
+        .arg(fixture("rendered"))
+        .stdout(Stdio::null())
+        .stderr(Stdio::null())
+        .status()
+        .unwrap();
+    assert!(status.success());
+    // A second map whose log is damaged before its end.
+    let good = dir.join("maps/good");
+    let bad = dir.join("maps/bad");
+    std::fs::create_dir_all(&bad).unwrap();
+    for f in ["snapshot.bin", "log.bin"] {
+        std::fs::copy(good.join(f), bad.join(f)).unwrap();
+    }
+    let mut log = std::fs::read(bad.join("log.bin")).unwrap();
+    log[100] ^= 0xff;
+    std::fs::write(bad.join("log.bin"), log).unwrap();
+    let (store, _) = open(&dir);
+    let held = store.held_back();
+    assert_eq!(held.len(), 1);
+    assert_eq!(held[0].0, "bad");
+    assert!(held[0].1.contains("log.bin"), "{}", held[0].1);
+    let err = store.summary("bad").unwrap_err().to_string();
+    assert!(err.contains("unavailable"), "{err}");
+    assert!(store.summary("good").unwrap().keyframes > 0);
+    std::fs::remove_dir_all(&dir).unwrap();
+}
