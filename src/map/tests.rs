@@ -192,16 +192,22 @@ fn exact_search_equals_brute_force_and_skips_tombstones() {
     }
 }
 
-#[test]
-fn hnsw_index_finds_near_duplicates_and_survives_a_dump() {
-    let dir = temp_dir("hnsw");
+/// A map of `keyframes` x 250 observations with an HNSW index (exact search only below 1,000).
+fn hnsw_map(keyframes: u64, seed: u64) -> (MapData, IndexParams, EmbeddingIndex) {
     let mut data = MapData::new(meta(48));
-    for k in 0..6 {
-        data.apply(&keyframe_record(k, 250, k * 250, 48, k + 11));
+    for k in 0..keyframes {
+        data.apply(&keyframe_record(k, 250, k * 250, 48, k + seed));
     }
     let params = IndexParams { exact_below: 1000, ..IndexParams::default() };
     let mut index = EmbeddingIndex::new(params);
     index.sync(&data);
+    (data, params, index)
+}
+
+#[test]
+fn hnsw_index_finds_near_duplicates_and_survives_a_dump() {
+    let dir = temp_dir("hnsw");
+    let (mut data, params, index) = hnsw_map(6, 11);
     assert!(index.is_approximate());
     // Queries: slightly perturbed copies of stored embeddings must find their original.
     let mut found = 0;
@@ -230,13 +236,7 @@ fn hnsw_index_finds_near_duplicates_and_survives_a_dump() {
 #[test]
 fn a_dump_from_another_model_or_damaged_is_rebuilt() {
     let dir = temp_dir("hnsw-model");
-    let mut data = MapData::new(meta(48));
-    for k in 0..5 {
-        data.apply(&keyframe_record(k, 250, k * 250, 48, k + 1));
-    }
-    let params = IndexParams { exact_below: 1000, ..IndexParams::default() };
-    let mut index = EmbeddingIndex::new(params);
-    index.sync(&data);
+    let (data, params, index) = hnsw_map(5, 1);
     index.dump(&dir, "sha256:other").unwrap();
     let reloaded = EmbeddingIndex::load_or_build(params, &dir, &data);
     assert!(reloaded.is_approximate() && !reloaded.loaded_from_dump(), "another model's dump was used");
