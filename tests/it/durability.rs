@@ -107,3 +107,65 @@ fn a_corrupt_map_is_held_back_and_the_others_serve() {
     assert!(store.summary("good").unwrap().keyframes > 0);
     std::fs::remove_dir_all(&dir).unwrap();
 }
+
+/// Queries of one map go on while another map is being written: a writer thread adds keyframes to map "b"
+/// while this thread localises against map "a"; several localisations must complete inside the write stream.
+#[test]
+fn reads_of_one_map_go_on_while_another_is_written() {
+    let dir = std::env::temp_dir().join(format!("scone-rw-{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&dir);
+    let (store, describer) = open(&dir);
+    let store = Arc::new(store);
+    let scene = Scene::load(&fixture("rendered")).unwrap();
+    let described: Vec<_> =
+        scene.frames.iter().map(|f| describer.describe_image(&std::fs::read(&f.rgb).unwrap()).unwrap()).collect();
+    let depths: Vec<_> = scene
+        .frames
+        .iter()
+        .map(|f| {
+            scone::decode::decode_depth_png(&std::fs::read(f.depth.as_ref().unwrap()).unwrap(), &ImageLimits::default())
+                .unwrap()
+        })
+        .collect();
+    let write = |map: &str, id: u64, i: usize| {
+        let input = scone::map::builder::KeyframeInput {
+            id,
+            pose: scene.frames[i].pose.unwrap(),
+            camera: scene.camera,
+            features: &described[i].features,
+            embeddings: &described[i].embeddings,
+            depth: Some(scone::map::builder::Depth { image: &depths[i], scale: 1.0 / 5000.0 }),
+        };
+        store.add_keyframe(map, &input).unwrap();
+    };
+    store.create("a").unwrap();
+    store.create("b").unwrap();
+    for i in (0..scene.frames.len()).step_by(2) {
+        write("a", i as u64, i);
+    }
+    let done = std::sync::atomic::AtomicBool::new(false);
+    let during = std::thread::scope(|s| {
+        s.spawn(|| {
+            for round in 0..2u64 {
+                for i in 0..scene.frames.len() {
+                    write("b", round * 100 + i as u64, i);
+                }
+            }
+            done.store(true, std::sync::atomic::Ordering::SeqCst);
+        });
+        let mut during = 0;
+        while !done.load(std::sync::atomic::Ordering::SeqCst) {
+            let q = &described[1];
+            let loc = store.localize("a", &q.features, &q.embeddings, &scene.camera, None).unwrap();
+            assert!(loc.pose.is_some());
+            if !done.load(std::sync::atomic::Ordering::SeqCst) {
+                during += 1;
+            }
+        }
+        during
+    });
+    eprintln!("{during} localisations of map a completed while map b was written");
+    assert!(during >= 3, "only {during} localisations of map a completed while map b was written");
+    assert_eq!(store.summary("b").unwrap().keyframes, 2 * scene.frames.len());
+    std::fs::remove_dir_all(&dir).unwrap();
+}
