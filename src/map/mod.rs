@@ -1,8 +1,12 @@
 //! Maps: keyframes, landmarks and their SConE observations, stored durably (snapshot + write-ahead log) with
 //! a nearest-neighbour index per map.
 //!
-//! Status: the data model, durable storage and the index are here; map building from posed keyframes,
-//! relocalisation and the map registry follow.
+//! - [`model`]: keyframes, landmarks, observations, and the records that change them;
+//! - [`storage`]: snapshot + checksummed write-ahead log of one map;
+//! - [`index`]: exact / HNSW nearest-neighbour search over observation embeddings;
+//! - [`builder`]: which landmarks a posed keyframe observes or creates (depth or triangulation);
+//! - [`localize`]: 2D-3D matching and PnP against a map;
+//! - [`store`]: the registry of maps that commands (and the service) write and query through.
 
 pub mod builder;
 pub mod index;
