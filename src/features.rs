@@ -105,14 +105,16 @@ pub struct Keypoint {
 }
 
 impl Keypoint {
-    fn from_cv(kp: &KeyPoint) -> Self {
+    /// From OpenCV's keypoint (angle normalised to [0, 360)).
+    pub fn from_cv(kp: &KeyPoint) -> Self {
         let p = kp.pt();
         // FREAK reports atan2 in degrees, (-180, 180]; normalise to [0, 360) like client input.
         let angle = kp.angle().rem_euclid(360.0);
         Self { x: p.x, y: p.y, size: kp.size(), angle, response: kp.response(), octave: kp.octave() }
     }
 
-    fn to_cv(self) -> opencv::Result<KeyPoint> {
+    /// To OpenCV's keypoint (class id -1).
+    pub fn to_cv(self) -> opencv::Result<KeyPoint> {
         KeyPoint::new_coords(self.x, self.y, self.size, self.angle, self.response, self.octave, -1)
     }
 }

@@ -115,12 +115,8 @@ enum EvalCommand {
         /// Use OpenCV's single-scale FAST (threshold 20, 2,000 strongest), as the data README's baselines.
         #[arg(long)]
         single_scale: bool,
-        /// SConE model.
-        #[arg(long)]
-        model: Option<PathBuf>,
-        /// Write the full report (every pair) as JSON.
-        #[arg(long)]
-        json: Option<PathBuf>,
+        #[command(flatten)]
+        report: ReportArgs,
         #[command(flatten)]
         extractor: ExtractorArgs,
     },
@@ -135,15 +131,32 @@ enum EvalCommand {
         /// Every S-th frame goes into the map.
         #[arg(long, default_value_t = 3)]
         map_stride: usize,
-        /// SConE model.
-        #[arg(long)]
-        model: Option<PathBuf>,
-        /// Write the full report as JSON.
-        #[arg(long)]
-        json: Option<PathBuf>,
+        #[command(flatten)]
+        report: ReportArgs,
         #[command(flatten)]
         extractor: ExtractorArgs,
     },
+}
+
+/// Model and output of an evaluation.
+#[derive(Args, Clone)]
+struct ReportArgs {
+    /// SConE model (default: the committed one).
+    #[arg(long)]
+    model: Option<PathBuf>,
+    /// Write the full report (every pair or query) as JSON.
+    #[arg(long)]
+    json: Option<PathBuf>,
+}
+
+impl ReportArgs {
+    fn write_json(&self, report: &impl serde::Serialize) -> anyhow::Result<()> {
+        if let Some(path) = &self.json {
+            std::fs::write(path, serde_json::to_vec_pretty(report)?)
+                .with_context(|| format!("writing {}", path.display()))?;
+        }
+        Ok(())
+    }
 }
 
 /// Extraction settings on the command line; unset flags keep [`ExtractorConfig::default`].
@@ -302,8 +315,7 @@ fn main() -> anyhow::Result<()> {
             depth_px,
             epipolar_px,
             single_scale,
-            model,
-            json,
+            report: out,
             extractor,
         }) => {
             let mut cfg = extractor.config()?;
@@ -311,7 +323,7 @@ fn main() -> anyhow::Result<()> {
                 cfg = ExtractorConfig::single_scale(20, 2000);
             }
             let s = Scene::load(&scene)?;
-            let embedder = load_embedder(methods.contains(&Method::Scone), model)?;
+            let embedder = load_embedder(methods.contains(&Method::Scone), out.model.clone())?;
             let pc = PairsConfig {
                 methods,
                 window,
@@ -325,12 +337,9 @@ fn main() -> anyhow::Result<()> {
             };
             let report = pairs::evaluate(&s, &pc, embedder.as_ref()).map_err(|e| anyhow::anyhow!("{e}"))?;
             print!("{}", pairs::markdown(&report));
-            if let Some(path) = json {
-                std::fs::write(&path, serde_json::to_vec_pretty(&report)?)
-                    .with_context(|| format!("writing {}", path.display()))?;
-            }
+            out.write_json(&report)?;
         }
-        Command::Eval(EvalCommand::Reloc { scene, methods, map_stride, model, json, extractor }) => {
+        Command::Eval(EvalCommand::Reloc { scene, methods, map_stride, report: out, extractor }) => {
             let cfg = extractor.config()?;
             for m in &methods {
                 anyhow::ensure!(
@@ -339,16 +348,13 @@ fn main() -> anyhow::Result<()> {
                 );
             }
             let s = Scene::load(&scene)?;
-            let embedder = load_embedder(methods.contains(&Method::Scone), model)?;
+            let embedder = load_embedder(methods.contains(&Method::Scone), out.model.clone())?;
             let rc =
                 scone::eval::reloc::RelocConfig { methods, stride: map_stride, extractor: cfg, ..Default::default() };
             let report =
                 scone::eval::reloc::evaluate(&s, &rc, embedder.as_ref()).map_err(|e| anyhow::anyhow!("{e}"))?;
             print!("{}", scone::eval::reloc::markdown(&report));
-            if let Some(path) = json {
-                std::fs::write(&path, serde_json::to_vec_pretty(&report)?)
-                    .with_context(|| format!("writing {}", path.display()))?;
-            }
+            out.write_json(&report)?;
         }
         Command::Map(cmd) => run_map(cmd)?,
         Command::Features { scene, out, extractor } => {

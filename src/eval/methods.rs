@@ -56,22 +56,11 @@ pub struct Described {
 }
 
 fn cv_keypoints(kps: &[Keypoint]) -> Result<Vector<KeyPoint>, FeatureError> {
-    kps.iter()
-        .map(|k| KeyPoint::new_coords(k.x, k.y, k.size, k.angle, k.response, k.octave, -1).map_err(FeatureError::from))
-        .collect()
+    kps.iter().map(|k| k.to_cv().map_err(FeatureError::from)).collect()
 }
 
 fn from_cv(kps: &Vector<KeyPoint>) -> Vec<Keypoint> {
-    kps.iter()
-        .map(|k| Keypoint {
-            x: k.pt().x,
-            y: k.pt().y,
-            size: k.size(),
-            angle: k.angle(),
-            response: k.response(),
-            octave: k.octave(),
-        })
-        .collect()
+    kps.iter().map(|k| Keypoint::from_cv(&k)).collect()
 }
 
 /// Describes an image with `method`. SConE needs the embedder.

@@ -82,14 +82,19 @@ fn log_replays_to_the_same_map() {
     assert_eq!(loaded.live_observations(), 40);
 }
 
-#[test]
-fn torn_last_record_is_cut_and_the_map_loads() {
-    let dir = temp_dir("torn");
+/// A map directory with two logged keyframe records (10 observations each, dimension 8).
+fn logged_map(name: &str) -> PathBuf {
+    let dir = temp_dir(name);
     let mut data = MapData::new(meta(8));
     let mut log = MapLog::create(&dir, &data, 0).unwrap();
     write(&mut log, &mut data, keyframe_record(0, 10, 0, 8, 1));
     write(&mut log, &mut data, keyframe_record(1, 10, 10, 8, 2));
-    drop(log);
+    dir
+}
+
+#[test]
+fn torn_last_record_is_cut_and_the_map_loads() {
+    let dir = logged_map("torn");
     let path = dir.join("log.bin");
     let full = std::fs::read(&path).unwrap();
     // Simulate a crash in the middle of appending the second record.
@@ -109,12 +114,7 @@ fn torn_last_record_is_cut_and_the_map_loads() {
 
 #[test]
 fn corruption_before_the_end_is_reported_with_the_file() {
-    let dir = temp_dir("corrupt");
-    let mut data = MapData::new(meta(8));
-    let mut log = MapLog::create(&dir, &data, 0).unwrap();
-    write(&mut log, &mut data, keyframe_record(0, 10, 0, 8, 1));
-    write(&mut log, &mut data, keyframe_record(1, 10, 10, 8, 2));
-    drop(log);
+    let dir = logged_map("corrupt");
     let path = dir.join("log.bin");
     let mut bytes = std::fs::read(&path).unwrap();
     bytes[40] ^= 0xff; // inside the first record's payload

@@ -126,6 +126,18 @@ class FrameFeatures:
     def __len__(self) -> int:
         return len(self.keypoints)
 
+    def model_inputs(self, k: int) -> tuple:
+        """The network's five inputs as torch tensors, constellations cut to the first k (nearest) members."""
+        import torch
+
+        return (
+            torch.from_numpy(self.descriptors),
+            torch.from_numpy(np.ascontiguousarray(self.keypoints[:, [3, 2]])),
+            torch.from_numpy(self.neighbours[:, :k].astype(np.int64)),
+            torch.from_numpy(self.mask[:, :k].astype(np.float32)),
+            torch.from_numpy(np.ascontiguousarray(self.relative[:, :k])),
+        )
+
 
 def load_features(npz_path: Path) -> tuple[dict, list[FrameFeatures]]:
     z = np.load(npz_path)

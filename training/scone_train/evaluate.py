@@ -31,13 +31,7 @@ def embed_frames(model: SconeNet, frames: list[FrameFeatures]) -> list[np.ndarra
         if len(f) == 0:
             out.append(np.zeros((0, model.head[-1].out_features), np.float32))
             continue
-        e = model(
-            torch.from_numpy(f.descriptors),
-            torch.from_numpy(np.ascontiguousarray(f.keypoints[:, [3, 2]])),
-            torch.from_numpy(f.neighbours[:, : model.k].astype(np.int64)),
-            torch.from_numpy(f.mask[:, : model.k].astype(np.float32)),
-            torch.from_numpy(np.ascontiguousarray(f.relative[:, : model.k])),
-        )
+        e = model(*f.model_inputs(model.k))
         out.append(e.numpy())
     return out
 

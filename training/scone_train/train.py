@@ -67,13 +67,7 @@ class TensorCache:
     def get(self, f: FrameFeatures):
         key = id(f)
         if key not in self.cache:
-            self.cache[key] = (
-                torch.from_numpy(f.descriptors),
-                torch.from_numpy(np.ascontiguousarray(f.keypoints[:, [3, 2]])),
-                torch.from_numpy(f.neighbours[:, : self.k].astype(np.int64)),
-                torch.from_numpy(f.mask[:, : self.k].astype(np.float32)),
-                torch.from_numpy(np.ascontiguousarray(f.relative[:, : self.k])),
-            )
+            self.cache[key] = f.model_inputs(self.k)
         return self.cache[key]
 
 
