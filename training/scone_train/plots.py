@@ -31,7 +31,7 @@ def plot_report(report: dict, out: Path) -> list[Path]:
     fig, ax = plt.subplots(figsize=(6, 4))
     for m in methods:
         recs = sorted((r for r in report["pairs"] if r["method"] == m), key=lambda r: r["angular_distance_deg"])
-        ax.plot([r["angular_distance_deg"] for r in recs], [r["correct"] for r in recs], marker="o", label=NAMES[m])
+        ax.plot([r["angular_distance_deg"] for r in recs], [r["correct"] for r in recs], marker="o", ls="none", alpha=0.7, label=NAMES[m])
     ax.set_xlabel("angle between the frames (deg)")
     ax.set_ylabel("correct putative matches")
     ax.set_title(f"{scene}: true positives vs viewpoint change")
