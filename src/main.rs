@@ -255,6 +255,8 @@ fn run_map(cmd: MapCommand) -> anyhow::Result<()> {
                     next_id += 1;
                 }
             }
+            // A clean exit snapshots the map and dumps its index, as the service does at shutdown.
+            store.flush()?;
         }
         MapCommand::Info { data_dir, model } => {
             let (store, _) = open_store(data_dir, model)?;
