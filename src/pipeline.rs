@@ -41,6 +41,18 @@ impl Describer {
         self.describe_features(features)
     }
 
+    /// Embeddings of a stored keyframe (its keypoints and FREAK descriptors) with this model.
+    pub fn embed_keyframe(&self, keyframe: &crate::map::model::Keyframe) -> Result<Vec<f32>, DescribeError> {
+        let features = features::from_precomputed(
+            keyframe.camera.width,
+            keyframe.camera.height,
+            keyframe.keypoints.clone(),
+            &keyframe.descriptors,
+            &features::KeypointLimits { max_keypoints: usize::MAX, ..Default::default() },
+        )?;
+        Ok(self.describe_features(features)?.embeddings)
+    }
+
     /// Features (extracted here or validated client keypoints) -> embeddings.
     pub fn describe_features(&self, features: Features) -> Result<Described, DescribeError> {
         let c = constellation::build(&features.keypoints, self.embedder.k());

@@ -137,6 +137,14 @@ impl EmbeddingIndex {
         Hnsw::new(self.params.m, expected.max(1024), MAX_LAYER, self.params.ef_construction, DistL2 {})
     }
 
+    /// Forgets the graph, so the next `sync` rebuilds it (after every embedding changed, e.g. a re-embed).
+    pub fn reset(&mut self) {
+        self.hnsw = None;
+        self.indexed = 0;
+        self.in_graph = 0;
+        self.from_dump = false;
+    }
+
     /// Brings the index up to date with `data` (new observations; a rebuild when there are too many
     /// tombstones; the switch to HNSW when the map outgrows the exact threshold).
     pub fn sync(&mut self, data: &MapData) {

@@ -298,6 +298,42 @@ impl MapStore {
         self.commit(&map, &mut log, record)
     }
 
+    /// Re-embeds every keyframe of a map with the current model (from the stored keypoints and FREAK
+    /// descriptors), so a map made by an earlier model can be queried again. `embed` computes a keyframe's
+    /// embeddings; the record replaces them all at once and the index is rebuilt.
+    pub fn reembed(
+        &self,
+        id: &str,
+        embed: &dyn Fn(&crate::map::model::Keyframe) -> Result<Vec<f32>, MapError>,
+    ) -> Result<MapSummary, MapError> {
+        let map = self.get(id)?;
+        let mut log = map.log.lock();
+        let keyframes = {
+            let s = map.state.read();
+            let mut out = Vec::with_capacity(s.data.keyframes.len());
+            for kf in s.data.keyframes.values() {
+                if kf.descriptors.is_empty() && !kf.keypoints.is_empty() {
+                    return Err(MapError::InvalidInput {
+                        field: "map".into(),
+                        reason: format!("keyframe {} has no FREAK descriptors to re-embed", kf.id),
+                    });
+                }
+                out.push((kf.id, embed(kf)?));
+            }
+            out
+        };
+        let record =
+            Record::Reembed { model_id: self.model.model_id.clone(), k: self.model.k, dim: self.model.dim, keyframes };
+        map.state
+            .read()
+            .data
+            .check(&record)
+            .map_err(|reason| MapError::InvalidInput { field: "re-embedding".into(), reason })?;
+        map.state.write().index.reset();
+        self.commit(&map, &mut log, record)?;
+        Ok(map.summary())
+    }
+
     /// Log (fsync) then apply; compacts and dumps the index when the log is long. Returns the new version.
     fn commit(&self, map: &Map, log: &mut MapLog, record: Record) -> Result<u64, MapError> {
         let seq = map.state.read().data.version + 1;

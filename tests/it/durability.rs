@@ -171,3 +171,57 @@ fn reads_of_one_map_go_on_while_another_is_written() {
     assert_eq!(store.summary("b").unwrap().keyframes, 2 * scene.frames.len());
     std::fs::remove_dir_all(&dir).unwrap();
 }
+
+/// A map recorded by another model is refused for queries with a clear error, and re-embedding it from the
+/// stored keypoints and FREAK descriptors makes it answer again.
+#[test]
+fn a_map_from_another_model_is_refused_until_re_embedded() {
+    let dir = std::env::temp_dir().join(format!("scone-reembed-{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&dir);
+    let (_, describer) = open(&dir);
+    let scene = Scene::load(&fixture("rendered")).unwrap();
+    {
+        // Written by a store that believes it runs an older model.
+        let old = ModelInfo { model_id: "sha256:older-model".into(), k: 20, dim: describer.embedder.dim() };
+        let store = MapStore::open(StoreConfig { data_dir: dir.clone(), ..StoreConfig::default() }, old).unwrap();
+        store.create("m").unwrap();
+        for i in (0..scene.frames.len()).step_by(2) {
+            let d = describer.describe_image(&std::fs::read(&scene.frames[i].rgb).unwrap()).unwrap();
+            let depth = scone::decode::decode_depth_png(
+                &std::fs::read(scene.frames[i].depth.as_ref().unwrap()).unwrap(),
+                &ImageLimits::default(),
+            )
+            .unwrap();
+            let input = scone::map::builder::KeyframeInput {
+                id: i as u64,
+                pose: scene.frames[i].pose.unwrap(),
+                camera: scene.camera,
+                features: &d.features,
+                embeddings: &d.embeddings,
+                depth: Some(scone::map::builder::Depth { image: &depth, scale: 1.0 / 5000.0 }),
+            };
+            store.add_keyframe("m", &input).unwrap();
+        }
+    }
+    let (store, describer) = open(&dir);
+    let q = describer.describe_image(&std::fs::read(&scene.frames[3].rgb).unwrap()).unwrap();
+    let err = store.localize("m", &q.features, &q.embeddings, &scene.camera, None).unwrap_err().to_string();
+    assert!(err.contains("sha256:older-model") && err.contains("re-embed"), "{err}");
+    let summary = store
+        .reembed("m", &|kf| {
+            describer
+                .embed_keyframe(kf)
+                .map_err(|e| scone::MapError::InvalidInput { field: "keyframe".into(), reason: e.to_string() })
+        })
+        .unwrap();
+    assert_eq!(summary.model_id, describer.embedder.model_id());
+    let loc = store.localize("m", &q.features, &q.embeddings, &scene.camera, None).unwrap();
+    let pose = loc.pose.expect("not localised after re-embedding");
+    let gt = scene.frames[3].pose.unwrap();
+    assert!((pose.camera_to_world.translation.vector - gt.translation.vector).norm() < 0.05);
+    // The re-embedding is durable.
+    drop(store);
+    let (store, _) = open(&dir);
+    assert_eq!(store.summary("m").unwrap().model_id, describer.embedder.model_id());
+    std::fs::remove_dir_all(&dir).unwrap();
+}
