@@ -31,6 +31,11 @@ impl Camera {
     pub fn k(&self) -> [[f64; 3]; 3] {
         [[self.fx, 0.0, self.cx], [0.0, self.fy, self.cy], [0.0, 0.0, 1.0]]
     }
+
+    /// Pixel of a point given in this camera's coordinates; `None` when it is not in front (z <= 0).
+    pub fn project(&self, p: &nalgebra::Point3<f64>) -> Option<(f64, f64)> {
+        (p.z > 0.0).then(|| (self.fx * p.x / p.z + self.cx, self.fy * p.y / p.z + self.cy))
+    }
 }
 
 /// One colour frame with what was associated to it.

@@ -154,12 +154,9 @@ impl Truth<'_> {
                         z,
                     );
                     let p2 = self.motion * nalgebra::Point3::from(p1);
-                    if p2.z <= 0.0 {
-                        return Some(false);
-                    }
-                    let u = self.cam.fx * p2.x / p2.z + self.cam.cx;
-                    let v = self.cam.fy * p2.y / p2.z + self.cam.cy;
-                    return Some((u - b.0 as f64).hypot(v - b.1 as f64) <= depth_px);
+                    let close =
+                        self.cam.project(&p2).is_some_and(|(u, v)| (u - b.0 as f64).hypot(v - b.1 as f64) <= depth_px);
+                    return Some(close);
                 }
             }
         }

@@ -193,14 +193,11 @@ pub fn evaluate(scene: &Scene, cfg: &RelocConfig, embedder: Option<&Embedder>) -
                 .iter()
                 .filter(|m| {
                     let p = nalgebra::Point3::from(data.landmarks[&m.landmark].point);
-                    let c = gt_cw * p;
-                    if c.z <= 0.0 {
-                        return false;
-                    }
-                    let u = scene.camera.fx * c.x / c.z + scene.camera.cx;
-                    let v = scene.camera.fy * c.y / c.z + scene.camera.cy;
                     let k = &features.keypoints[m.keypoint];
-                    (u - k.x as f64).hypot(v - k.y as f64) <= cfg.precision_px
+                    scene
+                        .camera
+                        .project(&(gt_cw * p))
+                        .is_some_and(|(u, v)| (u - k.x as f64).hypot(v - k.y as f64) <= cfg.precision_px)
                 })
                 .count();
             let (localised, te, re, inliers) = match &out.pose {

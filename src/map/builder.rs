@@ -76,7 +76,10 @@ pub struct KeyframeInput<'a> {
 /// Pixel of a world point in a keyframe, with its depth (None when behind the camera).
 fn project(pose_wc: &Isometry3<f64>, cam: &Camera, x: &Point3<f64>) -> Option<(f64, f64, f64)> {
     let c = pose_wc.inverse_transform_point(x);
-    (c.z > 1e-6).then(|| (cam.fx * c.x / c.z + cam.cx, cam.fy * c.y / c.z + cam.cy, c.z))
+    if c.z <= 1e-6 {
+        return None;
+    }
+    cam.project(&c).map(|(u, v)| (u, v, c.z))
 }
 
 fn reproj_err(pose_wc: &Isometry3<f64>, cam: &Camera, x: &Point3<f64>, kp: (f32, f32)) -> Option<f64> {
@@ -85,10 +88,10 @@ fn reproj_err(pose_wc: &Isometry3<f64>, cam: &Camera, x: &Point3<f64>, kp: (f32,
 
 fn projection_matrix(pose_wc: &Isometry3<f64>, cam: &Camera) -> Result<Mat, MapError> {
     let cw = pose_wc.inverse().to_homogeneous();
+    let k = cam.k();
     let mut rows = [[0.0f64; 4]; 3];
     for (r, row) in rows.iter_mut().enumerate() {
         for (c, v) in row.iter_mut().enumerate() {
-            let k = [[cam.fx, 0.0, cam.cx], [0.0, cam.fy, cam.cy], [0.0, 0.0, 1.0]];
             *v = (0..3).map(|i| k[r][i] * cw[(i, c)]).sum();
         }
     }
