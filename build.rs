@@ -1,6 +1,6 @@
 //! Build script: make the binary find the OpenCV built by `scripts/setup` at run time (rpath), refuse to build
 //! against an OpenCV without the contrib module `xfeatures2d` (the `opencv` crate would silently drop FREAK),
-//! and record the default ONNX Runtime library path of the setup prefix.
+//! record the default ONNX Runtime library path of the setup prefix, and generate the gRPC code.
 use std::env;
 use std::path::PathBuf;
 
@@ -29,4 +29,13 @@ fn main() {
     }
     let ort = env::var("SCONE_ORT_LIB").unwrap_or_default();
     println!("cargo:rustc-env=SCONE_DEFAULT_ORT_LIB={ort}");
+
+    // gRPC code and the descriptor set that server reflection serves; protoc comes from Debian's
+    // protobuf-compiler (installed by scripts/setup).
+    println!("cargo:rerun-if-changed=proto/scone/v1/scone.proto");
+    let out = PathBuf::from(env::var("OUT_DIR").expect("cargo sets OUT_DIR"));
+    tonic_prost_build::configure()
+        .file_descriptor_set_path(out.join("scone_descriptor.bin"))
+        .compile_protos(&["proto/scone/v1/scone.proto"], &["proto"])
+        .unwrap_or_else(|e| panic!("compiling proto/scone/v1/scone.proto (is protoc installed?): {e}"));
 }

@@ -1,7 +1,7 @@
 //! scone: image matching and relocalisation with the SConE constellation descriptor
 //! (Trzcinski et al., "SConE: Siamese Constellation Embedding Descriptor for Image Matching").
 //!
-//! Layout of the core (no transport code lives here):
+//! Layout (the core modules never import a transport; only [`server`] knows tonic and axum):
 //!
 //! - [`decode`]: encoded image bytes -> grey image, with size limits checked before decoding.
 //! - [`features`]: FAST on an image pyramid with grid bucketing, FREAK descriptors; validation of keypoints
@@ -10,6 +10,10 @@
 //! - [`matching`]: nearest-neighbour matching with ratio test (and mutual check).
 //! - [`scene`]: scenes on disk in the TUM RGB-D layout (frames, poses, intrinsics, depth).
 //! - [`export`]: a scene's features and constellations as `.npz` for training.
+//!
+//! - [`map`]: maps of landmarks with their SConE observations, durable storage, the ANN index, relocalisation.
+//! - [`service`]: the operations the API offers, in domain types; [`workers`]: the bounded CPU pool.
+//! - [`settings`]: the server's typed, layered configuration; [`server`]: the gRPC and HTTP transports.
 //!
 //! Path of an image: bytes -> [`decode::decode_grey`] -> [`features::extract`] -> [`constellation::build`]
 //! -> (the embedding network) -> matching and pose estimation.
@@ -26,5 +30,9 @@ pub mod matching;
 pub mod pipeline;
 pub mod pose;
 pub mod scene;
+pub mod server;
+pub mod service;
+pub mod settings;
+pub mod workers;
 
 pub use error::{EmbeddingError, FeatureError, MapError, PoseError, SceneError};

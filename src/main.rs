@@ -23,6 +23,28 @@ struct Cli {
 
 #[derive(Subcommand)]
 enum Command {
+    /// Run the gRPC + HTTP service (settings: defaults, then --config / SCONE_CONFIG, then SCONE_<SECTION>__<KEY>
+    /// environment variables, then these flags).
+    Serve {
+        /// TOML settings file.
+        #[arg(long, env = "SCONE_CONFIG")]
+        config: Option<PathBuf>,
+        /// gRPC listen address.
+        #[arg(long)]
+        grpc_addr: Option<std::net::SocketAddr>,
+        /// HTTP listen address.
+        #[arg(long)]
+        http_addr: Option<std::net::SocketAddr>,
+        /// Directory of the maps.
+        #[arg(long)]
+        data_dir: Option<PathBuf>,
+        /// SConE ONNX model.
+        #[arg(long)]
+        model: Option<PathBuf>,
+        /// Print the effective settings (without keys) as JSON and exit.
+        #[arg(long)]
+        print_settings: bool,
+    },
     /// Extract FAST + FREAK features and constellations from one image and print a summary as JSON.
     Extract {
         /// PNG or JPEG file.
@@ -278,6 +300,20 @@ fn main() -> anyhow::Result<()> {
         .init();
     let cli = Cli::parse();
     match cli.command {
+        Command::Serve { config, grpc_addr, http_addr, data_dir, model, print_settings } => {
+            let overrides = scone::settings::Overrides { grpc_addr, http_addr, data_dir, model };
+            let settings = scone::settings::Settings::load(config.as_deref(), &overrides)?;
+            if print_settings {
+                println!("{}", serde_json::to_string_pretty(&settings.redacted())?);
+                return Ok(());
+            }
+            let runtime = tokio::runtime::Builder::new_multi_thread()
+                .worker_threads(2)
+                .thread_name("scone-io")
+                .enable_all()
+                .build()?;
+            runtime.block_on(scone::server::run(settings))?;
+        }
         Command::Extract { image, out, extractor } => {
             let cfg = extractor.config()?;
             let bytes = std::fs::read(&image).with_context(|| format!("reading {}", image.display()))?;

@@ -1,0 +1,415 @@
+//! gRPC transport (tonic): `scone.v1.Maps`, `scone.v1.Matching`, `grpc.health.v1` and server reflection.
+
+use std::future::Future;
+use std::pin::Pin;
+use std::sync::Arc;
+use std::time::Instant;
+
+use tokio::net::TcpListener;
+use tokio_stream::wrappers::{ReceiverStream, TcpListenerStream};
+use tokio_stream::Stream;
+use tonic::metadata::MetadataMap;
+use tonic::{Code, Request, Response, Status, Streaming};
+
+use super::proto::{self, frame::Source};
+use super::App;
+use crate::features::Keypoint;
+use crate::map::localize::Prior;
+use crate::map::store::MapSummary;
+use crate::scene::Camera;
+use crate::service::{
+    pose_from_parts, quaternion_xyzw, ErrorKind, FrameInput, FrameSource, KeyframeRequest, KeypointsInput, PairOptions,
+    ServiceError,
+};
+use crate::settings::Access;
+
+/// Export chunks, bytes.
+const CHUNK: usize = 1 << 20;
+
+/// The one mapping from service errors to gRPC statuses.
+pub fn to_status(e: &ServiceError) -> Status {
+    let code = match e.kind() {
+        ErrorKind::InvalidArgument => Code::InvalidArgument,
+        ErrorKind::NotFound => Code::NotFound,
+        ErrorKind::AlreadyExists => Code::AlreadyExists,
+        ErrorKind::FailedPrecondition => Code::FailedPrecondition,
+        ErrorKind::Unavailable => Code::Unavailable,
+        ErrorKind::ResourceExhausted => Code::ResourceExhausted,
+        ErrorKind::PayloadTooLarge => Code::OutOfRange,
+        ErrorKind::DeadlineExceeded => Code::DeadlineExceeded,
+        ErrorKind::Unauthenticated => Code::Unauthenticated,
+        ErrorKind::PermissionDenied => Code::PermissionDenied,
+        ErrorKind::Internal => Code::Internal,
+    };
+    let mut status = Status::new(code, e.client_message());
+    if let Some(s) = e.retry_after_s() {
+        if let Ok(v) = s.to_string().parse() {
+            status.metadata_mut().insert("retry-after", v);
+        }
+    }
+    status
+}
+
+fn key(meta: &MetadataMap) -> Option<String> {
+    let get = |name: &str| meta.get(name).and_then(|v| v.to_str().ok());
+    super::auth::key_from_headers(get("x-api-key"), get("authorization")).map(str::to_string)
+}
+
+fn invalid(field: &str, reason: &str) -> ServiceError {
+    ServiceError::invalid(field, reason)
+}
+
+pub(crate) fn camera(i: &proto::Intrinsics) -> Camera {
+    Camera { fx: i.fx, fy: i.fy, cx: i.cx, cy: i.cy, width: i.width, height: i.height }
+}
+
+fn keypoint(k: &proto::Keypoint) -> Keypoint {
+    Keypoint { x: k.x, y: k.y, size: k.size, angle: k.angle, response: k.response, octave: k.octave }
+}
+
+fn keypoints_input(k: proto::KeypointSet) -> KeypointsInput {
+    KeypointsInput {
+        width: k.width,
+        height: k.height,
+        keypoints: k.keypoints.iter().map(keypoint).collect(),
+        descriptors: k.descriptors,
+        model_id: (!k.model_id.is_empty()).then_some(k.model_id),
+    }
+}
+
+fn frame(f: Option<proto::Frame>, field: &str) -> Result<FrameInput, ServiceError> {
+    let f = f.ok_or_else(|| invalid(field, "is required"))?;
+    let source = match f.source {
+        Some(Source::Image(img)) => FrameSource::Image(img.data),
+        Some(Source::Keypoints(k)) => FrameSource::Keypoints(keypoints_input(k)),
+        None => return Err(invalid(field, "needs an image or keypoints")),
+    };
+    Ok(FrameInput { source, camera: f.intrinsics.as_ref().map(camera) })
+}
+
+fn map_info(s: MapSummary) -> proto::MapInfo {
+    proto::MapInfo {
+        map_id: s.id,
+        model_id: s.model_id,
+        keyframes: s.keyframes as u64,
+        landmarks: s.landmarks as u64,
+        observations: s.observations as u64,
+        live_observations: s.live_observations as u64,
+        version: s.version,
+        approximate_index: s.approximate_index,
+    }
+}
+
+fn pose_out(p: &nalgebra::Isometry3<f64>) -> proto::Pose {
+    let q = p.rotation.quaternion();
+    let t = p.translation.vector;
+    proto::Pose { tx: t.x, ty: t.y, tz: t.z, qx: q.i, qy: q.j, qz: q.k, qw: q.w }
+}
+
+fn keypoint_out(k: &Keypoint) -> proto::Keypoint {
+    proto::Keypoint { x: k.x, y: k.y, size: k.size, angle: k.angle, response: k.response, octave: k.octave }
+}
+
+/// Both gRPC services over one [`App`].
+#[derive(Clone)]
+pub struct GrpcApi {
+    app: Arc<App>,
+}
+
+impl GrpcApi {
+    async fn handle<R, F>(&self, route: &'static str, access: Access, key: Option<&str>, f: F) -> Result<R, Status>
+    where
+        R: Send + 'static,
+        F: FnOnce(&App) -> Result<R, ServiceError> + Send + 'static,
+    {
+        let t = Instant::now();
+        let r = self.app.call(key, access, route, f).await;
+        let code = match &r {
+            Ok(_) => Code::Ok,
+            Err(e) => to_status(e).code(),
+        };
+        self.app.metrics.request("grpc", route, &format!("{code:?}"), t.elapsed().as_secs_f64());
+        r.map_err(|e| {
+            self.app.log_error(route, &e);
+            to_status(&e)
+        })
+    }
+}
+
+type BoxStream<T> = Pin<Box<dyn Stream<Item = Result<T, Status>> + Send + 'static>>;
+
+#[tonic::async_trait]
+impl proto::maps_server::Maps for GrpcApi {
+    async fn create_map(&self, req: Request<proto::CreateMapRequest>) -> Result<Response<proto::MapInfo>, Status> {
+        let key = key(req.metadata());
+        let id = req.into_inner().map_id;
+        let s = self.handle("CreateMap", Access::Write, key.as_deref(), move |a| a.service.create_map(&id)).await?;
+        Ok(Response::new(map_info(s)))
+    }
+
+    async fn get_map(&self, req: Request<proto::GetMapRequest>) -> Result<Response<proto::MapInfo>, Status> {
+        let key = key(req.metadata());
+        let id = req.into_inner().map_id;
+        let s = self.handle("GetMap", Access::Read, key.as_deref(), move |a| a.service.get_map(&id)).await?;
+        Ok(Response::new(map_info(s)))
+    }
+
+    async fn list_maps(
+        &self,
+        req: Request<proto::ListMapsRequest>,
+    ) -> Result<Response<proto::ListMapsResponse>, Status> {
+        let key = key(req.metadata());
+        let (maps, held) = self.handle("ListMaps", Access::Read, key.as_deref(), |a| a.service.list_maps()).await?;
+        Ok(Response::new(proto::ListMapsResponse {
+            maps: maps.into_iter().map(map_info).collect(),
+            held_back: held.into_iter().map(|(map_id, reason)| proto::HeldBackMap { map_id, reason }).collect(),
+        }))
+    }
+
+    async fn delete_map(
+        &self,
+        req: Request<proto::DeleteMapRequest>,
+    ) -> Result<Response<proto::DeleteMapResponse>, Status> {
+        let key = key(req.metadata());
+        let id = req.into_inner().map_id;
+        self.handle("DeleteMap", Access::Write, key.as_deref(), move |a| a.service.delete_map(&id)).await?;
+        Ok(Response::new(proto::DeleteMapResponse {}))
+    }
+
+    type AddKeyframesStream = ReceiverStream<Result<proto::KeyframeAck, Status>>;
+
+    async fn add_keyframes(
+        &self,
+        req: Request<Streaming<proto::AddKeyframeRequest>>,
+    ) -> Result<Response<Self::AddKeyframesStream>, Status> {
+        let key = key(req.metadata());
+        self.app.keys.check(key.as_deref(), Access::Write, "AddKeyframes").map_err(|e| to_status(&e))?;
+        let mut inbound = req.into_inner();
+        let (tx, rx) = tokio::sync::mpsc::channel(4);
+        let api = self.clone();
+        tokio::spawn(async move {
+            loop {
+                let msg = match inbound.message().await {
+                    Ok(Some(m)) => m,
+                    Ok(None) => break,
+                    Err(s) => {
+                        let _ = tx.send(Err(s)).await;
+                        break;
+                    }
+                };
+                let r = api
+                    .handle("AddKeyframes", Access::Write, key.as_deref(), move |a| {
+                        let p = msg.pose.ok_or_else(|| invalid("pose", "is required"))?;
+                        let request = KeyframeRequest {
+                            id: msg.keyframe_id,
+                            frame: frame(msg.frame, "frame")?,
+                            pose: pose_from_parts([p.tx, p.ty, p.tz], [p.qx, p.qy, p.qz, p.qw]),
+                            depth_png: (!msg.depth_png.is_empty()).then_some(msg.depth_png),
+                            depth_scale: if msg.depth_scale == 0.0 { 1.0 / 5000.0 } else { msg.depth_scale },
+                        };
+                        let (added, times) = a.service.add_keyframe(&msg.map_id, request)?;
+                        a.metrics.stages(&times);
+                        Ok(proto::KeyframeAck {
+                            keyframe_id: added.keyframe,
+                            new_landmarks: added.new_landmarks as u64,
+                            observations: added.observations as u64,
+                            map_version: added.version,
+                        })
+                    })
+                    .await;
+                let failed = r.is_err();
+                if tx.send(r).await.is_err() || failed {
+                    break;
+                }
+            }
+        });
+        Ok(Response::new(ReceiverStream::new(rx)))
+    }
+
+    async fn remove_keyframe(
+        &self,
+        req: Request<proto::RemoveKeyframeRequest>,
+    ) -> Result<Response<proto::MapInfo>, Status> {
+        let key = key(req.metadata());
+        let r = req.into_inner();
+        let s = self
+            .handle("RemoveKeyframe", Access::Write, key.as_deref(), move |a| {
+                a.service.remove_keyframe(&r.map_id, r.keyframe_id)
+            })
+            .await?;
+        Ok(Response::new(map_info(s)))
+    }
+
+    type ExportMapStream = BoxStream<proto::MapChunk>;
+
+    async fn export_map(
+        &self,
+        req: Request<proto::ExportMapRequest>,
+    ) -> Result<Response<Self::ExportMapStream>, Status> {
+        let key = key(req.metadata());
+        let id = req.into_inner().map_id;
+        let bytes = self.handle("ExportMap", Access::Read, key.as_deref(), move |a| a.service.export_map(&id)).await?;
+        let chunks: Vec<Result<proto::MapChunk, Status>> =
+            bytes.chunks(CHUNK).map(|c| Ok(proto::MapChunk { map_id: String::new(), data: c.to_vec() })).collect();
+        Ok(Response::new(Box::pin(tokio_stream::iter(chunks))))
+    }
+
+    async fn import_map(&self, req: Request<Streaming<proto::MapChunk>>) -> Result<Response<proto::MapInfo>, Status> {
+        let key = key(req.metadata());
+        self.app.keys.check(key.as_deref(), Access::Write, "ImportMap").map_err(|e| to_status(&e))?;
+        let max = self.app.settings.server.max_map_bytes;
+        let mut inbound = req.into_inner();
+        let mut id = String::new();
+        let mut bytes = Vec::new();
+        while let Some(chunk) = inbound.message().await? {
+            if id.is_empty() {
+                id = chunk.map_id;
+            }
+            if bytes.len() + chunk.data.len() > max {
+                return Err(to_status(&ServiceError::TooLarge { what: "the map file".into(), limit: max }));
+            }
+            bytes.extend_from_slice(&chunk.data);
+        }
+        let s = self
+            .handle("ImportMap", Access::Write, key.as_deref(), move |a| {
+                if id.is_empty() {
+                    return Err(invalid("map_id", "the first chunk must name the map"));
+                }
+                a.service.import_map(&id, &bytes)
+            })
+            .await?;
+        Ok(Response::new(map_info(s)))
+    }
+}
+
+#[tonic::async_trait]
+impl proto::matching_server::Matching for GrpcApi {
+    async fn describe(
+        &self,
+        req: Request<proto::DescribeRequest>,
+    ) -> Result<Response<proto::DescribeResponse>, Status> {
+        let key = key(req.metadata());
+        let r = req.into_inner();
+        let out = self
+            .handle("Describe", Access::Read, key.as_deref(), move |a| {
+                let f = frame(r.frame, "frame")?;
+                let d = a.service.describe(f.source)?;
+                a.metrics.stages(&d.times);
+                Ok(proto::DescribeResponse {
+                    keypoints: d.features.keypoints.iter().map(keypoint_out).collect(),
+                    descriptors: d.features.descriptors.concat(),
+                    embeddings: d.embeddings,
+                    dim: d.dim as u32,
+                    model_id: d.model_id,
+                })
+            })
+            .await?;
+        Ok(Response::new(out))
+    }
+
+    async fn match_pair(
+        &self,
+        req: Request<proto::MatchPairRequest>,
+    ) -> Result<Response<proto::MatchPairResponse>, Status> {
+        let key = key(req.metadata());
+        let r = req.into_inner();
+        let out = self
+            .handle("MatchPair", Access::Read, key.as_deref(), move |a| {
+                let options = PairOptions { ratio: if r.ratio == 0.0 { 0.8 } else { r.ratio }, mutual: r.mutual };
+                let o = a.service.match_pair(frame(r.frame1, "frame1")?, frame(r.frame2, "frame2")?, options)?;
+                a.metrics.stages(&o.times);
+                let inliers = o.pose.as_ref().map(|p| p.inliers.clone()).unwrap_or_default();
+                Ok(proto::MatchPairResponse {
+                    matches: o
+                        .matches
+                        .iter()
+                        .enumerate()
+                        .map(|(i, m)| proto::Match {
+                            index1: m.query as u32,
+                            index2: m.train as u32,
+                            distance: m.distance,
+                            inlier: inliers.get(i).copied().unwrap_or(false),
+                        })
+                        .collect(),
+                    inliers: o.pose.as_ref().map_or(0, |p| p.inlier_count as u32),
+                    pose: o.pose.as_ref().map(|p| {
+                        let [qx, qy, qz, qw] = quaternion_xyzw(&p.rotation);
+                        proto::RelativePose {
+                            qx,
+                            qy,
+                            qz,
+                            qw,
+                            tx: p.translation.x,
+                            ty: p.translation.y,
+                            tz: p.translation.z,
+                        }
+                    }),
+                })
+            })
+            .await?;
+        Ok(Response::new(out))
+    }
+
+    async fn localize(
+        &self,
+        req: Request<proto::LocalizeRequest>,
+    ) -> Result<Response<proto::LocalizeResponse>, Status> {
+        let key = key(req.metadata());
+        let r = req.into_inner();
+        let out = self
+            .handle("Localize", Access::Read, key.as_deref(), move |a| {
+                let prior = r.prior.map(|p| Prior { position: [p.x, p.y, p.z], radius: p.radius });
+                let o = a.service.localize(&r.map_id, frame(r.frame, "frame")?, prior)?;
+                a.metrics.stages(&o.times);
+                Ok(proto::LocalizeResponse {
+                    localized: o.pose.is_some(),
+                    pose: o.pose.as_ref().map(|p| pose_out(&p.camera_to_world)),
+                    matches: o.matches.len() as u32,
+                    inliers: o.pose.as_ref().map_or(0, |p| p.inliers.len() as u32),
+                    reprojection_error: o.pose.as_ref().map_or(0.0, |p| p.reprojection_error),
+                    confidence: o.confidence,
+                })
+            })
+            .await?;
+        Ok(Response::new(out))
+    }
+}
+
+/// Serves gRPC on `listener` until `shutdown` resolves, then lets in-flight calls finish.
+pub async fn serve<H>(
+    app: Arc<App>,
+    listener: TcpListener,
+    health: tonic_health::pb::health_server::HealthServer<H>,
+    shutdown: impl Future<Output = ()> + Send + 'static,
+) -> anyhow::Result<()>
+where
+    H: tonic_health::pb::health_server::Health,
+{
+    let reflection = || {
+        tonic_reflection::server::Builder::configure()
+            .register_encoded_file_descriptor_set(proto::FILE_DESCRIPTOR_SET)
+            .register_encoded_file_descriptor_set(tonic_health::pb::FILE_DESCRIPTOR_SET)
+    };
+    // v1 and v1alpha: grpcurl and older tools still ask for v1alpha.
+    let reflection_v1 = reflection().build_v1()?;
+    let reflection_v1alpha = reflection().build_v1alpha()?;
+    let max = app.settings.server.max_request_bytes;
+    let api = GrpcApi { app };
+    tonic::transport::Server::builder()
+        .add_service(health)
+        .add_service(reflection_v1)
+        .add_service(reflection_v1alpha)
+        .add_service(
+            proto::maps_server::MapsServer::new(api.clone())
+                .max_decoding_message_size(max)
+                .max_encoding_message_size(max),
+        )
+        .add_service(
+            proto::matching_server::MatchingServer::new(api)
+                .max_decoding_message_size(max)
+                .max_encoding_message_size(max),
+        )
+        .serve_with_incoming_shutdown(TcpListenerStream::new(listener), shutdown)
+        .await?;
+    Ok(())
+}

@@ -1,0 +1,281 @@
+//! The transports: gRPC ([`grpc`], tonic) and HTTP/JSON ([`http`], axum) over one [`Service`].
+//!
+//! Path of a request: the transport authenticates it ([`auth`]), converts the wire format to the service's
+//! domain types, and hands a closure to [`App::call`], which runs it on the bounded CPU pool
+//! ([`crate::workers::CpuPool`]) under the request deadline; the result or the [`ServiceError`] is converted
+//! back, each transport with exactly one error mapping.
+//!
+//! Life cycle ([`start`]): settings are validated and the model is loaded (a model that breaks the contract
+//! stops the start here), both listeners bind, health reports NOT_SERVING while the maps load on a blocking
+//! thread, then SERVING. On shutdown health flips to NOT_SERVING first, both servers stop accepting and
+//! finish in-flight requests within `server.shutdown_grace_ms`, the pool drains, and every map is flushed.
+
+pub mod auth;
+pub mod grpc;
+pub mod http;
+pub mod metrics;
+
+use std::net::SocketAddr;
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::Arc;
+use std::time::{Duration, Instant};
+
+use anyhow::Context;
+use tokio::net::TcpListener;
+use tokio::sync::watch;
+use tokio::task::JoinHandle;
+
+use crate::embedding::Embedder;
+use crate::map::store::{MapStore, ModelInfo};
+use crate::pipeline::Describer;
+use crate::service::{Service, ServiceError};
+use crate::settings::{Access, Settings};
+use crate::workers::{CpuPool, PoolError};
+
+/// Generated gRPC code for `proto/scone/v1/scone.proto`.
+pub mod proto {
+    #![allow(clippy::all, missing_docs)]
+    tonic::include_proto!("scone.v1");
+    /// Encoded descriptors of the API, for server reflection.
+    pub const FILE_DESCRIPTOR_SET: &[u8] = tonic::include_file_descriptor_set!("scone_descriptor");
+}
+
+/// Everything a request handler needs.
+pub struct App {
+    pub service: Service,
+    pub pool: CpuPool,
+    pub keys: auth::Keys,
+    pub metrics: metrics::Metrics,
+    pub settings: Settings,
+    shutting_down: AtomicBool,
+}
+
+impl App {
+    /// Checks the key, then runs `f` on the CPU pool under the request deadline.
+    pub async fn call<R, F>(
+        self: &Arc<Self>,
+        key: Option<&str>,
+        access: Access,
+        operation: &str,
+        f: F,
+    ) -> Result<R, ServiceError>
+    where
+        R: Send + 'static,
+        F: FnOnce(&App) -> Result<R, ServiceError> + Send + 'static,
+    {
+        self.keys.check(key, access, operation)?;
+        let timeout = self.settings.server.request_timeout_ms;
+        let deadline = Instant::now() + Duration::from_millis(timeout);
+        let app = Arc::clone(self);
+        match self.pool.run(deadline, move || f(&app)).await {
+            Ok(r) => r,
+            Err(PoolError::Full(_)) => {
+                Err(ServiceError::Overloaded { queued: self.pool.stats().queued.load(Ordering::Relaxed) })
+            }
+            Err(PoolError::Expired) => Err(ServiceError::DeadlineExceeded { ms: timeout }),
+            Err(PoolError::Closed) => Err(ServiceError::ShuttingDown),
+            Err(PoolError::Panicked) => Err(ServiceError::Internal(format!("{operation} panicked"))),
+        }
+    }
+
+    /// Ready to serve maps: loaded, not shutting down.
+    pub fn is_ready(&self) -> bool {
+        self.service.is_ready() && !self.shutting_down.load(Ordering::Relaxed)
+    }
+
+    /// Logs errors that are ours (clients get a generic message for those).
+    pub fn log_error(&self, operation: &str, e: &ServiceError) {
+        if e.kind() == crate::service::ErrorKind::Internal {
+            tracing::error!(operation, error = %e, "request failed");
+        } else {
+            tracing::debug!(operation, error = %e, "request refused");
+        }
+    }
+}
+
+/// A started server.
+pub struct Running {
+    pub grpc_addr: SocketAddr,
+    pub http_addr: SocketAddr,
+    pub app: Arc<App>,
+    stop: watch::Sender<bool>,
+    done: JoinHandle<anyhow::Result<()>>,
+}
+
+impl Running {
+    /// Waits until the maps are loaded (or the server stopped).
+    pub async fn wait_ready(&self, timeout: Duration) -> anyhow::Result<()> {
+        let t = Instant::now();
+        while !self.app.is_ready() {
+            anyhow::ensure!(!self.done.is_finished(), "the server stopped while starting");
+            anyhow::ensure!(t.elapsed() < timeout, "not ready after {timeout:?}");
+            tokio::time::sleep(Duration::from_millis(20)).await;
+        }
+        Ok(())
+    }
+
+    /// Asks the server to stop without waiting.
+    pub fn request_shutdown(&self) {
+        let _ = self.stop.send(true);
+    }
+
+    /// Stops the server gracefully and waits for the flush.
+    pub async fn shutdown(self) -> anyhow::Result<()> {
+        self.request_shutdown();
+        self.done.await.context("server task")?
+    }
+
+    /// Waits for the server to stop (after [`Running::request_shutdown`] or a failure).
+    pub async fn wait(self) -> anyhow::Result<()> {
+        self.done.await.context("server task")?
+    }
+}
+
+const SERVICES: [&str; 3] = ["", "scone.v1.Maps", "scone.v1.Matching"];
+
+async fn set_health(reporter: &tonic_health::server::HealthReporter, serving: bool) {
+    let status = if serving { tonic_health::ServingStatus::Serving } else { tonic_health::ServingStatus::NotServing };
+    for s in SERVICES {
+        reporter.set_service_status(s, status).await;
+    }
+}
+
+/// Loads the model, binds both listeners and starts serving; maps load in the background.
+pub async fn start(settings: Settings) -> anyhow::Result<Running> {
+    settings.validate()?;
+    let keys = auth::Keys::new(settings.keys()?);
+    tracing::info!(settings = %settings.redacted(), api_keys = keys.len(), "starting scone");
+    // The pool gives the parallelism; OpenCV's own threads inside each job would only oversubscribe.
+    crate::features::set_opencv_threads(1)?;
+    let model_cfg = settings.model.clone();
+    let embedder = tokio::task::spawn_blocking(move || Embedder::load(&model_cfg)).await??;
+    let embedder = Arc::new(embedder);
+    tracing::info!(model = %embedder.model_id(), path = %embedder.path().display(), "model loaded");
+    let describer = Describer {
+        extractor: settings.extractor.clone(),
+        limits: settings.limits.image,
+        embedder: Arc::clone(&embedder),
+    };
+    let service = Service::new(describer, settings.limits.keypoints);
+    let grpc_listener = TcpListener::bind(settings.server.grpc_addr)
+        .await
+        .with_context(|| format!("binding gRPC to {}", settings.server.grpc_addr))?;
+    let http_listener = TcpListener::bind(settings.server.http_addr)
+        .await
+        .with_context(|| format!("binding HTTP to {}", settings.server.http_addr))?;
+    let grpc_addr = grpc_listener.local_addr()?;
+    let http_addr = http_listener.local_addr()?;
+    let app = Arc::new(App {
+        service,
+        pool: CpuPool::new(settings.workers.threads, settings.workers.queue),
+        keys,
+        metrics: metrics::Metrics::new(),
+        settings: settings.clone(),
+        shutting_down: AtomicBool::new(false),
+    });
+
+    let (reporter, health_service) = tonic_health::server::health_reporter();
+    set_health(&reporter, false).await;
+    let (stop, stop_rx) = watch::channel(false);
+
+    let grpc_task = tokio::spawn(grpc::serve(Arc::clone(&app), grpc_listener, health_service, signal(stop_rx.clone())));
+    let http_task = tokio::spawn(http::serve(Arc::clone(&app), http_listener, signal(stop_rx.clone())));
+    tracing::info!(%grpc_addr, %http_addr, "listening (gRPC, HTTP); loading maps");
+
+    // Maps load on a blocking thread while health says NOT_SERVING.
+    let loader = {
+        let app = Arc::clone(&app);
+        let reporter = reporter.clone();
+        let store_cfg = settings.store.clone();
+        let info = ModelInfo { model_id: embedder.model_id().to_string(), k: embedder.k(), dim: embedder.dim() };
+        tokio::spawn(async move {
+            let t = Instant::now();
+            let store = tokio::task::spawn_blocking(move || MapStore::open(store_cfg, info)).await??;
+            app.service.attach_store(Arc::new(store));
+            if !app.shutting_down.load(Ordering::Relaxed) {
+                set_health(&reporter, true).await;
+            }
+            let h = app.service.holdings();
+            tracing::info!(
+                maps = h.maps,
+                held_back = h.held_back,
+                observations = h.observations,
+                seconds = t.elapsed().as_secs_f64(),
+                "maps loaded; serving"
+            );
+            anyhow::Ok(())
+        })
+    };
+
+    let grace = Duration::from_millis(settings.server.shutdown_grace_ms);
+    let driver_app = Arc::clone(&app);
+    let stopper = stop.clone();
+    let done = tokio::spawn(async move {
+        let app = driver_app;
+        let mut loader = loader;
+        let load_failed = tokio::select! {
+            _ = signal(stop_rx.clone()) => None,
+            r = &mut loader => match r {
+                Ok(Ok(())) => { signal(stop_rx.clone()).await; None }
+                Ok(Err(e)) => Some(e),
+                Err(e) => Some(anyhow::anyhow!("map loader: {e}")),
+            },
+        };
+        if let Some(e) = &load_failed {
+            tracing::error!(error = %e, "loading maps failed; stopping");
+            let _ = stopper.send(true);
+        }
+        tracing::info!("shutting down: NOT_SERVING, finishing in-flight requests");
+        app.shutting_down.store(true, Ordering::Relaxed);
+        set_health(&reporter, false).await;
+        let servers = async {
+            let (g, h) = tokio::join!(grpc_task, http_task);
+            for r in [g, h] {
+                match r {
+                    Ok(Err(e)) => tracing::error!(error = %e, "server error"),
+                    Err(e) => tracing::error!(error = %e, "server task failed"),
+                    Ok(Ok(())) => {}
+                }
+            }
+        };
+        if tokio::time::timeout(grace, servers).await.is_err() {
+            tracing::warn!(
+                grace_ms = grace.as_millis() as u64,
+                "in-flight requests did not finish within the grace period"
+            );
+        }
+        loader.abort();
+        let flush_app = Arc::clone(&app);
+        tokio::task::spawn_blocking(move || {
+            flush_app.pool.shutdown();
+            flush_app.service.flush()
+        })
+        .await??;
+        tracing::info!("maps flushed; stopped");
+        match load_failed {
+            Some(e) => Err(e),
+            None => Ok(()),
+        }
+    });
+    Ok(Running { grpc_addr, http_addr, app, stop, done })
+}
+
+async fn signal(mut rx: watch::Receiver<bool>) {
+    let _ = rx.wait_for(|s| *s).await;
+}
+
+/// Runs until SIGINT or SIGTERM, then shuts down gracefully.
+pub async fn run(settings: Settings) -> anyhow::Result<()> {
+    let running = start(settings).await?;
+    println!("scone listening: gRPC {} HTTP http://{}", running.grpc_addr, running.http_addr);
+    let mut term = tokio::signal::unix::signal(tokio::signal::unix::SignalKind::terminate())?;
+    let stop = running.stop.clone();
+    tokio::spawn(async move {
+        tokio::select! {
+            _ = tokio::signal::ctrl_c() => tracing::info!("SIGINT"),
+            _ = term.recv() => tracing::info!("SIGTERM"),
+        }
+        let _ = stop.send(true);
+    });
+    running.wait().await
+}

@@ -1,0 +1,534 @@
+//! The operations the service offers, in domain types: one function per RPC. A gRPC method and its HTTP twin
+//! both validate their wire format, build these inputs, call the same function here and map the one
+//! [`ServiceError`] through [`ServiceError::kind`]. Nothing here knows about tonic, axum or HTTP.
+//!
+//! Every function is synchronous and CPU-bound (OpenCV, ONNX Runtime, index search, fsync): transports call
+//! them on the bounded [`crate::workers::CpuPool`], never on async worker threads.
+//!
+//! Maps load after the listeners are up (health says NOT_SERVING meanwhile), so the store is attached once it
+//! is ready; map operations before that answer [`ServiceError::NotReady`].
+
+use std::sync::{Arc, OnceLock};
+use std::time::Instant;
+
+use nalgebra::UnitQuaternion;
+use opencv::prelude::MatTraitConst;
+use serde::Serialize;
+
+use crate::decode::{decode_depth_png, decode_grey, ImageLimits};
+use crate::error::{EmbeddingError, FeatureError, MapError, PoseError};
+use crate::features::{self, Features, Keypoint, KeypointLimits};
+use crate::map::builder::{Depth, KeyframeInput};
+use crate::map::localize::{LandmarkMatch, Prior};
+use crate::map::model::Pose;
+use crate::map::store::{KeyframeAdded, MapStore, MapSummary};
+use crate::matching::{match_l2, Match};
+use crate::pipeline::{DescribeError, Describer};
+use crate::pose::{relative_pose, validate_camera, AbsolutePose, RansacParams, RelativePose};
+use crate::scene::Camera;
+
+/// Keypoints with FREAK descriptors computed by a client (see the client contract in the proto).
+#[derive(Debug, Clone, Default)]
+pub struct KeypointsInput {
+    pub width: u32,
+    pub height: u32,
+    pub keypoints: Vec<Keypoint>,
+    /// 64 bytes per keypoint.
+    pub descriptors: Vec<u8>,
+    /// The model the client targets, if it says.
+    pub model_id: Option<String>,
+}
+
+/// Where a frame's features come from.
+#[derive(Debug, Clone)]
+pub enum FrameSource {
+    /// PNG or JPEG bytes.
+    Image(Vec<u8>),
+    Keypoints(KeypointsInput),
+}
+
+/// A frame with its intrinsics (required to estimate a pose).
+#[derive(Debug, Clone)]
+pub struct FrameInput {
+    pub source: FrameSource,
+    pub camera: Option<Camera>,
+}
+
+/// Wall time of each stage of a request, seconds, in order.
+#[derive(Debug, Clone, Default, PartialEq)]
+pub struct StageTimes(pub Vec<(&'static str, f64)>);
+
+impl StageTimes {
+    fn time<R>(&mut self, stage: &'static str, f: impl FnOnce() -> R) -> R {
+        let t = Instant::now();
+        let r = f();
+        self.0.push((stage, t.elapsed().as_secs_f64()));
+        r
+    }
+}
+
+/// Keypoints and embeddings of one frame.
+#[derive(Debug, Clone)]
+pub struct Description {
+    pub features: Features,
+    /// `[N, dim]`, row-major, unit norm.
+    pub embeddings: Vec<f32>,
+    pub dim: usize,
+    pub model_id: String,
+    pub times: StageTimes,
+}
+
+/// Pair matching settings a client may choose.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct PairOptions {
+    pub ratio: f32,
+    pub mutual: bool,
+}
+
+impl Default for PairOptions {
+    fn default() -> Self {
+        Self { ratio: 0.8, mutual: false }
+    }
+}
+
+/// Matches between two frames and their relative pose.
+#[derive(Debug, Clone)]
+pub struct PairOutcome {
+    pub matches: Vec<Match>,
+    /// Camera 1 into camera 2, when enough matches support one.
+    pub pose: Option<RelativePose>,
+    pub times: StageTimes,
+}
+
+/// The outcome of a relocalisation.
+#[derive(Debug, Clone)]
+pub struct LocalizeOutcome {
+    pub pose: Option<AbsolutePose>,
+    pub matches: Vec<LandmarkMatch>,
+    pub confidence: f64,
+    pub times: StageTimes,
+}
+
+/// A posed keyframe to add to a map.
+#[derive(Debug, Clone)]
+pub struct KeyframeRequest {
+    pub id: u64,
+    pub frame: FrameInput,
+    pub pose: Pose,
+    /// 16-bit PNG aligned with the image.
+    pub depth_png: Option<Vec<u8>>,
+    /// Metres per depth unit.
+    pub depth_scale: f64,
+}
+
+/// What went wrong, for a client; [`ServiceError::kind`] classifies it for the transports.
+#[derive(Debug, thiserror::Error)]
+pub enum ServiceError {
+    #[error("invalid {field}: {reason}")]
+    InvalidArgument { field: String, reason: String },
+    #[error("the keypoints were computed for model {client}, this service runs {server}")]
+    ModelMismatch { client: String, server: String },
+    #[error(transparent)]
+    Feature(#[from] FeatureError),
+    #[error(transparent)]
+    Embedding(#[from] EmbeddingError),
+    #[error(transparent)]
+    Pose(#[from] PoseError),
+    #[error(transparent)]
+    Map(#[from] MapError),
+    #[error("the service is starting: maps are still loading")]
+    NotReady,
+    #[error("the service is shutting down")]
+    ShuttingDown,
+    #[error("the service is saturated ({queued} requests waiting): retry later")]
+    Overloaded { queued: usize },
+    #[error("the request did not finish within {ms} ms")]
+    DeadlineExceeded { ms: u64 },
+    #[error("missing or unknown API key: send one in the x-api-key header")]
+    Unauthenticated,
+    #[error("this API key is read-only; {operation} needs a write key")]
+    PermissionDenied { operation: String },
+    #[error("{what} is larger than the limit of {limit} bytes")]
+    TooLarge { what: String, limit: usize },
+    #[error("internal error: {0}")]
+    Internal(String),
+}
+
+impl From<DescribeError> for ServiceError {
+    fn from(e: DescribeError) -> Self {
+        match e {
+            DescribeError::Feature(f) => Self::Feature(f),
+            DescribeError::Embedding(e) => Self::Embedding(e),
+        }
+    }
+}
+
+/// The classes of failure a transport distinguishes (gRPC codes, HTTP statuses).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum ErrorKind {
+    InvalidArgument,
+    NotFound,
+    AlreadyExists,
+    FailedPrecondition,
+    Unavailable,
+    ResourceExhausted,
+    PayloadTooLarge,
+    DeadlineExceeded,
+    Unauthenticated,
+    PermissionDenied,
+    Internal,
+}
+
+fn feature_kind(e: &FeatureError) -> ErrorKind {
+    match e {
+        FeatureError::EmptyImage
+        | FeatureError::UnsupportedFormat
+        | FeatureError::CorruptImage { .. }
+        | FeatureError::ImageTooLarge { .. }
+        | FeatureError::TooManyKeypoints { .. }
+        | FeatureError::InvalidKeypoint { .. }
+        | FeatureError::InvalidDescriptors { .. } => ErrorKind::InvalidArgument,
+        FeatureError::InvalidConfig { .. } | FeatureError::OpenCv(_) => ErrorKind::Internal,
+    }
+}
+
+fn embedding_kind(e: &EmbeddingError) -> ErrorKind {
+    match e {
+        EmbeddingError::Input { .. } => ErrorKind::InvalidArgument,
+        EmbeddingError::Runtime { .. }
+        | EmbeddingError::Model { .. }
+        | EmbeddingError::Contract { .. }
+        | EmbeddingError::Inference(_) => ErrorKind::Internal,
+    }
+}
+
+fn pose_kind(e: &PoseError) -> ErrorKind {
+    match e {
+        PoseError::Intrinsics { .. } => ErrorKind::InvalidArgument,
+        PoseError::Mismatch { .. } | PoseError::OpenCv(_) => ErrorKind::Internal,
+    }
+}
+
+fn map_kind(e: &MapError) -> ErrorKind {
+    match e {
+        MapError::UnknownMap { .. } | MapError::UnknownKeyframe { .. } => ErrorKind::NotFound,
+        MapError::MapExists { .. } | MapError::KeyframeExists { .. } => ErrorKind::AlreadyExists,
+        MapError::InvalidMapId { .. } | MapError::InvalidInput { .. } => ErrorKind::InvalidArgument,
+        MapError::ModelMismatch { .. } => ErrorKind::FailedPrecondition,
+        MapError::Unavailable { .. } => ErrorKind::Unavailable,
+        MapError::Corrupt { .. } | MapError::Io { .. } => ErrorKind::Internal,
+        MapError::Feature(f) => feature_kind(f),
+        MapError::Embedding(e) => embedding_kind(e),
+        MapError::Pose(p) => pose_kind(p),
+    }
+}
+
+impl ServiceError {
+    pub fn invalid(field: impl Into<String>, reason: impl Into<String>) -> Self {
+        Self::InvalidArgument { field: field.into(), reason: reason.into() }
+    }
+
+    /// The class of the error. Exhaustive on purpose: a new variant anywhere below must be classified.
+    pub fn kind(&self) -> ErrorKind {
+        match self {
+            Self::InvalidArgument { .. } => ErrorKind::InvalidArgument,
+            Self::ModelMismatch { .. } => ErrorKind::FailedPrecondition,
+            Self::Feature(e) => feature_kind(e),
+            Self::Embedding(e) => embedding_kind(e),
+            Self::Pose(e) => pose_kind(e),
+            Self::Map(e) => map_kind(e),
+            Self::NotReady | Self::ShuttingDown => ErrorKind::Unavailable,
+            Self::Overloaded { .. } => ErrorKind::ResourceExhausted,
+            Self::DeadlineExceeded { .. } => ErrorKind::DeadlineExceeded,
+            Self::Unauthenticated => ErrorKind::Unauthenticated,
+            Self::PermissionDenied { .. } => ErrorKind::PermissionDenied,
+            Self::TooLarge { .. } => ErrorKind::PayloadTooLarge,
+            Self::Internal(_) => ErrorKind::Internal,
+        }
+    }
+
+    /// What the client is told: the precise message for its own mistakes, a generic one for ours (the real
+    /// error goes to the log).
+    pub fn client_message(&self) -> String {
+        match self.kind() {
+            ErrorKind::Internal => "internal error; the server log has the details".to_string(),
+            _ => self.to_string(),
+        }
+    }
+
+    /// Seconds a client should wait before retrying, for errors where retrying helps.
+    pub fn retry_after_s(&self) -> Option<u64> {
+        match self {
+            Self::Overloaded { .. } => Some(1),
+            Self::NotReady | Self::ShuttingDown => Some(5),
+            _ => None,
+        }
+    }
+}
+
+/// Loaded maps, and the ids of maps held back with the reason.
+pub type MapListing = (Vec<MapSummary>, Vec<(String, String)>);
+
+/// Counts of what the service holds, for metrics.
+#[derive(Debug, Clone, Copy, Default, Serialize)]
+pub struct Holdings {
+    pub maps: usize,
+    pub held_back: usize,
+    pub keyframes: usize,
+    pub landmarks: usize,
+    pub observations: usize,
+}
+
+/// The service's core: the description path, the map store and the limits on client input.
+pub struct Service {
+    describer: Describer,
+    keypoint_limits: KeypointLimits,
+    ransac: RansacParams,
+    store: OnceLock<Arc<MapStore>>,
+}
+
+impl Service {
+    pub fn new(describer: Describer, keypoint_limits: KeypointLimits) -> Self {
+        Self { describer, keypoint_limits, ransac: RansacParams::default(), store: OnceLock::new() }
+    }
+
+    /// Makes maps available (once, after they loaded).
+    pub fn attach_store(&self, store: Arc<MapStore>) {
+        let _ = self.store.set(store);
+    }
+
+    pub fn store(&self) -> Result<&Arc<MapStore>, ServiceError> {
+        self.store.get().ok_or(ServiceError::NotReady)
+    }
+
+    pub fn is_ready(&self) -> bool {
+        self.store.get().is_some()
+    }
+
+    pub fn model_id(&self) -> &str {
+        self.describer.embedder.model_id()
+    }
+
+    pub fn dim(&self) -> usize {
+        self.describer.embedder.dim()
+    }
+
+    pub fn image_limits(&self) -> &ImageLimits {
+        &self.describer.limits
+    }
+
+    fn features(&self, source: FrameSource, times: &mut StageTimes) -> Result<Features, ServiceError> {
+        match source {
+            FrameSource::Image(bytes) => {
+                let grey = times.time("decode", || decode_grey(&bytes, &self.describer.limits))?;
+                Ok(times.time("extract", || features::extract(&grey, &self.describer.extractor))?)
+            }
+            FrameSource::Keypoints(k) => {
+                if let Some(m) = k.model_id.as_deref().filter(|m| !m.is_empty()) {
+                    if m != self.model_id() {
+                        return Err(ServiceError::ModelMismatch {
+                            client: m.to_string(),
+                            server: self.model_id().to_string(),
+                        });
+                    }
+                }
+                Ok(times.time("validate", || {
+                    features::from_precomputed(k.width, k.height, k.keypoints, &k.descriptors, &self.keypoint_limits)
+                })?)
+            }
+        }
+    }
+
+    fn describe_source(&self, source: FrameSource) -> Result<Description, ServiceError> {
+        let mut times = StageTimes::default();
+        let features = self.features(source, &mut times)?;
+        let d = times.time("embed", || self.describer.describe_features(features))?;
+        Ok(Description {
+            features: d.features,
+            embeddings: d.embeddings,
+            dim: self.dim(),
+            model_id: self.model_id().to_string(),
+            times,
+        })
+    }
+
+    /// Keypoints, FREAK descriptors and SConE embeddings of a frame.
+    pub fn describe(&self, source: FrameSource) -> Result<Description, ServiceError> {
+        self.describe_source(source)
+    }
+
+    fn camera(frame: &FrameInput, field: &str) -> Result<Camera, ServiceError> {
+        let cam = frame.camera.ok_or_else(|| ServiceError::invalid(field, "intrinsics are required"))?;
+        validate_camera(&cam).map_err(|e| ServiceError::invalid(field, e.to_string()))?;
+        Ok(cam)
+    }
+
+    fn check_frame_size(d: &Description, cam: &Camera, field: &str) -> Result<(), ServiceError> {
+        if d.features.width != cam.width || d.features.height != cam.height {
+            return Err(ServiceError::invalid(
+                field,
+                format!(
+                    "intrinsics are for {}x{} but the frame is {}x{}",
+                    cam.width, cam.height, d.features.width, d.features.height
+                ),
+            ));
+        }
+        Ok(())
+    }
+
+    /// SConE matches between two frames (ratio test, optional mutual check) and their relative pose.
+    pub fn match_pair(&self, a: FrameInput, b: FrameInput, options: PairOptions) -> Result<PairOutcome, ServiceError> {
+        if !(options.ratio > 0.0 && options.ratio <= 1.0) {
+            return Err(ServiceError::invalid("ratio", format!("{} is outside (0, 1]", options.ratio)));
+        }
+        let cam1 = Self::camera(&a, "frame1.intrinsics")?;
+        let cam2 = Self::camera(&b, "frame2.intrinsics")?;
+        let d1 = self.describe_source(a.source)?;
+        Self::check_frame_size(&d1, &cam1, "frame1.intrinsics")?;
+        let d2 = self.describe_source(b.source)?;
+        Self::check_frame_size(&d2, &cam2, "frame2.intrinsics")?;
+        let mut times = StageTimes::default();
+        times.0.extend(d1.times.0.iter().map(|(s, t)| (*s, *t)));
+        for (s, t) in &d2.times.0 {
+            match times.0.iter_mut().find(|(n, _)| n == s) {
+                Some(e) => e.1 += t,
+                None => times.0.push((s, *t)),
+            }
+        }
+        let matches =
+            times.time("match", || match_l2(&d1.embeddings, &d2.embeddings, d1.dim, options.ratio, options.mutual))?;
+        let p1: Vec<(f32, f32)> = matches.iter().map(|m| d1.features.keypoints[m.query]).map(|k| (k.x, k.y)).collect();
+        let p2: Vec<(f32, f32)> = matches.iter().map(|m| d2.features.keypoints[m.train]).map(|k| (k.x, k.y)).collect();
+        let pose = times.time("pose", || relative_pose(&p1, &p2, &cam1, &cam2, &self.ransac))?;
+        Ok(PairOutcome { matches, pose, times })
+    }
+
+    /// Camera-to-world pose of a frame against a map.
+    pub fn localize(
+        &self,
+        map: &str,
+        frame: FrameInput,
+        prior: Option<Prior>,
+    ) -> Result<LocalizeOutcome, ServiceError> {
+        let store = self.store()?;
+        store.get(map)?;
+        let cam = Self::camera(&frame, "frame.intrinsics")?;
+        let d = self.describe_source(frame.source)?;
+        Self::check_frame_size(&d, &cam, "frame.intrinsics")?;
+        let mut times = d.times;
+        let l = times.time("localize", || store.localize(map, &d.features, &d.embeddings, &cam, prior.as_ref()))?;
+        Ok(LocalizeOutcome { pose: l.pose, matches: l.matches, confidence: l.confidence, times })
+    }
+
+    /// Adds a posed keyframe; returns once the write is durable.
+    pub fn add_keyframe(
+        &self,
+        map: &str,
+        request: KeyframeRequest,
+    ) -> Result<(KeyframeAdded, StageTimes), ServiceError> {
+        let store = self.store()?;
+        store.get(map)?;
+        request.pose.validate().map_err(|reason| ServiceError::invalid("pose", reason))?;
+        if !(request.depth_scale.is_finite() && request.depth_scale > 0.0) {
+            return Err(ServiceError::invalid("depth_scale", format!("{} must be positive", request.depth_scale)));
+        }
+        let cam = Self::camera(&request.frame, "frame.intrinsics")?;
+        let depth = match &request.depth_png {
+            Some(bytes) => Some(
+                decode_depth_png(bytes, &self.describer.limits)
+                    .map_err(|e| ServiceError::invalid("depth", e.to_string()))?,
+            ),
+            None => None,
+        };
+        let d = self.describe_source(request.frame.source)?;
+        Self::check_frame_size(&d, &cam, "frame.intrinsics")?;
+        if let Some(m) = &depth {
+            if m.cols() as u32 != cam.width || m.rows() as u32 != cam.height {
+                return Err(ServiceError::invalid(
+                    "depth",
+                    format!("depth is {}x{}, the frame is {}x{}", m.cols(), m.rows(), cam.width, cam.height),
+                ));
+            }
+        }
+        let mut times = d.times;
+        let input = KeyframeInput {
+            id: request.id,
+            pose: request.pose.isometry(),
+            camera: cam,
+            features: &d.features,
+            embeddings: &d.embeddings,
+            depth: depth.as_ref().map(|image| Depth { image, scale: request.depth_scale }),
+        };
+        let added = times.time("write", || store.add_keyframe(map, &input))?;
+        Ok((added, times))
+    }
+
+    pub fn create_map(&self, id: &str) -> Result<MapSummary, ServiceError> {
+        Ok(self.store()?.create(id)?)
+    }
+
+    pub fn get_map(&self, id: &str) -> Result<MapSummary, ServiceError> {
+        Ok(self.store()?.summary(id)?)
+    }
+
+    /// Loaded maps, and those held back with the reason.
+    pub fn list_maps(&self) -> Result<MapListing, ServiceError> {
+        let store = self.store()?;
+        Ok((store.list(), store.held_back()))
+    }
+
+    pub fn delete_map(&self, id: &str) -> Result<(), ServiceError> {
+        Ok(self.store()?.delete(id)?)
+    }
+
+    pub fn remove_keyframe(&self, id: &str, keyframe: u64) -> Result<MapSummary, ServiceError> {
+        let store = self.store()?;
+        store.remove_keyframe(id, keyframe)?;
+        Ok(store.summary(id)?)
+    }
+
+    /// The map as one versioned, checksummed file.
+    pub fn export_map(&self, id: &str) -> Result<Vec<u8>, ServiceError> {
+        Ok(self.store()?.export(id)?)
+    }
+
+    /// Imports a file made by [`Service::export_map`] under a new id.
+    pub fn import_map(&self, id: &str, bytes: &[u8]) -> Result<MapSummary, ServiceError> {
+        match self.store()?.import(id, bytes) {
+            Err(MapError::Corrupt { reason, .. }) => Err(ServiceError::invalid("map file", reason)),
+            r => Ok(r?),
+        }
+    }
+
+    /// Counts for metrics (cheap: summaries only).
+    pub fn holdings(&self) -> Holdings {
+        let Some(store) = self.store.get() else { return Holdings::default() };
+        let maps = store.list();
+        Holdings {
+            maps: maps.len(),
+            held_back: store.held_back().len(),
+            keyframes: maps.iter().map(|m| m.keyframes).sum(),
+            landmarks: maps.iter().map(|m| m.landmarks).sum(),
+            observations: maps.iter().map(|m| m.live_observations).sum(),
+        }
+    }
+
+    /// Snapshots every map and dumps its index.
+    pub fn flush(&self) -> Result<(), ServiceError> {
+        match self.store.get() {
+            Some(s) => Ok(s.flush()?),
+            None => Ok(()),
+        }
+    }
+}
+
+/// A pose from a translation and a quaternion given as (x, y, z, w); checks happen in the callers.
+pub fn pose_from_parts(t: [f64; 3], q: [f64; 4]) -> Pose {
+    Pose { translation: t, rotation: q }
+}
+
+/// (x, y, z, w) of a rotation.
+pub fn quaternion_xyzw(r: &nalgebra::Rotation3<f64>) -> [f64; 4] {
+    let q = UnitQuaternion::from_rotation_matrix(r);
+    [q.i, q.j, q.k, q.w]
+}

@@ -1,0 +1,332 @@
+//! One typed settings struct for the server, loaded in layers: built-in defaults, then a TOML file
+//! (`--config` or `SCONE_CONFIG`), then environment variables `SCONE_<SECTION>__<KEY>` (e.g.
+//! `SCONE_SERVER__HTTP_ADDR=0.0.0.0:8080`), then command-line flags. Validated once at start; the sub-structs
+//! are handed to the parts that use them. [`Settings::redacted`] is what gets logged (no key material).
+
+use std::net::SocketAddr;
+use std::path::{Path, PathBuf};
+
+use figment::providers::{Env, Format, Serialized, Toml};
+use figment::Figment;
+use serde::{Deserialize, Serialize};
+
+use crate::decode::ImageLimits;
+use crate::embedding::EmbedderConfig;
+use crate::features::{ExtractorConfig, KeypointLimits};
+use crate::map::store::StoreConfig;
+
+/// Listeners and request lifetime.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct ServerSettings {
+    pub grpc_addr: SocketAddr,
+    pub http_addr: SocketAddr,
+    /// A request is answered DEADLINE_EXCEEDED / 504 after this long (queueing included).
+    pub request_timeout_ms: u64,
+    /// On SIGTERM, in-flight requests get this long to finish before the servers stop.
+    pub shutdown_grace_ms: u64,
+    /// Largest gRPC message or HTTP body, bytes.
+    pub max_request_bytes: usize,
+    /// Largest map file accepted by ImportMap, bytes.
+    pub max_map_bytes: usize,
+}
+
+impl Default for ServerSettings {
+    fn default() -> Self {
+        Self {
+            grpc_addr: "127.0.0.1:50051".parse().expect("valid"),
+            http_addr: "127.0.0.1:8080".parse().expect("valid"),
+            request_timeout_ms: 10_000,
+            shutdown_grace_ms: 20_000,
+            max_request_bytes: 32 << 20,
+            max_map_bytes: 1 << 30,
+        }
+    }
+}
+
+/// API keys. With no key configured the service only starts on loopback addresses, unless
+/// `allow_anonymous` is set explicitly.
+#[derive(Clone, PartialEq, Default, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct AuthSettings {
+    /// Keys that may read and write.
+    pub write_keys: Vec<String>,
+    /// Keys that may only read (describe, match, localise, get, list, export).
+    pub read_keys: Vec<String>,
+    /// A file of lines `write <key>` or `read <key>` (`#` starts a comment), e.g. a mounted secret.
+    pub keys_file: Option<PathBuf>,
+    /// Serve without keys on non-loopback addresses (behind a proxy that authenticates).
+    pub allow_anonymous: bool,
+}
+
+impl std::fmt::Debug for AuthSettings {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("AuthSettings")
+            .field("write_keys", &format_args!("[{} redacted]", self.write_keys.len()))
+            .field("read_keys", &format_args!("[{} redacted]", self.read_keys.len()))
+            .field("keys_file", &self.keys_file)
+            .field("allow_anonymous", &self.allow_anonymous)
+            .finish()
+    }
+}
+
+/// Limits on client input.
+#[derive(Debug, Clone, PartialEq, Default, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct LimitSettings {
+    pub image: ImageLimits,
+    pub keypoints: KeypointLimits,
+}
+
+/// The CPU pool every request's work runs on.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct WorkerSettings {
+    /// Threads doing CPU work (one request each at a time).
+    pub threads: usize,
+    /// Requests that may wait for a thread; beyond that, RESOURCE_EXHAUSTED / 429.
+    pub queue: usize,
+}
+
+impl Default for WorkerSettings {
+    fn default() -> Self {
+        Self { threads: 2, queue: 8 }
+    }
+}
+
+/// Everything the server is configured with.
+#[derive(Debug, Clone, PartialEq, Default, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct Settings {
+    pub server: ServerSettings,
+    pub auth: AuthSettings,
+    pub limits: LimitSettings,
+    pub workers: WorkerSettings,
+    pub model: EmbedderConfig,
+    pub extractor: ExtractorConfig,
+    pub store: StoreConfig,
+}
+
+/// Flags that override everything else.
+#[derive(Debug, Clone, Default)]
+pub struct Overrides {
+    pub grpc_addr: Option<SocketAddr>,
+    pub http_addr: Option<SocketAddr>,
+    pub data_dir: Option<PathBuf>,
+    pub model: Option<PathBuf>,
+}
+
+/// A setting that cannot be used, with the reason.
+#[derive(Debug, thiserror::Error)]
+pub enum SettingsError {
+    #[error("configuration: {0}")]
+    Load(String),
+    #[error("configuration: {field}: {reason}")]
+    Invalid { field: &'static str, reason: String },
+    #[error("{path}: {source}")]
+    KeysFile { path: PathBuf, source: std::io::Error },
+    #[error("{path}:{line}: expected `write <key>` or `read <key>`")]
+    KeysLine { path: PathBuf, line: usize },
+}
+
+impl Settings {
+    /// Defaults -> file -> environment (`SCONE_<SECTION>__<KEY>`) -> flags, then validation.
+    pub fn load(file: Option<&Path>, overrides: &Overrides) -> Result<Self, SettingsError> {
+        Self::load_from(
+            file,
+            overrides,
+            Env::prefixed("SCONE_").split("__").filter(|k| k.as_str().contains("__") || k.as_str().contains('.')),
+        )
+    }
+
+    fn load_from(file: Option<&Path>, overrides: &Overrides, env: Env) -> Result<Self, SettingsError> {
+        let mut fig = Figment::from(Serialized::defaults(Settings::default()));
+        if let Some(f) = file {
+            if !f.is_file() {
+                return Err(SettingsError::Load(format!("{}: no such file", f.display())));
+            }
+            fig = fig.merge(Toml::file(f));
+        }
+        fig = fig.merge(env);
+        let mut s: Settings = fig.extract().map_err(|e| SettingsError::Load(e.to_string()))?;
+        if let Some(a) = overrides.grpc_addr {
+            s.server.grpc_addr = a;
+        }
+        if let Some(a) = overrides.http_addr {
+            s.server.http_addr = a;
+        }
+        if let Some(d) = &overrides.data_dir {
+            s.store.data_dir = d.clone();
+        }
+        if let Some(m) = &overrides.model {
+            s.model.model = m.clone();
+        }
+        s.validate()?;
+        Ok(s)
+    }
+
+    /// Checks that need no I/O beyond the keys file.
+    pub fn validate(&self) -> Result<(), SettingsError> {
+        let bad = |field, reason: &str| Err(SettingsError::Invalid { field, reason: reason.to_string() });
+        if self.server.grpc_addr == self.server.http_addr && self.server.grpc_addr.port() != 0 {
+            return bad("server.grpc_addr", "must differ from server.http_addr");
+        }
+        if self.server.request_timeout_ms == 0 {
+            return bad("server.request_timeout_ms", "must be positive");
+        }
+        if self.server.max_request_bytes < 1024 {
+            return bad("server.max_request_bytes", "must be at least 1024");
+        }
+        if self.workers.threads == 0 || self.workers.threads > 256 {
+            return bad("workers.threads", "must be in 1..=256");
+        }
+        if self.model.sessions == 0 || self.model.intra_threads == 0 {
+            return bad("model", "sessions and intra_threads must be positive");
+        }
+        if self.limits.keypoints.max_keypoints == 0 {
+            return bad("limits.keypoints.max_keypoints", "must be positive");
+        }
+        if self.limits.image.max_bytes > self.server.max_request_bytes {
+            return bad("limits.image.max_bytes", "must not exceed server.max_request_bytes");
+        }
+        self.extractor.validate().map_err(|e| SettingsError::Invalid { field: "extractor", reason: e.to_string() })?;
+        let keys = self.keys()?;
+        let loopback = self.server.grpc_addr.ip().is_loopback() && self.server.http_addr.ip().is_loopback();
+        if keys.is_empty() && !loopback && !self.auth.allow_anonymous {
+            return bad(
+                "auth",
+                "no API key is configured and the service would listen beyond loopback: set auth.keys_file (or \
+                 auth.write_keys), or auth.allow_anonymous = true behind an authenticating proxy",
+            );
+        }
+        Ok(())
+    }
+
+    /// All configured keys with their access, from the settings and the keys file.
+    pub fn keys(&self) -> Result<Vec<(String, Access)>, SettingsError> {
+        let mut out: Vec<(String, Access)> = Vec::new();
+        out.extend(self.auth.write_keys.iter().map(|k| (k.clone(), Access::Write)));
+        out.extend(self.auth.read_keys.iter().map(|k| (k.clone(), Access::Read)));
+        if let Some(path) = &self.auth.keys_file {
+            let text = std::fs::read_to_string(path)
+                .map_err(|source| SettingsError::KeysFile { path: path.clone(), source })?;
+            for (i, line) in text.lines().enumerate() {
+                let line = line.split('#').next().unwrap_or("").trim();
+                if line.is_empty() {
+                    continue;
+                }
+                let mut parts = line.split_whitespace();
+                let access = match parts.next() {
+                    Some("write") => Access::Write,
+                    Some("read") => Access::Read,
+                    _ => return Err(SettingsError::KeysLine { path: path.clone(), line: i + 1 }),
+                };
+                match (parts.next(), parts.next()) {
+                    (Some(k), None) => out.push((k.to_string(), access)),
+                    _ => return Err(SettingsError::KeysLine { path: path.clone(), line: i + 1 }),
+                }
+            }
+        }
+        if let Some((k, _)) = out.iter().find(|(k, _)| k.len() < 16) {
+            return Err(SettingsError::Invalid {
+                field: "auth",
+                reason: format!("API keys need at least 16 characters (one has {})", k.len()),
+            });
+        }
+        Ok(out)
+    }
+
+    /// The settings as JSON for the start-up log, with key material removed.
+    pub fn redacted(&self) -> serde_json::Value {
+        let mut v = serde_json::to_value(self).unwrap_or_default();
+        if let Some(auth) = v.get_mut("auth") {
+            auth["write_keys"] = serde_json::json!(format!("[{} redacted]", self.auth.write_keys.len()));
+            auth["read_keys"] = serde_json::json!(format!("[{} redacted]", self.auth.read_keys.len()));
+        }
+        v
+    }
+}
+
+/// What a key may do.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, PartialOrd, Ord)]
+pub enum Access {
+    Read,
+    Write,
+}
+
+#[cfg(test)]
+#[allow(clippy::result_large_err)] // figment::Jail's closures return figment's own large error type
+mod tests {
+    use super::*;
+
+    #[test]
+    fn defaults_are_valid_and_loopback_needs_no_key() {
+        let s = Settings::default();
+        s.validate().unwrap();
+        assert!(s.server.grpc_addr.ip().is_loopback());
+    }
+
+    #[test]
+    fn layers_apply_in_order_file_env_flags() {
+        let dir = std::env::temp_dir().join(format!("scone-settings-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let file = dir.join("scone.toml");
+        std::fs::write(
+            &file,
+            "[server]\nrequest_timeout_ms = 1234\nhttp_addr = \"127.0.0.1:9000\"\n[workers]\nqueue = 3\n",
+        )
+        .unwrap();
+        figment::Jail::expect_with(|jail| {
+            jail.set_env("SCONE_WORKERS__QUEUE", "5");
+            jail.set_env("SCONE_PREFIX", "/not/a/setting");
+            let flags = Overrides { http_addr: Some("127.0.0.1:9100".parse().unwrap()), ..Default::default() };
+            let s = Settings::load(Some(&file), &flags).map_err(|e| e.to_string())?;
+            assert_eq!(s.server.request_timeout_ms, 1234, "file over defaults");
+            assert_eq!(s.workers.queue, 5, "environment over file");
+            assert_eq!(s.server.http_addr.port(), 9100, "flags over everything");
+            Ok(())
+        });
+    }
+
+    #[test]
+    fn unknown_keys_and_bad_values_are_refused_with_the_field() {
+        figment::Jail::expect_with(|jail| {
+            jail.set_env("SCONE_WORKERS__THREADZ", "3");
+            let e = Settings::load(None, &Overrides::default()).unwrap_err().to_string();
+            assert!(e.contains("threadz"), "{e}");
+            Ok(())
+        });
+        figment::Jail::expect_with(|jail| {
+            jail.set_env("SCONE_WORKERS__THREADS", "0");
+            let e = Settings::load(None, &Overrides::default()).unwrap_err().to_string();
+            assert!(e.contains("workers.threads"), "{e}");
+            Ok(())
+        });
+    }
+
+    #[test]
+    fn public_address_without_keys_is_refused_and_keys_are_not_logged() {
+        let mut s = Settings::default();
+        s.server.http_addr = "0.0.0.0:8080".parse().unwrap();
+        let e = s.validate().unwrap_err().to_string();
+        assert!(e.contains("no API key"), "{e}");
+        s.auth.write_keys = vec!["0123456789abcdef-secret".into()];
+        s.validate().unwrap();
+        let logged = format!("{} {:?}", s.redacted(), s);
+        assert!(!logged.contains("secret"), "{logged}");
+    }
+
+    #[test]
+    fn keys_file_lines_are_parsed_and_bad_lines_named() {
+        let dir = std::env::temp_dir().join(format!("scone-keys-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let f = dir.join("keys");
+        std::fs::write(&f, "# comment\nwrite aaaaaaaaaaaaaaaa\nread bbbbbbbbbbbbbbbb # phone\n").unwrap();
+        let mut s = Settings::default();
+        s.auth.keys_file = Some(f.clone());
+        let keys = s.keys().unwrap();
+        assert_eq!(keys, vec![("aaaaaaaaaaaaaaaa".into(), Access::Write), ("bbbbbbbbbbbbbbbb".into(), Access::Read)]);
+        std::fs::write(&f, "admin cccccccccccccccc\n").unwrap();
+        assert!(s.keys().unwrap_err().to_string().contains(":1:"));
+    }
+}
