@@ -6,3 +6,4 @@ mod durability;
 mod embedding;
 
 mod pipeline;
+mod service;

@@ -1,0 +1,610 @@
+//! The real server on ephemeral loopback ports, driven with a tonic client and an HTTP client.
+
+use std::path::{Path, PathBuf};
+use std::time::Duration;
+
+use nalgebra::Isometry3;
+use scone::scene::{Camera, Scene};
+use scone::server::proto::{self, frame::Source, maps_client::MapsClient, matching_client::MatchingClient};
+use scone::server::{start, Running};
+use scone::settings::Settings;
+use tonic::transport::Channel;
+use tonic::{Code, Request};
+
+use crate::common::{fixture, shared_data};
+
+const WRITE_KEY: &str = "write-key-0123456789";
+const READ_KEY: &str = "read-key-0123456789";
+
+fn temp_dir(name: &str) -> PathBuf {
+    let d = std::env::temp_dir().join(format!("scone-it-service-{name}-{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&d);
+    std::fs::create_dir_all(&d).unwrap();
+    d
+}
+
+fn settings(data: &Path) -> Settings {
+    let mut s = Settings::default();
+    s.server.grpc_addr = "127.0.0.1:0".parse().unwrap();
+    s.server.http_addr = "127.0.0.1:0".parse().unwrap();
+    s.store.data_dir = data.to_path_buf();
+    s
+}
+
+async fn serve(s: Settings) -> Running {
+    let r = start(s).await.expect("server starts");
+    r.wait_ready(Duration::from_secs(60)).await.expect("maps load");
+    r
+}
+
+async fn clients(r: &Running) -> (MapsClient<Channel>, MatchingClient<Channel>) {
+    let url = format!("http://{}", r.grpc_addr);
+    (MapsClient::connect(url.clone()).await.unwrap(), MatchingClient::connect(url).await.unwrap())
+}
+
+fn keyed<T>(msg: T, key: &str) -> Request<T> {
+    let mut r = Request::new(msg);
+    r.metadata_mut().insert("x-api-key", key.parse().unwrap());
+    r
+}
+
+fn intrinsics(c: &Camera) -> proto::Intrinsics {
+    proto::Intrinsics { fx: c.fx, fy: c.fy, cx: c.cx, cy: c.cy, width: c.width, height: c.height }
+}
+
+fn pose_msg(p: &Isometry3<f64>) -> proto::Pose {
+    let q = p.rotation.quaternion();
+    let t = p.translation.vector;
+    proto::Pose { tx: t.x, ty: t.y, tz: t.z, qx: q.i, qy: q.j, qz: q.k, qw: q.w }
+}
+
+fn image_frame(path: &Path, cam: &Camera) -> proto::Frame {
+    proto::Frame {
+        source: Some(Source::Image(proto::Image { data: std::fs::read(path).unwrap() })),
+        intrinsics: Some(intrinsics(cam)),
+    }
+}
+
+fn keyframe_requests(map: &str, scene: &Scene, frames: &[usize]) -> Vec<proto::AddKeyframeRequest> {
+    frames
+        .iter()
+        .map(|&i| {
+            let f = &scene.frames[i];
+            proto::AddKeyframeRequest {
+                map_id: map.to_string(),
+                keyframe_id: i as u64,
+                frame: Some(image_frame(&f.rgb, &scene.camera)),
+                pose: Some(pose_msg(&f.pose.unwrap())),
+                depth_png: f.depth.as_ref().map(|d| std::fs::read(d).unwrap()).unwrap_or_default(),
+                depth_scale: 0.0,
+            }
+        })
+        .collect()
+}
+
+/// Translation (map units) and rotation (degrees) between an estimated and a true camera-to-world pose.
+fn pose_error(p: &proto::Pose, truth: &Isometry3<f64>) -> (f64, f64) {
+    let t = nalgebra::Vector3::new(p.tx, p.ty, p.tz);
+    let q = nalgebra::UnitQuaternion::from_quaternion(nalgebra::Quaternion::new(p.qw, p.qx, p.qy, p.qz));
+    let dt = (t - truth.translation.vector).norm();
+    let dr = q.angle_to(&truth.rotation).to_degrees();
+    (dt, dr)
+}
+
+async fn add_keyframes(
+    maps: &mut MapsClient<Channel>,
+    reqs: Vec<proto::AddKeyframeRequest>,
+    key: Option<&str>,
+) -> Vec<proto::KeyframeAck> {
+    let n = reqs.len();
+    let stream = tokio_stream::iter(reqs);
+    let req = match key {
+        Some(k) => keyed(stream, k),
+        None => Request::new(stream),
+    };
+    let mut acks = maps.add_keyframes(req).await.unwrap().into_inner();
+    let mut out = Vec::new();
+    while let Some(a) = acks.message().await.unwrap() {
+        out.push(a);
+    }
+    assert_eq!(out.len(), n);
+    out
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn grpc_builds_a_map_localises_a_held_out_frame_and_keeps_it_across_restart() {
+    let data = temp_dir("grpc");
+    let scene = Scene::load(&fixture("rendered")).unwrap();
+    let server = serve(settings(&data)).await;
+    let (mut maps, mut matching) = clients(&server).await;
+
+    let info = maps.create_map(proto::CreateMapRequest { map_id: "scene".into() }).await.unwrap().into_inner();
+    assert_eq!(info.keyframes, 0);
+    let acks = add_keyframes(&mut maps, keyframe_requests("scene", &scene, &[0, 2, 4, 6, 8]), None).await;
+    assert_eq!(acks.iter().map(|a| a.keyframe_id).collect::<Vec<_>>(), vec![0, 2, 4, 6, 8]);
+    assert!(acks.iter().all(|a| a.observations > 0));
+
+    let query = |i: usize| proto::LocalizeRequest {
+        map_id: "scene".into(),
+        frame: Some(image_frame(&scene.frames[i].rgb, &scene.camera)),
+        prior: None,
+    };
+    let r = matching.localize(query(5)).await.unwrap().into_inner();
+    assert!(r.localized, "{r:?}");
+    let (dt, dr) = pose_error(r.pose.as_ref().unwrap(), &scene.frames[5].pose.unwrap());
+    // The fixture's scene spans about 2 m; 5 cm and 1 degree is well inside the (0.25 m, 2 deg) band.
+    assert!(dt < 0.05 && dr < 1.0, "pose off by {dt} m, {dr} deg");
+    assert!(r.inliers >= 15 && r.confidence > 0.5, "{r:?}");
+
+    let exported: Vec<u8> = {
+        let mut s = maps.export_map(proto::ExportMapRequest { map_id: "scene".into() }).await.unwrap().into_inner();
+        let mut bytes = Vec::new();
+        while let Some(c) = s.message().await.unwrap() {
+            bytes.extend(c.data);
+        }
+        bytes
+    };
+    server.shutdown().await.unwrap();
+
+    // Restart on the same directory: the map is there and answers the same query.
+    let server = serve(settings(&data)).await;
+    let (mut maps, mut matching) = clients(&server).await;
+    let info = maps.get_map(proto::GetMapRequest { map_id: "scene".into() }).await.unwrap().into_inner();
+    assert_eq!(info.keyframes, 5);
+    let r = matching.localize(query(3)).await.unwrap().into_inner();
+    let (dt, dr) = pose_error(r.pose.as_ref().expect("localised after restart"), &scene.frames[3].pose.unwrap());
+    assert!(dt < 0.05 && dr < 1.0, "pose off by {dt} m, {dr} deg after restart");
+
+    // Import the export under another id (first chunk names the map).
+    let chunks: Vec<proto::MapChunk> = exported
+        .chunks(100_000)
+        .enumerate()
+        .map(|(i, c)| proto::MapChunk { map_id: if i == 0 { "copy".into() } else { String::new() }, data: c.to_vec() })
+        .collect();
+    let copy = maps.import_map(tokio_stream::iter(chunks)).await.unwrap().into_inner();
+    assert_eq!(
+        (copy.keyframes, copy.landmarks, copy.observations),
+        (info.keyframes, info.landmarks, info.observations)
+    );
+    let listed = maps.list_maps(proto::ListMapsRequest {}).await.unwrap().into_inner();
+    assert_eq!(listed.maps.iter().map(|m| m.map_id.as_str()).collect::<Vec<_>>(), vec!["copy", "scene"]);
+
+    let after = maps.remove_keyframe(proto::RemoveKeyframeRequest { map_id: "copy".into(), keyframe_id: 4 }).await;
+    assert!(after.unwrap().into_inner().live_observations < copy.live_observations);
+    maps.delete_map(proto::DeleteMapRequest { map_id: "copy".into() }).await.unwrap();
+    let gone = maps.get_map(proto::GetMapRequest { map_id: "copy".into() }).await.unwrap_err();
+    assert_eq!(gone.code(), Code::NotFound);
+    server.shutdown().await.unwrap();
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn describe_of_an_image_equals_describe_of_its_keypoints() {
+    let data = temp_dir("describe");
+    let server = serve(settings(&data)).await;
+    let (_, mut matching) = clients(&server).await;
+    let image = std::fs::read(fixture("coffee-640x480.jpg")).unwrap();
+    let frame = proto::Frame { source: Some(Source::Image(proto::Image { data: image })), intrinsics: None };
+    let a = matching.describe(proto::DescribeRequest { frame: Some(frame) }).await.unwrap().into_inner();
+    assert!(a.keypoints.len() > 500);
+    assert_eq!(a.embeddings.len(), a.keypoints.len() * a.dim as usize);
+    assert_eq!(a.descriptors.len(), a.keypoints.len() * 64);
+    let set = proto::KeypointSet {
+        keypoints: a.keypoints.clone(),
+        descriptors: a.descriptors.clone(),
+        width: 640,
+        height: 480,
+        model_id: a.model_id.clone(),
+    };
+    let frame = proto::Frame { source: Some(Source::Keypoints(set)), intrinsics: None };
+    let b = matching.describe(proto::DescribeRequest { frame: Some(frame) }).await.unwrap().into_inner();
+    assert_eq!(a.keypoints, b.keypoints);
+    let max = a.embeddings.iter().zip(&b.embeddings).map(|(x, y)| (x - y).abs()).fold(0.0f32, f32::max);
+    assert!(max <= 1e-6, "embeddings differ by {max}");
+
+    // Same through HTTP/JSON: the keypoint path with base64 descriptors.
+    let http = reqwest::Client::new();
+    let url = format!("http://{}/v1/describe", server.http_addr);
+    let raw: serde_json::Value = http
+        .post(&url)
+        .header("content-type", "image/jpeg")
+        .body(std::fs::read(fixture("coffee-640x480.jpg")).unwrap())
+        .send()
+        .await
+        .unwrap()
+        .json()
+        .await
+        .unwrap();
+    let body = serde_json::json!({"frame": {"keypoints": {
+        "width": raw["width"], "height": raw["height"], "keypoints": raw["keypoints"],
+        "descriptors_base64": raw["descriptors_base64"], "model_id": raw["model_id"]}}});
+    let via_keypoints: serde_json::Value = http.post(&url).json(&body).send().await.unwrap().json().await.unwrap();
+    assert_eq!(raw["embeddings"], via_keypoints["embeddings"]);
+    assert_eq!(raw["embeddings"].as_array().unwrap().len(), a.embeddings.len());
+    server.shutdown().await.unwrap();
+}
+
+fn multipart_keyframe(scene: &Scene, i: usize) -> reqwest::multipart::Form {
+    let f = &scene.frames[i];
+    let p = f.pose.unwrap();
+    let q = p.rotation.quaternion();
+    let t = p.translation.vector;
+    let c = scene.camera;
+    let request = serde_json::json!({
+        "keyframe_id": i,
+        "pose": {"tx": t.x, "ty": t.y, "tz": t.z, "qx": q.i, "qy": q.j, "qz": q.k, "qw": q.w},
+        "intrinsics": {"fx": c.fx, "fy": c.fy, "cx": c.cx, "cy": c.cy},
+    });
+    let mut form = reqwest::multipart::Form::new()
+        .text("request", request.to_string())
+        .part("image", reqwest::multipart::Part::bytes(std::fs::read(&f.rgb).unwrap()).mime_str("image/png").unwrap());
+    if let Some(d) = &f.depth {
+        form = form
+            .part("depth", reqwest::multipart::Part::bytes(std::fs::read(d).unwrap()).mime_str("image/png").unwrap());
+    }
+    form
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn http_mirror_builds_a_map_and_localises_a_raw_image() {
+    let data = temp_dir("http");
+    let scene = Scene::load(&fixture("rendered")).unwrap();
+    let server = serve(settings(&data)).await;
+    let http = reqwest::Client::new();
+    let base = format!("http://{}", server.http_addr);
+    let r = http.post(format!("{base}/v1/maps")).json(&serde_json::json!({"map_id": "h"})).send().await.unwrap();
+    assert_eq!(r.status(), 201);
+    for i in [1, 3, 5, 7, 9] {
+        let r = http
+            .post(format!("{base}/v1/maps/h/keyframes"))
+            .multipart(multipart_keyframe(&scene, i))
+            .send()
+            .await
+            .unwrap();
+        assert_eq!(r.status(), 200, "{}", r.text().await.unwrap());
+    }
+    let c = scene.camera;
+    let r: serde_json::Value = http
+        .post(format!("{base}/v1/maps/h/localize?fx={}&fy={}&cx={}&cy={}", c.fx, c.fy, c.cx, c.cy))
+        .header("content-type", "image/png")
+        .body(std::fs::read(&scene.frames[6].rgb).unwrap())
+        .send()
+        .await
+        .unwrap()
+        .json()
+        .await
+        .unwrap();
+    assert_eq!(r["localized"], true, "{r}");
+    let pose: proto::Pose = proto::Pose {
+        tx: r["pose"]["tx"].as_f64().unwrap(),
+        ty: r["pose"]["ty"].as_f64().unwrap(),
+        tz: r["pose"]["tz"].as_f64().unwrap(),
+        qx: r["pose"]["qx"].as_f64().unwrap(),
+        qy: r["pose"]["qy"].as_f64().unwrap(),
+        qz: r["pose"]["qz"].as_f64().unwrap(),
+        qw: r["pose"]["qw"].as_f64().unwrap(),
+    };
+    let (dt, dr) = pose_error(&pose, &scene.frames[6].pose.unwrap());
+    assert!(dt < 0.05 && dr < 1.0, "pose off by {dt} m, {dr} deg");
+
+    // MatchPair over multipart: two neighbouring frames give a relative pose close to the true one.
+    let request = serde_json::json!({
+        "frame1": {"intrinsics": {"fx": c.fx, "fy": c.fy, "cx": c.cx, "cy": c.cy}},
+        "frame2": {"intrinsics": {"fx": c.fx, "fy": c.fy, "cx": c.cx, "cy": c.cy}},
+    });
+    let form = reqwest::multipart::Form::new()
+        .text("request", request.to_string())
+        .part("image1", reqwest::multipart::Part::bytes(std::fs::read(&scene.frames[0].rgb).unwrap()))
+        .part("image2", reqwest::multipart::Part::bytes(std::fs::read(&scene.frames[1].rgb).unwrap()));
+    let m: serde_json::Value =
+        http.post(format!("{base}/v1/match")).multipart(form).send().await.unwrap().json().await.unwrap();
+    assert!(m["inliers"].as_u64().unwrap() >= 30, "{}", m["inliers"]);
+    let rel = scone::pose::relative_motion(&scene.frames[0].pose.unwrap(), &scene.frames[1].pose.unwrap());
+    let q = nalgebra::UnitQuaternion::from_quaternion(nalgebra::Quaternion::new(
+        m["pose"]["qw"].as_f64().unwrap(),
+        m["pose"]["qx"].as_f64().unwrap(),
+        m["pose"]["qy"].as_f64().unwrap(),
+        m["pose"]["qz"].as_f64().unwrap(),
+    ));
+    let dr = q.angle_to(&rel.rotation).to_degrees();
+    assert!(dr < 2.0, "relative rotation off by {dr} deg");
+
+    let listed: serde_json::Value = http.get(format!("{base}/v1/maps")).send().await.unwrap().json().await.unwrap();
+    assert_eq!(listed["maps"][0]["keyframes"], 5);
+    let r = http.delete(format!("{base}/v1/maps/h/keyframes/3")).send().await.unwrap();
+    assert_eq!(r.status(), 200);
+    let r = http.delete(format!("{base}/v1/maps/h")).send().await.unwrap();
+    assert_eq!(r.status(), 204);
+    assert_eq!(http.get(format!("{base}/v1/maps/h")).send().await.unwrap().status(), 404);
+    assert_eq!(http.get(format!("{base}/readyz")).send().await.unwrap().status(), 200);
+    let metrics = http.get(format!("{base}/metrics")).send().await.unwrap().text().await.unwrap();
+    assert!(
+        metrics
+            .contains("scone_requests_total{transport=\"http\",route=\"/v1/maps/{map_id}/localize\",status=\"200\"} 1"),
+        "{metrics}"
+    );
+    assert!(metrics.contains("scone_stage_duration_seconds_count{stage=\"embed\"}"));
+    server.shutdown().await.unwrap();
+}
+
+async fn version(maps: &mut MapsClient<Channel>, id: &str) -> u64 {
+    maps.get_map(keyed(proto::GetMapRequest { map_id: id.into() }, READ_KEY)).await.unwrap().into_inner().version
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn every_error_path_gets_its_code_and_a_useful_message_and_changes_nothing() {
+    let data = temp_dir("errors");
+    let scene = Scene::load(&fixture("rendered")).unwrap();
+    let mut s = settings(&data);
+    s.auth.write_keys = vec![WRITE_KEY.into()];
+    s.auth.read_keys = vec![READ_KEY.into()];
+    let server = serve(s).await;
+    let (mut maps, mut matching) = clients(&server).await;
+    maps.create_map(keyed(proto::CreateMapRequest { map_id: "m".into() }, WRITE_KEY)).await.unwrap();
+    add_keyframes(&mut maps, keyframe_requests("m", &scene, &[0, 4]), Some(WRITE_KEY)).await;
+    let v0 = version(&mut maps, "m").await;
+
+    let expect = |r: tonic::Status, code: Code, words: &[&str]| {
+        assert_eq!(r.code(), code, "{r:?}");
+        for w in words {
+            assert!(r.message().contains(w), "'{}' lacks '{w}'", r.message());
+        }
+    };
+    // Auth: no key, unknown key, read-only key on a write.
+    let e = maps.create_map(proto::CreateMapRequest { map_id: "x".into() }).await.unwrap_err();
+    expect(e, Code::Unauthenticated, &["x-api-key"]);
+    let e = maps
+        .create_map(keyed(proto::CreateMapRequest { map_id: "x".into() }, "not-a-key-at-all-0000"))
+        .await
+        .unwrap_err();
+    expect(e, Code::Unauthenticated, &[]);
+    let e = maps.delete_map(keyed(proto::DeleteMapRequest { map_id: "m".into() }, READ_KEY)).await.unwrap_err();
+    expect(e, Code::PermissionDenied, &["read-only", "DeleteMap"]);
+    let stream = tokio_stream::iter(keyframe_requests("m", &scene, &[6]));
+    let e = maps.add_keyframes(keyed(stream, READ_KEY)).await.unwrap_err();
+    expect(e, Code::PermissionDenied, &["AddKeyframes"]);
+
+    // Unknown map, corrupt image, wrong descriptor length, NaN pose, duplicate keyframe.
+    let loc = |map: &str, data: Vec<u8>| {
+        keyed(
+            proto::LocalizeRequest {
+                map_id: map.into(),
+                frame: Some(proto::Frame {
+                    source: Some(Source::Image(proto::Image { data })),
+                    intrinsics: Some(intrinsics(&scene.camera)),
+                }),
+                prior: None,
+            },
+            READ_KEY,
+        )
+    };
+    let png = std::fs::read(&scene.frames[1].rgb).unwrap();
+    let e = matching.localize(loc("nope", png.clone())).await.unwrap_err();
+    expect(e, Code::NotFound, &["nope"]);
+    let mut corrupt = png.clone();
+    corrupt.truncate(corrupt.len() / 3);
+    let e = matching.localize(loc("m", corrupt)).await.unwrap_err();
+    expect(e, Code::InvalidArgument, &["image"]);
+    let set = proto::KeypointSet {
+        keypoints: vec![proto::Keypoint { x: 50.0, y: 50.0, size: 7.0, angle: 10.0, response: 1.0, octave: 0 }; 30],
+        descriptors: vec![0u8; 30 * 64 - 1],
+        width: 320,
+        height: 240,
+        model_id: String::new(),
+    };
+    let e = matching
+        .describe(keyed(
+            proto::DescribeRequest {
+                frame: Some(proto::Frame { source: Some(Source::Keypoints(set)), intrinsics: None }),
+            },
+            READ_KEY,
+        ))
+        .await
+        .unwrap_err();
+    expect(e, Code::InvalidArgument, &["descriptors", "1919"]);
+    let mut nan = keyframe_requests("m", &scene, &[6]);
+    nan[0].pose.as_mut().unwrap().qw = f64::NAN;
+    let mut acks = maps.add_keyframes(keyed(tokio_stream::iter(nan), WRITE_KEY)).await.unwrap().into_inner();
+    expect(acks.message().await.unwrap_err(), Code::InvalidArgument, &["pose", "non-finite"]);
+    let dup = keyframe_requests("m", &scene, &[4]);
+    let mut acks = maps.add_keyframes(keyed(tokio_stream::iter(dup), WRITE_KEY)).await.unwrap().into_inner();
+    expect(acks.message().await.unwrap_err(), Code::AlreadyExists, &["keyframe 4"]);
+    let e = maps.create_map(keyed(proto::CreateMapRequest { map_id: "bad/id".into() }, WRITE_KEY)).await.unwrap_err();
+    expect(e, Code::InvalidArgument, &["map id"]);
+    let e = maps.create_map(keyed(proto::CreateMapRequest { map_id: "m".into() }, WRITE_KEY)).await.unwrap_err();
+    expect(e, Code::AlreadyExists, &["'m'"]);
+    let wrong_model =
+        proto::KeypointSet { model_id: "sha256:another".into(), width: 320, height: 240, ..Default::default() };
+    let e = matching
+        .describe(keyed(
+            proto::DescribeRequest {
+                frame: Some(proto::Frame { source: Some(Source::Keypoints(wrong_model)), intrinsics: None }),
+            },
+            READ_KEY,
+        ))
+        .await
+        .unwrap_err();
+    expect(e, Code::FailedPrecondition, &["sha256:another"]);
+    // A message over the limit (32 MiB by default) is refused by the transport.
+    let e = matching.localize(loc("m", vec![0u8; 33 << 20])).await.unwrap_err();
+    assert!(matches!(e.code(), Code::OutOfRange | Code::ResourceExhausted), "{e:?}");
+    assert_eq!(version(&mut maps, "m").await, v0, "a refused request changed the map");
+
+    // The same over HTTP: JSON error bodies with the code.
+    let http = reqwest::Client::new();
+    let base = format!("http://{}", server.http_addr);
+    let r = http.post(format!("{base}/v1/maps")).json(&serde_json::json!({"map_id": "y"})).send().await.unwrap();
+    assert_eq!(r.status(), 401);
+    let r = http
+        .post(format!("{base}/v1/maps"))
+        .header("x-api-key", READ_KEY)
+        .json(&serde_json::json!({"map_id": "y"}))
+        .send()
+        .await
+        .unwrap();
+    assert_eq!(r.status(), 403);
+    assert_eq!(r.json::<serde_json::Value>().await.unwrap()["error"]["code"], "PERMISSION_DENIED");
+    let r = http
+        .post(format!("{base}/v1/maps/m/localize?fx=250&cx=160&cy=120"))
+        .header("authorization", format!("Bearer {READ_KEY}"))
+        .header("content-type", "image/png")
+        .body(b"\x89PNG\r\n\x1a\nnot really".to_vec())
+        .send()
+        .await
+        .unwrap();
+    assert_eq!(r.status(), 400);
+    let body: serde_json::Value = r.json().await.unwrap();
+    assert_eq!(body["error"]["code"], "INVALID_ARGUMENT");
+    let r = http
+        .post(format!("{base}/v1/maps/zzz/localize?fx=250&cx=160&cy=120"))
+        .header("x-api-key", READ_KEY)
+        .header("content-type", "image/png")
+        .body(png.clone())
+        .send()
+        .await
+        .unwrap();
+    assert_eq!(r.status(), 404);
+    let r = http
+        .post(format!("{base}/v1/describe"))
+        .header("x-api-key", READ_KEY)
+        .header("content-type", "image/jpeg")
+        .body(vec![0u8; 33 << 20])
+        .send()
+        .await
+        .unwrap();
+    assert_eq!(r.status(), 413);
+    let r = http
+        .post(format!("{base}/v1/maps/m/keyframes"))
+        .header("x-api-key", WRITE_KEY)
+        .json(&serde_json::json!({"keyframe_id": 7, "pose": {"tx": 0, "ty": 0, "tz": 0, "qx": 0, "qy": 0, "qz": 0, "qw": 2},
+                                  "frame": {"image_base64": "aGVsbG8="}, "intrinsics": {"fx": 250, "fy": 250, "cx": 160, "cy": 120}}))
+        .send()
+        .await
+        .unwrap();
+    assert_eq!(r.status(), 400);
+    let msg = r.json::<serde_json::Value>().await.unwrap()["error"]["message"].as_str().unwrap().to_string();
+    assert!(msg.contains("quaternion"), "{msg}");
+    let r = http
+        .post(format!("{base}/v1/describe"))
+        .header("x-api-key", READ_KEY)
+        .header("content-type", "text/plain")
+        .body("hello")
+        .send()
+        .await
+        .unwrap();
+    assert_eq!(r.status(), 400);
+    assert_eq!(version(&mut maps, "m").await, v0, "a refused request changed the map");
+    server.shutdown().await.unwrap();
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_saturated_server_refuses_quickly_with_resource_exhausted_and_keeps_serving() {
+    let data = temp_dir("saturate");
+    let mut s = settings(&data);
+    s.workers.threads = 1;
+    s.workers.queue = 1;
+    let server = serve(s).await;
+    let (_, matching) = clients(&server).await;
+    let image = std::fs::read(fixture("coffee-640x480.jpg")).unwrap();
+    let mut tasks = Vec::new();
+    for _ in 0..12 {
+        let mut m = matching.clone();
+        let frame =
+            proto::Frame { source: Some(Source::Image(proto::Image { data: image.clone() })), intrinsics: None };
+        tasks.push(tokio::spawn(async move { m.describe(proto::DescribeRequest { frame: Some(frame) }).await }));
+    }
+    let (mut ok, mut refused) = (0, 0);
+    for t in tasks {
+        match t.await.unwrap() {
+            Ok(_) => ok += 1,
+            Err(e) => {
+                assert_eq!(e.code(), Code::ResourceExhausted, "{e:?}");
+                assert!(e.metadata().get("retry-after").is_some());
+                refused += 1;
+            }
+        }
+    }
+    assert!(ok >= 1 && refused >= 1, "ok {ok}, refused {refused}");
+    let http = reqwest::Client::new();
+    let base = format!("http://{}", server.http_addr);
+    let mut tasks = Vec::new();
+    for _ in 0..12 {
+        let (h, url, body) = (http.clone(), format!("{base}/v1/describe"), image.clone());
+        tasks.push(tokio::spawn(async move {
+            h.post(url).header("content-type", "image/jpeg").body(body).send().await.unwrap()
+        }));
+    }
+    let mut statuses = Vec::new();
+    for t in tasks {
+        let r = t.await.unwrap();
+        if r.status() == 429 {
+            assert_eq!(r.headers()["retry-after"], "1");
+        }
+        statuses.push(r.status().as_u16());
+    }
+    assert!(statuses.contains(&429) && statuses.contains(&200), "{statuses:?}");
+    // Still serving once the burst is over.
+    let mut m = matching.clone();
+    let frame = proto::Frame { source: Some(Source::Image(proto::Image { data: image })), intrinsics: None };
+    m.describe(proto::DescribeRequest { frame: Some(frame) }).await.unwrap();
+    server.shutdown().await.unwrap();
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn health_and_reflection_answer_standard_clients() {
+    use tonic_health::pb::health_client::HealthClient;
+    use tonic_health::pb::HealthCheckRequest;
+    use tonic_reflection::pb::v1::server_reflection_client::ServerReflectionClient;
+    use tonic_reflection::pb::v1::server_reflection_request::MessageRequest;
+    use tonic_reflection::pb::v1::server_reflection_response::MessageResponse;
+    use tonic_reflection::pb::v1::ServerReflectionRequest;
+
+    let data = temp_dir("health");
+    let server = serve(settings(&data)).await;
+    let url = format!("http://{}", server.grpc_addr);
+    let channel = Channel::from_shared(url).unwrap().connect().await.unwrap();
+    let mut health = HealthClient::new(channel.clone());
+    for service in ["", "scone.v1.Maps", "scone.v1.Matching"] {
+        let r = health.check(HealthCheckRequest { service: service.into() }).await.unwrap().into_inner();
+        assert_eq!(r.status, tonic_health::pb::health_check_response::ServingStatus::Serving as i32);
+    }
+    let mut reflection = ServerReflectionClient::new(channel);
+    let req = ServerReflectionRequest {
+        host: String::new(),
+        message_request: Some(MessageRequest::ListServices(String::new())),
+    };
+    let mut stream = reflection.server_reflection_info(tokio_stream::iter(vec![req])).await.unwrap().into_inner();
+    let resp = stream.message().await.unwrap().unwrap();
+    let Some(MessageResponse::ListServicesResponse(list)) = resp.message_response else { panic!("{resp:?}") };
+    let names: Vec<String> = list.service.into_iter().map(|s| s.name).collect();
+    for want in ["scone.v1.Maps", "scone.v1.Matching", "grpc.health.v1.Health"] {
+        assert!(names.iter().any(|n| n == want), "{want} missing from {names:?}");
+    }
+    server.shutdown().await.unwrap();
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn rgbd_slambook_map_localises_held_out_frames_over_grpc() {
+    let Some(dir) = shared_data() else { return };
+    let scene = Scene::load(&dir.join("scenes/rgbd-slambook-5")).unwrap();
+    let data = temp_dir("slambook");
+    let server = serve(settings(&data)).await;
+    let (mut maps, mut matching) = clients(&server).await;
+    maps.create_map(proto::CreateMapRequest { map_id: "slam".into() }).await.unwrap();
+    let n = scene.frames.len();
+    let mapped: Vec<usize> = (0..n).step_by(2).collect();
+    add_keyframes(&mut maps, keyframe_requests("slam", &scene, &mapped), None).await;
+    for i in (1..n).step_by(2) {
+        let r = matching
+            .localize(proto::LocalizeRequest {
+                map_id: "slam".into(),
+                frame: Some(image_frame(&scene.frames[i].rgb, &scene.camera)),
+                prior: None,
+            })
+            .await
+            .unwrap()
+            .into_inner();
+        let (dt, dr) = pose_error(r.pose.as_ref().expect("localised"), &scene.frames[i].pose.unwrap());
+        assert!(dt < 0.25 && dr < 2.0, "frame {i}: off by {dt} m, {dr} deg");
+    }
+    server.shutdown().await.unwrap();
+}
