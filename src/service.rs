@@ -416,7 +416,9 @@ impl Service {
         let d = self.describe_source(frame.source)?;
         Self::check_frame_size(&d, &cam, "frame.intrinsics")?;
         let mut times = d.times;
-        let l = times.time("localize", || store.localize(map, &d.features, &d.embeddings, &cam, prior.as_ref()))?;
+        let l = store.localize(map, &d.features, &d.embeddings, &cam, prior.as_ref())?;
+        times.0.push(("search", l.search_s));
+        times.0.push(("pnp", l.pnp_s));
         Ok(LocalizeOutcome { pose: l.pose, matches: l.matches, confidence: l.confidence, times })
     }
 

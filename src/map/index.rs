@@ -14,6 +14,7 @@
 use std::path::Path;
 
 use hnsw_rs::prelude::{AnnT, DistL2, Hnsw, HnswIo};
+use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
 use crate::error::MapError;
@@ -35,7 +36,7 @@ pub struct IndexParams {
 
 impl Default for IndexParams {
     fn default() -> Self {
-        Self { exact_below: 20_000, m: 16, ef_construction: 100, ef_search: 64, rebuild_dead_share: 0.3 }
+        Self { exact_below: 1_000, m: 16, ef_construction: 100, ef_search: 16, rebuild_dead_share: 0.3 }
     }
 }
 
@@ -68,6 +69,8 @@ pub struct EmbeddingIndex {
     in_graph: usize,
     /// Whether the graph came from a dump (rather than being built here).
     from_dump: bool,
+    /// Points in the graph whose keyframe was removed since (tombstones).
+    dead_in_graph: usize,
 }
 
 impl std::fmt::Debug for EmbeddingIndex {
@@ -95,8 +98,11 @@ pub fn l2_squared(a: &[f32], b: &[f32]) -> f32 {
     s
 }
 
+/// A restriction on which observations a search may return (e.g. a pose prior); `None` admits all.
+pub type Accept<'a> = Option<&'a (dyn Fn(usize) -> bool + Sync)>;
+
 /// Exact k nearest live observations (brute force over the flat embedding array).
-pub fn exact_search(data: &MapData, query: &[f32], k: usize, accept: &dyn Fn(usize) -> bool) -> Vec<Hit> {
+pub fn exact_search(data: &MapData, query: &[f32], k: usize, accept: Accept) -> Vec<Hit> {
     let dim = data.meta.dim;
     let mut best: Vec<(f32, usize)> = Vec::with_capacity(k + 1);
     for (i, e) in data.embeddings.chunks_exact(dim).enumerate() {
@@ -104,7 +110,7 @@ pub fn exact_search(data: &MapData, query: &[f32], k: usize, accept: &dyn Fn(usi
         if best.len() == k && d >= best[k - 1].0 {
             continue;
         }
-        if !data.observations[i].live || !accept(i) {
+        if !data.observations[i].live || accept.is_some_and(|a| !a(i)) {
             continue;
         }
         let pos = best.partition_point(|b| b.0 <= d);
@@ -116,11 +122,16 @@ pub fn exact_search(data: &MapData, query: &[f32], k: usize, accept: &dyn Fn(usi
 
 impl EmbeddingIndex {
     pub fn new(params: IndexParams) -> Self {
-        Self { params, hnsw: None, indexed: 0, in_graph: 0, from_dump: false }
+        Self { params, hnsw: None, indexed: 0, in_graph: 0, from_dump: false, dead_in_graph: 0 }
     }
 
     pub fn params(&self) -> &IndexParams {
         &self.params
+    }
+
+    /// Changes the search breadth (benchmarks sweep it on one built graph).
+    pub fn set_ef_search(&mut self, ef: usize) {
+        self.params.ef_search = ef;
     }
 
     /// Whether the graph was loaded from a dump (true) or built from the map data.
@@ -143,6 +154,7 @@ impl EmbeddingIndex {
         self.indexed = 0;
         self.in_graph = 0;
         self.from_dump = false;
+        self.dead_in_graph = 0;
     }
 
     /// Brings the index up to date with `data` (new observations; a rebuild when there are too many
@@ -153,6 +165,7 @@ impl EmbeddingIndex {
             self.hnsw = None;
             self.indexed = total;
             self.in_graph = 0;
+            self.dead_in_graph = 0;
             return;
         }
         // Points in the graph whose keyframe has since been removed.
@@ -170,8 +183,10 @@ impl EmbeddingIndex {
             self.in_graph = points.len();
             self.hnsw = Some(graph);
             self.indexed = total;
+            self.dead_in_graph = 0;
             return;
         }
+        self.dead_in_graph = dead_in_graph;
         if let Some(graph) = &self.hnsw {
             let points: Vec<(&[f32], usize)> =
                 (self.indexed..total).filter(|&i| data.observations[i].live).map(|i| (data.embedding(i), i)).collect();
@@ -188,26 +203,42 @@ impl EmbeddingIndex {
     }
 
     /// The k nearest live observations to `query` that `accept` admits.
-    pub fn search(&self, data: &MapData, query: &[f32], k: usize, accept: &dyn Fn(usize) -> bool) -> Vec<Hit> {
+    pub fn search(&self, data: &MapData, query: &[f32], k: usize, accept: Accept) -> Vec<Hit> {
         let Some(graph) = &self.hnsw else {
             return exact_search(data, query, k, accept);
         };
-        let filter = |id: &usize| data.observations.get(*id).is_some_and(|o| o.live) && accept(*id);
         let ef = self.params.ef_search.max(k);
-        let mut hits: Vec<Hit> = graph
-            .search_filter(query, k, ef, Some(&filter))
-            .into_iter()
-            .map(|n| Hit { observation: n.d_id, distance: n.distance })
-            .collect();
+        // hnsw_rs's filtered search is markedly slower: search unfiltered when nothing should be left out, and
+        // fall back to the filter if a tombstone shows up anyway (e.g. a removal not yet synced).
+        let admit = |id: usize| data.observations.get(id).is_some_and(|o| o.live) && accept.is_none_or(|a| a(id));
+        let filter = |id: &usize| admit(*id);
+        let found = if accept.is_none() && self.dead_in_graph == 0 {
+            let found = graph.search(query, k, ef);
+            if found.iter().all(|n| admit(n.d_id)) {
+                found
+            } else {
+                graph.search_filter(query, k, ef, Some(&filter))
+            }
+        } else {
+            graph.search_filter(query, k, ef, Some(&filter))
+        };
+        let mut hits: Vec<Hit> = found.into_iter().map(|n| Hit { observation: n.d_id, distance: n.distance }).collect();
         // Observations added since the last sync are searched exactly.
         for i in self.indexed..data.observations.len() {
-            if data.observations[i].live && accept(i) {
+            if data.observations[i].live && accept.is_none_or(|a| a(i)) {
                 hits.push(Hit { observation: i, distance: l2_squared(query, data.embedding(i)).sqrt() });
             }
         }
         hits.sort_by(|a, b| a.distance.total_cmp(&b.distance));
         hits.truncate(k);
         hits
+    }
+
+    /// [`EmbeddingIndex::search`] for every row of `queries` (`[n, dim]`), spread over rayon's threads: the
+    /// searches are independent, and a relocalisation has ~1,500 of them.
+    pub fn search_many(&self, data: &MapData, queries: &[f32], k: usize, accept: Accept) -> Vec<Vec<Hit>> {
+        let dim = data.meta.dim;
+        queries.par_chunks_exact(dim).with_min_len(64).map(|q| self.search(data, q, k, accept)).collect()
     }
 
     /// Writes the HNSW graph (if any) with a manifest into `dir`.

@@ -60,6 +60,9 @@ pub struct Localization {
     pub pose: Option<AbsolutePose>,
     pub matches: Vec<LandmarkMatch>,
     pub confidence: f64,
+    /// Wall time of the index search (with the ratio test) and of PnP, seconds.
+    pub search_s: f64,
+    pub pnp_s: f64,
 }
 
 /// 2D-3D matches of a query against the map.
@@ -78,9 +81,10 @@ pub fn match_landmarks(
             ((l[0] - p.position[0]).powi(2) + (l[1] - p.position[1]).powi(2) + (l[2] - p.position[2]).powi(2)).sqrt();
         d <= p.radius
     };
+    let accept: crate::map::index::Accept = if prior.is_some() { Some(&near) } else { None };
+    let all_hits = index.search_many(data, &embeddings[..embeddings.len() / dim * dim], params.knn.max(2), accept);
     let mut best: std::collections::HashMap<u64, LandmarkMatch> = std::collections::HashMap::new();
-    for (i, q) in embeddings.chunks_exact(dim).enumerate() {
-        let hits = index.search(data, q, params.knn.max(2), &near);
+    for (i, hits) in all_hits.iter().enumerate() {
         let Some(first) = hits.first() else { continue };
         let lm = data.observations[first.observation].landmark;
         let other = hits.iter().find(|h| data.observations[h.observation].landmark != lm);
@@ -132,7 +136,12 @@ pub fn localize(
             });
         }
     }
-    let matches = match_landmarks(data, index, embeddings, prior, params);
+    let t = std::time::Instant::now();
+    let mut matches = match_landmarks(data, index, embeddings, prior, params);
+    // Best first: PnP's PROSAC sampler draws from the front.
+    matches.sort_by(|a, b| a.distance.total_cmp(&b.distance));
+    let search_s = t.elapsed().as_secs_f64();
+    let t = std::time::Instant::now();
     let p3: Vec<[f64; 3]> = matches.iter().map(|m| data.landmarks[&m.landmark].point).collect();
     let p2: Vec<(f32, f32)> =
         matches.iter().map(|m| (features.keypoints[m.keypoint].x, features.keypoints[m.keypoint].y)).collect();
@@ -141,5 +150,5 @@ pub fn localize(
         let n = p.inliers.len() as f64;
         (1.0 - (-n / 20.0).exp()) * (n / matches.len().max(1) as f64 / 0.3).min(1.0)
     });
-    Ok(Localization { pose, matches, confidence })
+    Ok(Localization { pose, matches, confidence, search_s, pnp_s: t.elapsed().as_secs_f64() })
 }

@@ -186,7 +186,7 @@ fn exact_search_equals_brute_force_and_skips_tombstones() {
     data.apply(&Record::RemoveKeyframe { id: 1 });
     let queries = vectors(20, 48, 77);
     for q in queries.chunks(48) {
-        let hits = exact_search(&data, q, 5, &|_| true);
+        let hits = exact_search(&data, q, 5, None);
         assert_eq!(hits.iter().map(|h| h.observation).collect::<Vec<_>>(), brute(&data, q, 5));
         assert!(hits.iter().all(|h| data.observations[h.observation].keyframe != 1));
     }
@@ -214,7 +214,7 @@ fn hnsw_index_finds_near_duplicates_and_survives_a_dump() {
     for i in (0..data.observations.len()).step_by(7) {
         let q: Vec<f32> =
             data.embedding(i).iter().enumerate().map(|(j, v)| v + if j == 0 { 0.01 } else { 0.0 }).collect();
-        found += (index.search(&data, &q, 1, &|_| true)[0].observation == i) as usize;
+        found += (index.search(&data, &q, 1, None)[0].observation == i) as usize;
     }
     let total = data.observations.len().div_ceil(7);
     assert!(found as f64 >= 0.95 * total as f64, "recall {found}/{total}");
@@ -222,15 +222,15 @@ fn hnsw_index_finds_near_duplicates_and_survives_a_dump() {
     let reloaded = EmbeddingIndex::load_or_build(params, &dir, &data);
     assert!(reloaded.is_approximate() && reloaded.loaded_from_dump());
     let q = data.embedding(3).to_vec();
-    assert_eq!(reloaded.search(&data, &q, 3, &|_| true), index.search(&data, &q, 3, &|_| true));
+    assert_eq!(reloaded.search(&data, &q, 3, None), index.search(&data, &q, 3, None));
     // Tombstones are filtered, and new observations are searchable before the next sync.
     data.apply(&Record::RemoveKeyframe { id: 0 });
     data.apply(&keyframe_record(99, 10, 10_000, 48, 5));
     let q = data.embedding(3).to_vec();
-    assert!(reloaded.search(&data, &q, 3, &|_| true).iter().all(|h| h.observation != 3));
+    assert!(reloaded.search(&data, &q, 3, None).iter().all(|h| h.observation != 3));
     let newest = data.observations.len() - 1;
     let q = data.embedding(newest).to_vec();
-    assert_eq!(reloaded.search(&data, &q, 1, &|_| true)[0].observation, newest);
+    assert_eq!(reloaded.search(&data, &q, 1, None)[0].observation, newest);
 }
 
 #[test]

@@ -77,7 +77,8 @@ fn keypoints_input(k: proto::KeypointSet) -> KeypointsInput {
     }
 }
 
-fn frame(f: Option<proto::Frame>, field: &str) -> Result<FrameInput, ServiceError> {
+/// A wire frame as the service's input (public for the fuzz target).
+pub fn frame(f: Option<proto::Frame>, field: &str) -> Result<FrameInput, ServiceError> {
     let f = f.ok_or_else(|| invalid(field, "is required"))?;
     let source = match f.source {
         Some(Source::Image(img)) => FrameSource::Image(img.data),

@@ -721,6 +721,81 @@ pub async fn serve(
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::features::{from_precomputed, KeypointLimits};
+    use proptest::prelude::*;
+
+    fn keypoints_body(kps: &[(f32, f32, f32, f32, i32)], descriptor_bytes: usize, w: u32, h: u32) -> FrameJson {
+        FrameJson {
+            keypoints: Some(KeypointSetJson {
+                width: w,
+                height: h,
+                keypoints: kps
+                    .iter()
+                    .map(|&(x, y, size, angle, octave)| KeypointJson { x, y, size, angle, response: 1.0, octave })
+                    .collect(),
+                descriptors_base64: base64::engine::general_purpose::STANDARD.encode(vec![0x5a; descriptor_bytes]),
+                model_id: None,
+            }),
+            ..Default::default()
+        }
+    }
+
+    proptest! {
+        /// Any keypoint set a client can send decodes to a frame and is then accepted or refused with a
+        /// client error; nothing panics and nothing is classified as the server's fault.
+        #[test]
+        fn client_keypoints_decode_and_validate_without_panics(
+            kps in prop::collection::vec(
+                (any::<f32>(), any::<f32>(), any::<f32>(), any::<f32>(), any::<i32>()), 0..40),
+            extra in -70i64..70,
+            w in 0u32..5000,
+            h in 0u32..5000,
+        ) {
+            let bytes = (kps.len() as i64 * 64 + extra).max(0) as usize;
+            let f = frame(Some(keypoints_body(&kps, bytes, w, h)), None, None, "frame").unwrap();
+            let FrameSource::Keypoints(k) = f.source else { panic!("keypoints expected") };
+            match from_precomputed(k.width, k.height, k.keypoints, &k.descriptors, &KeypointLimits::default()) {
+                Ok(features) => {
+                    prop_assert_eq!(features.len(), kps.len());
+                    prop_assert_eq!(bytes, kps.len() * 64);
+                }
+                Err(e) => prop_assert_eq!(ServiceError::from(e).kind(), ErrorKind::InvalidArgument),
+            }
+        }
+
+        /// Well-formed keypoints inside the image are accepted.
+        #[test]
+        fn in_range_keypoints_are_accepted(
+            kps in prop::collection::vec((40.0f32..600.0, 40.0f32..440.0, 7.0f32..12.0, 0.0f32..359.9, 0i32..3), 1..60),
+        ) {
+            let f = frame(Some(keypoints_body(&kps, kps.len() * 64, 640, 480)), None, None, "frame").unwrap();
+            let FrameSource::Keypoints(k) = f.source else { panic!("keypoints expected") };
+            let features = from_precomputed(k.width, k.height, k.keypoints, &k.descriptors, &KeypointLimits::default());
+            prop_assert!(features.is_ok(), "{:?}", features.err());
+        }
+
+        /// Arbitrary bytes as a request's JSON are refused as the client's error, never a panic.
+        #[test]
+        fn arbitrary_request_json_is_refused_cleanly(bytes in prop::collection::vec(any::<u8>(), 0..300)) {
+            for r in [
+                parse_json::<LocalizeJson>(&Some(Bytes::from(bytes.clone()))).err(),
+                parse_json::<MatchJson>(&Some(Bytes::from(bytes.clone()))).err(),
+                parse_json::<DescribeJson>(&Some(Bytes::from(bytes))).err(),
+            ].into_iter().flatten() {
+                prop_assert_eq!(r.0.kind(), ErrorKind::InvalidArgument);
+            }
+        }
+
+        /// Base64 that is not base64, and frames with both or neither source, are refused with the field.
+        #[test]
+        fn malformed_frames_name_the_field(junk in "[!-*,-.:-<>-@\\[-`{-~]{1,20}") {
+            let f = FrameJson { image_base64: Some(junk), ..Default::default() };
+            let e = frame(Some(f), None, None, "frame1").unwrap_err();
+            prop_assert!(e.to_string().contains("frame1.image_base64"), "{}", e);
+            let both = FrameJson { image_base64: Some("aGk=".into()), ..keypoints_body(&[], 0, 1, 1) };
+            prop_assert!(frame(Some(both), None, None, "frame").is_err());
+        }
+    }
 
     #[test]
     fn openapi_lists_exactly_the_routes() {
