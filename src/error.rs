@@ -79,6 +79,13 @@ pub enum MapError {
     ModelMismatch { map: String, map_model: String, model: String },
     #[error("map '{map}' is unavailable: {reason}")]
     Unavailable { map: String, reason: String },
+    /// The map's manifest in object storage was replaced by another writer: this copy is stale and refuses
+    /// writes (one writer per map).
+    #[error(
+        "map '{map}' was written by another writer ({writer}) since this replica loaded it: this copy refuses \
+         writes until the map is reloaded"
+    )]
+    WriterConflict { map: String, writer: String },
     #[error("invalid {field}: {reason}")]
     InvalidInput { field: String, reason: String },
     #[error("{path}: {reason}")]

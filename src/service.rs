@@ -215,7 +215,7 @@ fn map_kind(e: &MapError) -> ErrorKind {
         MapError::MapExists { .. } | MapError::KeyframeExists { .. } => ErrorKind::AlreadyExists,
         MapError::InvalidMapId { .. } | MapError::InvalidInput { .. } => ErrorKind::InvalidArgument,
         MapError::ModelMismatch { .. } => ErrorKind::FailedPrecondition,
-        MapError::Unavailable { .. } => ErrorKind::Unavailable,
+        MapError::Unavailable { .. } | MapError::WriterConflict { .. } => ErrorKind::Unavailable,
         MapError::Corrupt { .. } | MapError::Io { .. } => ErrorKind::Internal,
         MapError::Feature(f) => feature_kind(f),
         MapError::Embedding(e) => embedding_kind(e),

@@ -190,6 +190,7 @@ impl Settings {
             return bad("limits.image.max_bytes", "must not exceed server.max_request_bytes");
         }
         self.extractor.validate().map_err(|e| SettingsError::Invalid { field: "extractor", reason: e.to_string() })?;
+        self.store.backend.validate().map_err(|reason| SettingsError::Invalid { field: "store.backend", reason })?;
         let keys = self.keys()?;
         let loopback = self.server.grpc_addr.ip().is_loopback() && self.server.http_addr.ip().is_loopback();
         if keys.is_empty() && !loopback && !self.auth.allow_anonymous {
@@ -300,6 +301,34 @@ mod tests {
             jail.set_env("SCONE_WORKERS__THREADS", "0");
             let e = Settings::load(None, &Overrides::default()).unwrap_err().to_string();
             assert!(e.contains("workers.threads"), "{e}");
+            Ok(())
+        });
+    }
+
+    #[test]
+    fn the_map_backend_is_local_by_default_and_s3_from_the_environment() {
+        figment::Jail::expect_with(|_| {
+            let s = Settings::load(None, &Overrides::default()).map_err(|e| e.to_string())?;
+            assert_eq!(s.store.backend, crate::map::backend::BackendConfig::Local {});
+            Ok(())
+        });
+        figment::Jail::expect_with(|jail| {
+            jail.set_env("SCONE_STORE__BACKEND__KIND", "s3");
+            jail.set_env("SCONE_STORE__BACKEND__BUCKET", "scone-maps");
+            jail.set_env("SCONE_STORE__BACKEND__PREFIX", "prod");
+            jail.set_env("SCONE_STORE__BACKEND__ENDPOINT", "http://minio.storage:9000");
+            jail.set_env("SCONE_STORE__BACKEND__ALLOW_HTTP", "true");
+            let s = Settings::load(None, &Overrides::default()).map_err(|e| e.to_string())?;
+            let crate::map::backend::BackendConfig::S3(s3) = &s.store.backend else { panic!("{:?}", s.store) };
+            assert_eq!((s3.bucket.as_str(), s3.prefix.as_str(), s3.allow_http), ("scone-maps", "prod", true));
+            assert_eq!(s.redacted()["store"]["backend"]["kind"], "s3");
+            Ok(())
+        });
+        // A bucket without `kind = "s3"` is refused rather than silently stored locally.
+        figment::Jail::expect_with(|jail| {
+            jail.set_env("SCONE_STORE__BACKEND__BUCKET", "scone-maps");
+            let e = Settings::load(None, &Overrides::default()).unwrap_err().to_string();
+            assert!(e.contains("bucket"), "{e}");
             Ok(())
         });
     }

@@ -12,6 +12,9 @@
 //! in the middle of an append, never acknowledged) is cut off and the map loads. A bad record followed by
 //! more data is corruption: the map is reported and held back; the caller keeps serving the others.
 //! After `compact_every` records the map is snapshotted and the log restarted.
+//!
+//! The snapshot format and the record framing are shared with the object-storage backend
+//! ([`crate::map::object_storage`]), whose segments are one framed record each behind the magic `SCONESEG`.
 
 use std::fs::{File, OpenOptions};
 use std::io::{Read, Seek, SeekFrom, Write};
@@ -23,6 +26,7 @@ use crate::map::model::{MapData, Record};
 pub const FORMAT_VERSION: u32 = 1;
 const SNAPSHOT_MAGIC: &[u8; 8] = b"SCONEMAP";
 const LOG_MAGIC: &[u8; 8] = b"SCONELOG";
+const SEGMENT_MAGIC: &[u8; 8] = b"SCONESEG";
 const LOG_HEADER: u64 = 12;
 /// Largest record accepted when reading (a guard against a corrupt length field).
 const MAX_RECORD: u32 = 1 << 30;
@@ -84,6 +88,85 @@ pub fn write_atomic(path: &Path, bytes: &[u8]) -> Result<(), MapError> {
     }
     std::fs::rename(&tmp, path).map_err(io_err(path))?;
     sync_dir(path.parent().unwrap_or(Path::new(".")))
+}
+
+/// Frames one record as `[len u32][crc u32][seq u64][payload]` (`len` counts the payload, the CRC covers
+/// seq and payload): the unit of the local log and of an object-storage segment.
+pub fn encode_record(seq: u64, record: &Record) -> Result<Vec<u8>, MapError> {
+    let payload = bincode::serialize(record)
+        .map_err(|e| MapError::InvalidInput { field: "record".into(), reason: format!("cannot encode: {e}") })?;
+    let mut body = Vec::with_capacity(payload.len() + 8);
+    body.extend_from_slice(&seq.to_le_bytes());
+    body.extend_from_slice(&payload);
+    let mut frame = Vec::with_capacity(body.len() + 8);
+    frame.extend_from_slice(&((body.len() - 8) as u32).to_le_bytes());
+    frame.extend_from_slice(&crc32fast::hash(&body).to_le_bytes());
+    frame.extend_from_slice(&body);
+    Ok(frame)
+}
+
+/// What [`read_frame`] found at a position.
+#[derive(Debug)]
+pub enum Frame {
+    /// A whole record whose checksum matches; the next frame starts at `end`.
+    Record { seq: u64, record: Box<Record>, end: usize },
+    /// The buffer ends inside the frame.
+    Torn,
+    /// A whole frame whose checksum does not match; it would end at `end`.
+    BadChecksum { end: usize },
+}
+
+/// Reads the frame starting at byte `pos` of `buf`. A length beyond the limit or a payload that does not
+/// decode is corruption (named by `path`).
+pub fn read_frame(buf: &[u8], pos: usize, path: &Path) -> Result<Frame, MapError> {
+    if buf.len().saturating_sub(pos) < 16 {
+        return Ok(Frame::Torn);
+    }
+    let len = u32::from_le_bytes(buf[pos..pos + 4].try_into().expect("4 bytes"));
+    let crc = u32::from_le_bytes(buf[pos + 4..pos + 8].try_into().expect("4 bytes"));
+    if len > MAX_RECORD {
+        return Err(corrupt(path, format!("record at byte {pos} claims {len} bytes")));
+    }
+    let end = pos + 16 + len as usize;
+    if end > buf.len() {
+        return Ok(Frame::Torn);
+    }
+    let body = &buf[pos + 8..end];
+    if crc32fast::hash(body) != crc {
+        return Ok(Frame::BadChecksum { end });
+    }
+    let seq = u64::from_le_bytes(body[..8].try_into().expect("8 bytes"));
+    let record: Box<Record> =
+        bincode::deserialize(&body[8..]).map_err(|e| corrupt(path, format!("record at byte {pos}: {e}")))?;
+    Ok(Frame::Record { seq, record, end })
+}
+
+/// Encodes an object-storage segment: magic `SCONESEG`, format version (u32), then exactly one record frame.
+pub fn encode_segment(seq: u64, record: &Record) -> Result<Vec<u8>, MapError> {
+    let frame = encode_record(seq, record)?;
+    let mut out = Vec::with_capacity(frame.len() + 12);
+    out.extend_from_slice(SEGMENT_MAGIC);
+    out.extend_from_slice(&FORMAT_VERSION.to_le_bytes());
+    out.extend_from_slice(&frame);
+    Ok(out)
+}
+
+/// Decodes a segment: magic, version, one whole record with a matching checksum and nothing after it. A
+/// segment is written whole by a single PUT, so anything else is corruption (named by `path`).
+pub fn decode_segment(bytes: &[u8], path: &Path) -> Result<(u64, Record), MapError> {
+    if bytes.len() < 12 || &bytes[..8] != SEGMENT_MAGIC {
+        return Err(corrupt(path, "not a scone segment (bad magic)"));
+    }
+    let version = u32::from_le_bytes(bytes[8..12].try_into().expect("4 bytes"));
+    if version != FORMAT_VERSION {
+        return Err(corrupt(path, format!("segment format version {version}, this build reads {FORMAT_VERSION}")));
+    }
+    match read_frame(bytes, 12, path)? {
+        Frame::Record { seq, record, end } if end == bytes.len() => Ok((seq, *record)),
+        Frame::Record { end, .. } => Err(corrupt(path, format!("{} bytes after the record", bytes.len() - end))),
+        Frame::Torn => Err(corrupt(path, "the record is cut short")),
+        Frame::BadChecksum { .. } => Err(corrupt(path, "checksum mismatch")),
+    }
 }
 
 /// What loading found.
@@ -163,32 +246,17 @@ impl MapLog {
         let mut pos = LOG_HEADER as usize;
         let mut records = 0;
         while pos < buf.len() {
-            let rest = buf.len() - pos;
-            if rest < 16 {
-                break; // torn header
-            }
-            let len = u32::from_le_bytes(buf[pos..pos + 4].try_into().expect("4 bytes"));
-            let crc = u32::from_le_bytes(buf[pos + 4..pos + 8].try_into().expect("4 bytes"));
-            let end = pos + 16 + len as usize;
-            if len > MAX_RECORD {
-                return Err(corrupt(&log_path, format!("record at byte {pos} claims {len} bytes")));
-            }
-            if end > buf.len() {
-                break; // torn body
-            }
-            let body = &buf[pos + 8..end];
-            if crc32fast::hash(body) != crc {
-                if end == buf.len() {
-                    break; // the last record is torn
+            let (seq, record, end) = match read_frame(&buf, pos, &log_path)? {
+                Frame::Torn => break,
+                Frame::BadChecksum { end } if end == buf.len() => break, // the last record is torn
+                Frame::BadChecksum { .. } => {
+                    return Err(corrupt(
+                        &log_path,
+                        format!("checksum mismatch in the record at byte {pos}, more records follow"),
+                    ))
                 }
-                return Err(corrupt(
-                    &log_path,
-                    format!("checksum mismatch in the record at byte {pos}, more records follow"),
-                ));
-            }
-            let seq = u64::from_le_bytes(body[..8].try_into().expect("8 bytes"));
-            let record: Record = bincode::deserialize(&body[8..])
-                .map_err(|e| corrupt(&log_path, format!("record at byte {pos}: {e}")))?;
+                Frame::Record { seq, record, end } => (seq, record, end),
+            };
             if seq > data.version {
                 if seq != data.version + 1 {
                     return Err(corrupt(&log_path, format!("record {seq} follows version {}", data.version)));
@@ -213,15 +281,7 @@ impl MapLog {
     /// Appends the record that takes `data` to version `seq` and waits until it is on disk.
     pub fn append(&mut self, seq: u64, record: &Record) -> Result<(), MapError> {
         let path = Self::log_path(&self.dir);
-        let payload = bincode::serialize(record)
-            .map_err(|e| MapError::InvalidInput { field: "record".into(), reason: format!("cannot encode: {e}") })?;
-        let mut body = Vec::with_capacity(payload.len() + 8);
-        body.extend_from_slice(&seq.to_le_bytes());
-        body.extend_from_slice(&payload);
-        let mut frame = Vec::with_capacity(body.len() + 8);
-        frame.extend_from_slice(&((body.len() - 8) as u32).to_le_bytes());
-        frame.extend_from_slice(&crc32fast::hash(&body).to_le_bytes());
-        frame.extend_from_slice(&body);
+        let frame = encode_record(seq, record)?;
         self.file.write_all(&frame).map_err(io_err(&path))?;
         self.file.sync_data().map_err(io_err(&path))?;
         self.records += 1;

@@ -6,8 +6,12 @@
 //! take it shared; a writer takes it exclusively only to apply a planned record and update the index. None
 //! of these locks is held across an `.await` (callers run this code on blocking worker threads).
 //!
-//! Start-up loads every map directory; a map that fails to load (corruption) is held back with its reason
+//! Start-up loads every stored map; a map that fails to load (corruption) is held back with its reason
 //! and reported as unavailable, and the others serve.
+//!
+//! Storage goes through a [`MapBackend`] chosen by `store.backend`: the local directory (default) or object
+//! storage ([`crate::map::object_storage`]). Its calls block (fsync, HTTP round trips), like the rest of
+//! this module: call it from blocking threads only.
 
 use std::collections::HashMap;
 use std::path::{Path, PathBuf};
@@ -18,24 +22,28 @@ use serde::{Deserialize, Serialize};
 
 use crate::error::MapError;
 use crate::features::Features;
+use crate::map::backend::{open_backend, BackendConfig, MapBackend, MapJournal};
 use crate::map::builder::{plan_keyframe, BuildParams, KeyframeInput};
 use crate::map::index::{EmbeddingIndex, IndexParams};
 use crate::map::localize::{localize, Localization, LocalizeParams, Prior};
 use crate::map::model::{MapData, MapMeta, Record};
-use crate::map::storage::{decode_snapshot, encode_snapshot, sync_dir, write_atomic, LoadReport, MapLog};
+use crate::map::storage::{decode_snapshot, encode_snapshot, write_atomic, LoadReport};
 use crate::scene::Camera;
 
 /// Settings of the map store.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields, default)]
 pub struct StoreConfig {
-    /// Directory holding one sub-directory per map.
+    /// Local directory: the maps themselves with the local backend (`maps/<id>/`), the cache of index
+    /// dumps with object storage (`cache/<id>/`, unless `backend.cache_dir` says otherwise).
     pub data_dir: PathBuf,
     /// Log records between snapshots.
     pub compact_every: usize,
     pub index: IndexParams,
     pub build: BuildParams,
     pub localize: LocalizeParams,
+    /// Where maps are stored: `kind = "local"` (default) or `kind = "s3"`.
+    pub backend: BackendConfig,
 }
 
 impl Default for StoreConfig {
@@ -46,6 +54,7 @@ impl Default for StoreConfig {
             index: IndexParams::default(),
             build: BuildParams::default(),
             localize: LocalizeParams::default(),
+            backend: BackendConfig::default(),
         }
     }
 }
@@ -89,7 +98,7 @@ struct MapState {
 pub struct Map {
     id: String,
     state: RwLock<MapState>,
-    log: Mutex<MapLog>,
+    log: Mutex<Box<dyn MapJournal>>,
 }
 
 impl Map {
@@ -125,13 +134,14 @@ pub fn validate_map_id(id: &str) -> Result<(), MapError> {
     }
 }
 
-/// All maps of a data directory.
+/// All maps of a backend.
 pub struct MapStore {
     config: StoreConfig,
+    backend: Arc<dyn MapBackend>,
     model: ModelInfo,
     maps: RwLock<HashMap<String, Arc<Map>>>,
     held_back: RwLock<HashMap<String, String>>,
-    /// Serialises create, delete and import (directory-level changes).
+    /// Serialises create, delete and import (changes to the set of maps).
     admin: Mutex<()>,
 }
 
@@ -140,32 +150,28 @@ fn now_ms() -> u64 {
 }
 
 impl MapStore {
-    fn maps_dir(&self) -> PathBuf {
-        self.config.data_dir.join("maps")
-    }
-
-    fn map_dir(&self, id: &str) -> PathBuf {
-        self.maps_dir().join(id)
-    }
-
-    /// Opens the data directory and loads every map with its index.
+    /// Opens the backend `config.backend` describes and loads every map with its index.
     pub fn open(config: StoreConfig, model: ModelInfo) -> Result<Self, MapError> {
+        let backend = open_backend(&config.backend, &config.data_dir, config.compact_every)?;
+        Self::open_with_backend(config, model, backend)
+    }
+
+    /// Loads every map of `backend` (`config.backend` is not consulted).
+    pub fn open_with_backend(
+        config: StoreConfig,
+        model: ModelInfo,
+        backend: Arc<dyn MapBackend>,
+    ) -> Result<Self, MapError> {
         let store = Self {
             config,
+            backend,
             model,
             maps: RwLock::new(HashMap::new()),
             held_back: RwLock::new(HashMap::new()),
             admin: Mutex::new(()),
         };
-        let dir = store.maps_dir();
-        std::fs::create_dir_all(&dir).map_err(|source| MapError::Io { path: dir.clone(), source })?;
-        let entries = std::fs::read_dir(&dir).map_err(|source| MapError::Io { path: dir.clone(), source })?;
-        for entry in entries {
-            let entry = entry.map_err(|source| MapError::Io { path: dir.clone(), source })?;
-            let name = entry.file_name().to_string_lossy().into_owned();
-            if !entry.path().is_dir() || validate_map_id(&name).is_err() {
-                continue;
-            }
+        tracing::info!(location = %store.backend.location(), "loading maps");
+        for name in store.backend.list()? {
             match store.load_map(&name) {
                 Ok((map, report)) => {
                     tracing::info!(map = %name, replayed = report.replayed, truncated = report.truncated_bytes, "map loaded");
@@ -181,9 +187,8 @@ impl MapStore {
     }
 
     fn load_map(&self, id: &str) -> Result<(Map, LoadReport), MapError> {
-        let dir = self.map_dir(id);
-        let (data, log, report) = MapLog::open(&dir, self.config.compact_every)?;
-        let index = EmbeddingIndex::load_or_build(self.config.index, &dir, &data);
+        let (data, log, report) = self.backend.open(id)?;
+        let index = EmbeddingIndex::load_or_build(self.config.index, log.index_dir(), &data);
         Ok((Map { id: id.to_string(), state: RwLock::new(MapState { data, index }), log: Mutex::new(log) }, report))
     }
 
@@ -218,7 +223,7 @@ impl MapStore {
     pub fn create(&self, id: &str) -> Result<MapSummary, MapError> {
         validate_map_id(id)?;
         let _admin = self.admin.lock();
-        if self.maps.read().contains_key(id) || self.held_back.read().contains_key(id) || self.map_dir(id).exists() {
+        if self.maps.read().contains_key(id) || self.held_back.read().contains_key(id) || self.backend.exists(id)? {
             return Err(MapError::MapExists { map: id.to_string() });
         }
         let data = MapData::new(MapMeta {
@@ -228,7 +233,7 @@ impl MapStore {
             dim: self.model.dim,
             created_unix_ms: now_ms(),
         });
-        let log = MapLog::create(&self.map_dir(id), &data, self.config.compact_every)?;
+        let log = self.backend.create(id, &data)?;
         let index = EmbeddingIndex::new(self.config.index);
         let map =
             Arc::new(Map { id: id.to_string(), state: RwLock::new(MapState { data, index }), log: Mutex::new(log) });
@@ -254,7 +259,7 @@ impl MapStore {
         Ok(self.get(id)?.summary())
     }
 
-    /// Deletes a map: out of the registry first, then its directory (renamed away, then removed).
+    /// Deletes a map: out of the registry first, then out of the backend.
     pub fn delete(&self, id: &str) -> Result<(), MapError> {
         validate_map_id(id)?;
         let _admin = self.admin.lock();
@@ -262,11 +267,7 @@ impl MapStore {
         if !known {
             return Err(MapError::UnknownMap { map: id.to_string() });
         }
-        let dir = self.map_dir(id);
-        let trash = self.maps_dir().join(format!(".deleted-{id}-{}", now_ms()));
-        std::fs::rename(&dir, &trash).map_err(|source| MapError::Io { path: dir.clone(), source })?;
-        sync_dir(&self.maps_dir())?;
-        std::fs::remove_dir_all(&trash).map_err(|source| MapError::Io { path: trash, source })
+        self.backend.delete(id)
     }
 
     /// Adds a keyframe; returns after the record is durable and applied.
@@ -284,7 +285,7 @@ impl MapStore {
             unreachable!("planned a keyframe")
         };
         let (new, obs) = (new_landmarks.len(), observations.len());
-        let version = self.commit(&map, &mut log, record)?;
+        let version = self.commit(&map, log.as_mut(), record)?;
         Ok(KeyframeAdded { keyframe: input.id, new_landmarks: new, observations: obs, version })
     }
 
@@ -295,7 +296,7 @@ impl MapStore {
         if map.state.read().data.check(&record).is_err() {
             return Err(MapError::UnknownKeyframe { map: id.to_string(), keyframe });
         }
-        self.commit(&map, &mut log, record)
+        self.commit(&map, log.as_mut(), record)
     }
 
     /// Re-embeds every keyframe of a map with the current model (from the stored keypoints and FREAK
@@ -330,21 +331,26 @@ impl MapStore {
             .check(&record)
             .map_err(|reason| MapError::InvalidInput { field: "re-embedding".into(), reason })?;
         map.state.write().index.reset();
-        self.commit(&map, &mut log, record)?;
+        self.commit(&map, log.as_mut(), record)?;
         Ok(map.summary())
     }
 
     /// Log (fsync) then apply; compacts and dumps the index when the log is long. Returns the new version.
-    fn commit(&self, map: &Map, log: &mut MapLog, record: Record) -> Result<u64, MapError> {
+    fn commit(&self, map: &Map, log: &mut dyn MapJournal, record: Record) -> Result<u64, MapError> {
         let seq = map.state.read().data.version + 1;
-        log.append(seq, &record)?;
+        if let Err(e) = log.append(seq, &record) {
+            if matches!(e, MapError::WriterConflict { .. }) {
+                self.reload_stale(map);
+            }
+            return Err(e);
+        }
         let mut s = map.state.write();
         s.data.apply(&record);
         let MapState { data, index } = &mut *s;
         index.sync(data);
         if log.wants_compaction() {
             log.compact(data)?;
-            index.dump(log.dir(), &data.meta.model_id)?;
+            index.dump(log.index_dir(), &data.meta.model_id)?;
         }
         Ok(data.version)
     }
@@ -382,12 +388,11 @@ impl MapStore {
             });
         }
         let _admin = self.admin.lock();
-        if self.maps.read().contains_key(id) || self.map_dir(id).exists() {
+        if self.maps.read().contains_key(id) || self.backend.exists(id)? {
             return Err(MapError::MapExists { map: id.to_string() });
         }
         data.meta.id = id.to_string();
-        let dir = self.map_dir(id);
-        let log = MapLog::create(&dir, &data, self.config.compact_every)?;
+        let log = self.backend.create(id, &data)?;
         let mut index = EmbeddingIndex::new(self.config.index);
         index.sync(&data);
         let map =
@@ -396,14 +401,50 @@ impl MapStore {
         Ok(map.summary())
     }
 
+    /// After another writer replaced a map in object storage ([`MapError::WriterConflict`]), this copy is
+    /// stale and its journal refuses writes: load the map again and swap it into the registry, unless the
+    /// registry moved on meanwhile (deleted, already reloaded). The failed write is not retried here (it was
+    /// planned against stale data); the client's retry is planned against the fresh copy. Queries in flight
+    /// finish on the old copy.
+    fn reload_stale(&self, stale: &Map) {
+        let id = stale.id.as_str();
+        let still_registered =
+            |maps: &HashMap<String, Arc<Map>>| maps.get(id).is_some_and(|m| std::ptr::eq(Arc::as_ptr(m), stale));
+        match self.load_map(id) {
+            Ok((map, report)) => {
+                let mut maps = self.maps.write();
+                if still_registered(&maps) {
+                    tracing::info!(map = %id, replayed = report.replayed, "reloaded after another writer's write");
+                    maps.insert(id.to_string(), Arc::new(map));
+                }
+            }
+            Err(MapError::UnknownMap { .. }) => {
+                let mut maps = self.maps.write();
+                if still_registered(&maps) {
+                    tracing::warn!(map = %id, "deleted by another writer; dropped");
+                    maps.remove(id);
+                }
+            }
+            Err(e) => tracing::error!(map = %id, error = %e, "cannot reload after another writer's write"),
+        }
+    }
+
     /// Snapshots every map and dumps its index (at shutdown, so the next start loads instead of rebuilding).
+    /// A map another writer took over (object storage) is left to that writer.
     pub fn flush(&self) -> Result<(), MapError> {
         let maps: Vec<Arc<Map>> = self.maps.read().values().cloned().collect();
         for map in maps {
             let mut log = map.log.lock();
             let s = map.state.read();
-            log.compact(&s.data)?;
-            s.index.dump(log.dir(), &s.data.meta.model_id)?;
+            match log.compact(&s.data) {
+                Ok(()) => {}
+                Err(e @ MapError::WriterConflict { .. }) => {
+                    tracing::warn!(map = %map.id, error = %e, "not flushed");
+                    continue;
+                }
+                Err(e) => return Err(e),
+            }
+            s.index.dump(log.index_dir(), &s.data.meta.model_id)?;
         }
         Ok(())
     }

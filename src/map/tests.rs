@@ -39,7 +39,7 @@ fn vectors(n: usize, dim: usize, seed: u64) -> Vec<f32> {
     out
 }
 
-fn keyframe_record(id: u64, n: usize, first_landmark: u64, dim: usize, seed: u64) -> Record {
+pub(crate) fn keyframe_record(id: u64, n: usize, first_landmark: u64, dim: usize, seed: u64) -> Record {
     let keypoints: Vec<Keypoint> =
         (0..n).map(|i| Keypoint { x: i as f32, y: 2.0, size: 7.0, angle: 0.0, response: 1.0, octave: 0 }).collect();
     let emb = vectors(n, dim, seed);

@@ -35,6 +35,8 @@ use crate::workers::{CpuPool, PoolError};
 /// Generated gRPC code for `proto/scone/v1/scone.proto`.
 pub mod proto {
     #![allow(clippy::all, missing_docs)]
+    // The .proto comments contain `<hex>`, which rustdoc would read as an unclosed HTML tag.
+    #![allow(rustdoc::invalid_html_tags)]
     tonic::include_proto!("scone.v1");
     /// Encoded descriptors of the API, for server reflection.
     pub const FILE_DESCRIPTOR_SET: &[u8] = tonic::include_file_descriptor_set!("scone_descriptor");
@@ -116,6 +118,7 @@ impl Running {
 
     /// Asks the server to stop without waiting.
     pub fn request_shutdown(&self) {
+        self.app.shutting_down.store(true, Ordering::Relaxed);
         let _ = self.stop.send(true);
     }
 

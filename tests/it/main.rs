@@ -4,6 +4,7 @@
 mod common;
 mod durability;
 mod embedding;
+mod object_store;
 
 mod pipeline;
 mod service;

@@ -608,3 +608,45 @@ async fn rgbd_slambook_map_localises_held_out_frames_over_grpc() {
     }
     server.shutdown().await.unwrap();
 }
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn shutdown_finishes_in_flight_requests_then_flushes() {
+    let data = temp_dir("shutdown");
+    let scene = Scene::load(&fixture("rendered")).unwrap();
+    let server = serve(settings(&data)).await;
+    let (mut maps, matching) = clients(&server).await;
+    maps.create_map(proto::CreateMapRequest { map_id: "s".into() }).await.unwrap();
+    add_keyframes(&mut maps, keyframe_requests("s", &scene, &[0, 5]), None).await;
+    // A few describes in flight when the shutdown starts: every one is answered, none is cut off.
+    let image = std::fs::read(fixture("coffee-640x480.jpg")).unwrap();
+    let mut inflight = Vec::new();
+    for _ in 0..3 {
+        let mut m = matching.clone();
+        let frame =
+            proto::Frame { source: Some(Source::Image(proto::Image { data: image.clone() })), intrinsics: None };
+        inflight.push(tokio::spawn(async move { m.describe(proto::DescribeRequest { frame: Some(frame) }).await }));
+    }
+    // Wait until the server holds all three (running or queued), so none is still on its way in.
+    let stats = server.app.pool.stats();
+    let held = || {
+        stats.running.load(std::sync::atomic::Ordering::Relaxed)
+            + stats.queued.load(std::sync::atomic::Ordering::Relaxed)
+    };
+    while held() < 3 {
+        tokio::time::sleep(Duration::from_millis(1)).await;
+    }
+    let addr = server.http_addr;
+    server.request_shutdown();
+    assert!(!server.app.is_ready(), "readiness must drop as soon as the shutdown starts");
+    for t in inflight {
+        let r = t.await.unwrap().expect("an in-flight request is answered during shutdown");
+        assert!(!r.into_inner().keypoints.is_empty());
+    }
+    server.wait().await.unwrap();
+    // New connections are refused once stopped; the flush left a snapshot the next start loads.
+    assert!(reqwest::get(format!("http://{addr}/healthz")).await.is_err(), "still accepting after shutdown");
+    assert!(data.join("maps/s/snapshot.bin").is_file());
+    let server = serve(settings(&data)).await;
+    assert_eq!(server.app.service.get_map("s").unwrap().keyframes, 2);
+    server.shutdown().await.unwrap();
+}
