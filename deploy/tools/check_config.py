@@ -17,7 +17,7 @@ KNOWN = {
     "auth": {"write_keys", "read_keys", "keys_file", "allow_anonymous"},
     "workers": {"threads", "queue"},
     "model": {"model", "runtime_library", "sessions", "intra_threads", "spinning"},
-    "store": {"data_dir", "compact_every", "index", "build", "localize"},
+    "store": {"data_dir", "compact_every", "index", "build", "localize", "backend"},
     "limits": None,
     "extractor": None,
 }
