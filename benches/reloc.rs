@@ -116,6 +116,7 @@ fn main() {
                     features: &d.features,
                     embeddings: &d.embeddings,
                     depth: Some(Depth { image: depth, scale: 1.0 / 5000.0 }),
+                    external: None,
                 };
                 store.add_keyframe("m", &input).unwrap();
                 id += 1;

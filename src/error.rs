@@ -99,3 +99,15 @@ pub enum MapError {
     #[error(transparent)]
     Pose(#[from] PoseError),
 }
+
+/// Errors of importing a map made by an external SfM (a COLMAP model, [`crate::colmap`]).
+#[derive(Debug, thiserror::Error)]
+pub enum ImportError {
+    /// The model's files (file and line named).
+    #[error(transparent)]
+    Model(#[from] SceneError),
+    #[error("image {image} ({path}): {reason}")]
+    Image { image: u32, path: std::path::PathBuf, reason: String },
+    #[error(transparent)]
+    Map(#[from] MapError),
+}

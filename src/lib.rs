@@ -9,6 +9,7 @@
 //! - [`constellation`]: each keypoint's k nearest keypoints with relative geometry in its own frame.
 //! - [`matching`]: nearest-neighbour matching with ratio test (and mutual check).
 //! - [`scene`]: scenes on disk in the TUM RGB-D layout (frames, poses, intrinsics, depth).
+//! - [`colmap`]: maps made by an external SfM: COLMAP text models, imported through the map store.
 //! - [`export`]: a scene's features and constellations as `.npz` for training.
 //!
 //! - [`map`]: maps of landmarks with their SConE observations, durable storage, the ANN index, relocalisation.
@@ -18,6 +19,7 @@
 //! Path of an image: bytes -> [`decode::decode_grey`] -> [`features::extract`] -> [`constellation::build`]
 //! -> (the embedding network) -> matching and pose estimation.
 
+pub mod colmap;
 pub mod constellation;
 pub mod decode;
 pub mod embedding;
@@ -35,4 +37,4 @@ pub mod service;
 pub mod settings;
 pub mod workers;
 
-pub use error::{EmbeddingError, FeatureError, MapError, PoseError, SceneError};
+pub use error::{EmbeddingError, FeatureError, ImportError, MapError, PoseError, SceneError};

@@ -9,7 +9,7 @@ use scone::embedding::{Embedder, EmbedderConfig};
 use scone::eval::methods::Method;
 use scone::eval::pairs::{self, PairsConfig};
 use scone::features::{self, ExtractorConfig};
-use scone::map::builder::{Depth, KeyframeInput};
+use scone::map::builder::{BuildParams, Depth, KeyframeInput};
 use scone::map::store::{MapStore, ModelInfo, StoreConfig};
 use scone::pipeline::Describer;
 use scone::scene::Scene;
@@ -91,6 +91,27 @@ enum MapCommand {
         /// Write the scene this many times (keyframe ids continue), for long write streams.
         #[arg(long, default_value_t = 1)]
         repeat: usize,
+        #[arg(long)]
+        model: Option<PathBuf>,
+    },
+    /// Import a COLMAP text model (cameras.txt with PINHOLE / SIMPLE_PINHOLE cameras, images.txt,
+    /// points3D.txt) into a map: each image becomes a keyframe (id = IMAGE_ID) whose landmarks are its
+    /// POINTS2D with a 3D point, one landmark per POINT3D_ID. Prints "ack <keyframe> ..." once each write is
+    /// durable, then a JSON summary. Images the map has already are skipped, so a re-run resumes.
+    ImportColmap {
+        #[arg(long)]
+        data_dir: PathBuf,
+        #[arg(long)]
+        map: String,
+        /// Directory of the text model (COLMAP's `sparse/0` after `colmap model_converter --output_type TXT`).
+        #[arg(long)]
+        model_dir: PathBuf,
+        /// Directory the images.txt NAMEs are relative to.
+        #[arg(long)]
+        images: PathBuf,
+        /// An observation takes the nearest keypoint within this many pixels.
+        #[arg(long, default_value_t = BuildParams::default().external_radius_px)]
+        radius_px: f64,
         #[arg(long)]
         model: Option<PathBuf>,
     },
@@ -236,9 +257,13 @@ fn load_embedder(needed: bool, model: Option<PathBuf>) -> anyhow::Result<Option<
 }
 
 fn open_store(data_dir: PathBuf, model: Option<PathBuf>) -> anyhow::Result<(MapStore, Describer)> {
+    open_store_with(StoreConfig { data_dir, ..StoreConfig::default() }, model)
+}
+
+fn open_store_with(config: StoreConfig, model: Option<PathBuf>) -> anyhow::Result<(MapStore, Describer)> {
     let embedder = std::sync::Arc::new(load_embedder(true, model)?.expect("requested"));
     let info = ModelInfo { model_id: embedder.model_id().to_string(), k: embedder.k(), dim: embedder.dim() };
-    let store = MapStore::open(StoreConfig { data_dir, ..StoreConfig::default() }, info)?;
+    let store = MapStore::open(config, info)?;
     let describer = Describer { extractor: ExtractorConfig::default(), limits: ImageLimits::default(), embedder };
     Ok((store, describer))
 }
@@ -270,6 +295,7 @@ fn run_map(cmd: MapCommand) -> anyhow::Result<()> {
                         features: &d.features,
                         embeddings: &d.embeddings,
                         depth: depth.as_ref().map(|m| Depth { image: m, scale: 1.0 / 5000.0 }),
+                        external: None,
                     };
                     let added = store.add_keyframe(&map, &input)?;
                     writeln!(stdout, "ack {} frame {i} landmarks {}", added.keyframe, added.new_landmarks)?;
@@ -278,6 +304,36 @@ fn run_map(cmd: MapCommand) -> anyhow::Result<()> {
                 }
             }
             // A clean exit snapshots the map and dumps its index, as the service does at shutdown.
+            store.flush()?;
+        }
+        MapCommand::ImportColmap { data_dir, map, model_dir, images, radius_px, model } => {
+            let build = BuildParams { external_radius_px: radius_px, ..BuildParams::default() };
+            build.validate().map_err(|e| anyhow::anyhow!("--radius-px: {e}"))?;
+            let colmap = scone::colmap::ColmapModel::read(&model_dir)?;
+            let (store, describer) = open_store_with(StoreConfig { data_dir, build, ..StoreConfig::default() }, model)?;
+            let mut stdout = std::io::stdout().lock();
+            let mut failed: Option<std::io::Error> = None;
+            let summary = scone::colmap::import(&store, &describer, &map, &colmap, &images, &mut |i| {
+                let line = match &i.added {
+                    Some(a) => format!(
+                        "ack {} image {} landmarks {} observations {} rejected {} unassociated {}",
+                        a.keyframe,
+                        i.name,
+                        a.new_landmarks,
+                        a.observations,
+                        a.external.rejected,
+                        a.external.unassociated
+                    ),
+                    None => format!("skip {} image {} (in the map already)", i.image_id, i.name),
+                };
+                if let Err(e) = writeln!(stdout, "{line}").and_then(|_| stdout.flush()) {
+                    failed.get_or_insert(e);
+                }
+            })?;
+            if let Some(e) = failed {
+                return Err(e.into());
+            }
+            writeln!(stdout, "{}", serde_json::to_string_pretty(&summary)?)?;
             store.flush()?;
         }
         MapCommand::Info { data_dir, model } => {

@@ -18,7 +18,7 @@ use serde::Serialize;
 use crate::decode::{decode_depth_png, decode_grey, ImageLimits};
 use crate::error::{EmbeddingError, FeatureError, MapError, PoseError};
 use crate::features::{self, Features, Keypoint, KeypointLimits};
-use crate::map::builder::{Depth, KeyframeInput};
+use crate::map::builder::{Depth, ExternalObservation, KeyframeInput};
 use crate::map::localize::{LandmarkMatch, Prior};
 use crate::map::model::Pose;
 use crate::map::store::{KeyframeAdded, MapStore, MapSummary};
@@ -119,6 +119,8 @@ pub struct KeyframeRequest {
     pub depth_png: Option<Vec<u8>>,
     /// Metres per depth unit.
     pub depth_scale: f64,
+    /// Landmarks given by an external SfM (empty: none; then depth or triangulation).
+    pub external_landmarks: Vec<ExternalObservation>,
 }
 
 /// What went wrong, for a client; [`ServiceError::kind`] classifies it for the transports.
@@ -460,6 +462,7 @@ impl Service {
             features: &d.features,
             embeddings: &d.embeddings,
             depth: depth.as_ref().map(|image| Depth { image, scale: request.depth_scale }),
+            external: (!request.external_landmarks.is_empty()).then_some(&request.external_landmarks[..]),
         };
         let added = times.time("write", || store.add_keyframe(map, &input))?;
         Ok((added, times))

@@ -191,6 +191,7 @@ impl Settings {
         }
         self.extractor.validate().map_err(|e| SettingsError::Invalid { field: "extractor", reason: e.to_string() })?;
         self.store.backend.validate().map_err(|reason| SettingsError::Invalid { field: "store.backend", reason })?;
+        self.store.build.validate().map_err(|reason| SettingsError::Invalid { field: "store.build", reason })?;
         let keys = self.keys()?;
         let loopback = self.server.grpc_addr.ip().is_loopback() && self.server.http_addr.ip().is_loopback();
         if keys.is_empty() && !loopback && !self.auth.allow_anonymous {

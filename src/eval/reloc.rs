@@ -170,6 +170,7 @@ pub fn evaluate(scene: &Scene, cfg: &RelocConfig, embedder: Option<&Embedder>) -
                 features: &features,
                 embeddings: &vecs[i].0,
                 depth: depth_mat.as_ref().map(|m| Depth { image: m, scale: 1.0 / 5000.0 }),
+                external: None,
             };
             let record = plan_keyframe(&data, &input, &build)?;
             data.check(&record).map_err(|e| format!("frame {i}: {e}"))?;

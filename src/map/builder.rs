@@ -14,6 +14,29 @@
 //!    `reproj_px` in both, and the rays meet at `min_parallax_deg` or more. It becomes a landmark observed by
 //!    both keyframes; a keypoint is used by at most one landmark.
 //!
+//! **External landmarks** (a map made by an external SfM such as COLMAP, see [`crate::colmap`]): a keyframe may
+//! carry [`ExternalObservation`]s, each a pixel of this keyframe, the SfM's id of the 3D point seen there and
+//! that point. Such a keyframe takes its landmarks from them *instead of* steps 2-3: no matching against
+//! earlier keyframes, no depth, no triangulation. The SfM already decided which pixels see which point and
+//! refined the points with all its views; mixing in our own matches would attach SfM points to keypoints the
+//! SfM did not associate, and back-projected or triangulated points would duplicate SfM points with worse
+//! ones. (Depth together with external landmarks is refused rather than silently ignored.) Later keyframes
+//! without external landmarks still match against these and may add observations to them. In order:
+//!
+//! 1. Malformed input refuses the whole request ([`MapError::InvalidInput`] naming
+//!    `external_landmarks[i]...`): a non-finite value, one id given with two points that differ by more than
+//!    `external_point_tolerance`, an id the map already links to a point that far away, more than
+//!    [`MAX_EXTERNAL_OBSERVATIONS`].
+//! 2. Each observation is checked against the keyframe's pose and intrinsics: the point must be in front of
+//!    the camera and reproject within `external_reproj_px` of the given pixel. Failures are *rejected*
+//!    (counted in [`ExternalCounts`], not stored). Of two observations of one id in this keyframe the one
+//!    with the larger error is rejected too.
+//! 3. Each remaining observation takes the nearest keypoint of this keyframe within `external_radius_px`;
+//!    a keypoint takes at most one observation, the nearest (the others stay *unassociated*, not moved to a
+//!    farther keypoint, which would likely be a different corner).
+//! 4. An id the map links already adds an observation to that landmark; a new id creates one landmark
+//!    (at the given point) and the link, so the views of one SfM point across keyframes are one landmark.
+//!
 //! The result is a [`Record`]: applying it (and logging it) is the store's job. Nothing here depends on what
 //! the embeddings are, so the evaluation runs the same code for FREAK (bits as ±1, where L2 ranks exactly as
 //! Hamming) and SIFT.
@@ -46,12 +69,90 @@ pub struct BuildParams {
     /// Valid depth readings, metres.
     pub min_depth: f64,
     pub max_depth: f64,
+    /// External landmarks: an observation takes the nearest keypoint within this many pixels. 2 px: the
+    /// SfM's feature (COLMAP: SIFT, sub-pixel) and our FAST corner of the same image structure lie within
+    /// about 1-2 px (FAST positions on pyramid level l are quantised to 1.2^l px, 1.7 px on level 3), while a
+    /// wrong keypoint that close is rare (1,500 keypoints in 640 x 480 leave one keypoint per ~200 px^2 on
+    /// average, so about 6 % of a 2 px disc holds one by chance) and would still be a pixel of the same spot.
+    pub external_radius_px: f64,
+    /// External landmarks: largest reprojection error, with the given pose and intrinsics, of an accepted
+    /// observation. 4 px is COLMAP's own `filter_max_reproj_error`, so every observation COLMAP keeps passes
+    /// unless the pose, intrinsics or pixel convention do not fit it (then nearly all fail, as they should).
+    pub external_reproj_px: f64,
+    /// External landmarks: two points given for one id are the same point when they differ by at most this
+    /// much (map units). An SfM has one point per id; copies differ only by rounding (f32 on the way, 1e-6
+    /// relative at 100 m), never by 0.1 mm.
+    pub external_point_tolerance: f64,
 }
 
 impl Default for BuildParams {
     fn default() -> Self {
-        Self { ratio: 0.8, reproj_px: 3.0, min_parallax_deg: 1.0, candidates: 5, min_depth: 0.1, max_depth: 40.0 }
+        Self {
+            ratio: 0.8,
+            reproj_px: 3.0,
+            min_parallax_deg: 1.0,
+            candidates: 5,
+            min_depth: 0.1,
+            max_depth: 40.0,
+            external_radius_px: 2.0,
+            external_reproj_px: 4.0,
+            external_point_tolerance: 1e-4,
+        }
     }
+}
+
+impl BuildParams {
+    /// Checks the settings of external landmarks (the others have always been taken as given).
+    pub fn validate(&self) -> Result<(), String> {
+        for (name, v) in [
+            ("external_radius_px", self.external_radius_px),
+            ("external_reproj_px", self.external_reproj_px),
+            ("external_point_tolerance", self.external_point_tolerance),
+        ] {
+            if !(v.is_finite() && v > 0.0) {
+                return Err(format!("{name} must be positive, got {v}"));
+            }
+        }
+        if self.external_radius_px > 64.0 {
+            return Err(format!("external_radius_px {} is over 64 px", self.external_radius_px));
+        }
+        Ok(())
+    }
+}
+
+/// Most external observations one keyframe may carry (COLMAP images hold a few thousand).
+pub const MAX_EXTERNAL_OBSERVATIONS: usize = 100_000;
+
+/// An observation of a landmark given by an external SfM: where this keyframe sees it and where it is.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct ExternalObservation {
+    /// Pixel in this keyframe (x right, y down, (0, 0) the centre of the top-left pixel).
+    pub x: f64,
+    pub y: f64,
+    /// The SfM's id of the 3D point (COLMAP's POINT3D_ID); one id across keyframes is one landmark.
+    pub landmark_id: u64,
+    /// The point in world coordinates.
+    pub point: [f64; 3],
+}
+
+/// What became of a keyframe's external observations.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize, Deserialize)]
+pub struct ExternalCounts {
+    /// Given in the request.
+    pub given: usize,
+    /// Stored as observations (of new or linked landmarks).
+    pub associated: usize,
+    /// Behind the camera, reprojecting too far from their pixel, or a second view of one id.
+    pub rejected: usize,
+    /// Valid, but no keypoint within the radius was free.
+    pub unassociated: usize,
+}
+
+/// A planned keyframe record, with what became of its external observations.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Plan {
+    pub record: Record,
+    pub external: ExternalCounts,
 }
 
 /// Depth for a keyframe: 16-bit image and the factor that turns raw values into metres.
@@ -71,6 +172,9 @@ pub struct KeyframeInput<'a> {
     /// `[N, dim]` embeddings of the features' keypoints.
     pub embeddings: &'a [f32],
     pub depth: Option<Depth<'a>>,
+    /// Landmarks given by an external SfM; `Some` (even empty) means this keyframe takes its landmarks from
+    /// them only (see the module docs).
+    pub external: Option<&'a [ExternalObservation]>,
 }
 
 /// Pixel of a world point in a keyframe, with its depth (None when behind the camera).
@@ -145,6 +249,11 @@ fn viewing_direction(pose: &Isometry3<f64>) -> Vector3<f64> {
 
 /// Plans the record that adds `input` to `data`.
 pub fn plan_keyframe(data: &MapData, input: &KeyframeInput, params: &BuildParams) -> Result<Record, MapError> {
+    Ok(plan(data, input, params)?.record)
+}
+
+/// Plans the record that adds `input` to `data`, with the counts of its external observations.
+pub fn plan(data: &MapData, input: &KeyframeInput, params: &BuildParams) -> Result<Plan, MapError> {
     let dim = data.meta.dim;
     let n = input.features.len();
     if input.embeddings.len() != n * dim {
@@ -159,6 +268,27 @@ pub fn plan_keyframe(data: &MapData, input: &KeyframeInput, params: &BuildParams
     let pose = Pose::from_isometry(&input.pose);
     pose.validate().map_err(|reason| MapError::InvalidInput { field: "pose".into(), reason })?;
     crate::pose::validate_camera(&input.camera)?;
+    let keyframe = || Keyframe {
+        id: input.id,
+        pose,
+        camera: input.camera,
+        keypoints: input.features.keypoints.clone(),
+        descriptors: input.features.descriptors.as_flattened().to_vec(),
+        embeddings: input.embeddings.to_vec(),
+    };
+    if let Some(external) = input.external {
+        if input.depth.is_some() {
+            return Err(invalid("external_landmarks", "give external landmarks or depth, not both".into()));
+        }
+        let planned = plan_external(data, input, external, params)?;
+        let record = Record::AddExternalKeyframe {
+            keyframe: keyframe(),
+            new_landmarks: planned.new_landmarks,
+            observations: planned.observations,
+            external_ids: planned.external_ids,
+        };
+        return Ok(Plan { record, external: planned.counts });
+    }
     let kp = |i: usize| (input.features.keypoints[i].x, input.features.keypoints[i].y);
 
     let observed = data.observed_keypoints();
@@ -264,13 +394,180 @@ pub fn plan_keyframe(data: &MapData, input: &KeyframeInput, params: &BuildParams
         }
     }
 
-    let keyframe = Keyframe {
-        id: input.id,
-        pose,
-        camera: input.camera,
-        keypoints: input.features.keypoints.clone(),
-        descriptors: input.features.descriptors.as_flattened().to_vec(),
-        embeddings: input.embeddings.to_vec(),
-    };
-    Ok(Record::AddKeyframe { keyframe, new_landmarks, observations })
+    let record = Record::AddKeyframe { keyframe: keyframe(), new_landmarks, observations };
+    Ok(Plan { record, external: ExternalCounts::default() })
+}
+
+fn invalid(field: &str, reason: String) -> MapError {
+    MapError::InvalidInput { field: field.to_string(), reason }
+}
+
+fn distance(a: &[f64; 3], b: &[f64; 3]) -> f64 {
+    a.iter().zip(b).map(|(x, y)| (x - y) * (x - y)).sum::<f64>().sqrt()
+}
+
+/// The landmarks, observations and links of a keyframe with external landmarks.
+struct ExternalPlan {
+    new_landmarks: Vec<(u64, [f64; 3])>,
+    observations: Vec<NewObservation>,
+    external_ids: Vec<(u64, u64)>,
+    counts: ExternalCounts,
+}
+
+/// Steps 1-4 of the module docs for `external`, the observations of keyframe `input`.
+fn plan_external(
+    data: &MapData,
+    input: &KeyframeInput,
+    external: &[ExternalObservation],
+    params: &BuildParams,
+) -> Result<ExternalPlan, MapError> {
+    if external.len() > MAX_EXTERNAL_OBSERVATIONS {
+        return Err(invalid(
+            "external_landmarks",
+            format!("{} observations, the limit is {MAX_EXTERNAL_OBSERVATIONS}", external.len()),
+        ));
+    }
+    let tol = params.external_point_tolerance;
+    // 1. Malformed input refuses the request.
+    let mut first_of: HashMap<u64, usize> = HashMap::new();
+    for (i, o) in external.iter().enumerate() {
+        if !(o.x.is_finite() && o.y.is_finite()) {
+            return Err(invalid(
+                &format!("external_landmarks[{i}]"),
+                format!("pixel ({}, {}) is not finite", o.x, o.y),
+            ));
+        }
+        if !o.point.iter().all(|v| v.is_finite()) {
+            return Err(invalid(
+                &format!("external_landmarks[{i}].point"),
+                format!("{:?} of landmark {} is not finite", o.point, o.landmark_id),
+            ));
+        }
+        match first_of.get(&o.landmark_id) {
+            Some(&j) if distance(&external[j].point, &o.point) > tol => {
+                return Err(invalid(
+                    &format!("external_landmarks[{i}].point"),
+                    format!(
+                        "landmark {} is also external_landmarks[{j}] with point {:?}, {:.6} away from {:?} (tolerance {tol})",
+                        o.landmark_id,
+                        external[j].point,
+                        distance(&external[j].point, &o.point),
+                        o.point
+                    ),
+                ));
+            }
+            Some(_) => {}
+            None => {
+                first_of.insert(o.landmark_id, i);
+            }
+        }
+        if let Some(held) = data.external_ids.get(&o.landmark_id).and_then(|lm| data.landmarks.get(lm)) {
+            let held = held.point;
+            let d = distance(&held, &o.point);
+            if d > tol {
+                return Err(invalid(
+                    &format!("external_landmarks[{i}].point"),
+                    format!(
+                        "landmark {} is at {held:?} in map '{}', {d:.6} away from {:?} (tolerance {tol})",
+                        o.landmark_id, data.meta.id, o.point
+                    ),
+                ));
+            }
+        }
+    }
+    // 2. Geometry with the given pose and intrinsics; one view per id (the smaller error).
+    let mut counts = ExternalCounts { given: external.len(), ..Default::default() };
+    let mut best_of: HashMap<u64, (usize, f64)> = HashMap::new();
+    for (i, o) in external.iter().enumerate() {
+        let Some((u, v, _)) = project(&input.pose, &input.camera, &Point3::from(o.point)) else {
+            counts.rejected += 1;
+            continue;
+        };
+        let err = (u - o.x).hypot(v - o.y);
+        if err.is_nan() || err > params.external_reproj_px {
+            counts.rejected += 1;
+            continue;
+        }
+        match best_of.get_mut(&o.landmark_id) {
+            Some(best) => {
+                counts.rejected += 1;
+                if err < best.1 {
+                    *best = (i, err);
+                }
+            }
+            None => {
+                best_of.insert(o.landmark_id, (i, err));
+            }
+        }
+    }
+    let mut valid: Vec<usize> = best_of.values().map(|b| b.0).collect();
+    valid.sort_unstable();
+    // 3. The nearest keypoint within the radius; a keypoint keeps the nearest of the observations choosing it.
+    let radius = params.external_radius_px;
+    let cell = radius.max(1.0);
+    let key = |x: f64, y: f64| ((x / cell).floor() as i64, (y / cell).floor() as i64);
+    let mut grid: HashMap<(i64, i64), Vec<usize>> = HashMap::new();
+    for (k, p) in input.features.keypoints.iter().enumerate() {
+        grid.entry(key(p.x as f64, p.y as f64)).or_default().push(k);
+    }
+    let reach = (radius / cell).ceil() as i64;
+    let mut taken: HashMap<usize, (usize, f64)> = HashMap::new(); // keypoint -> (observation, distance)
+    let (w, h) = (input.camera.width as f64, input.camera.height as f64);
+    for &i in &valid {
+        let o = &external[i];
+        if o.x < -radius || o.y < -radius || o.x > w - 1.0 + radius || o.y > h - 1.0 + radius {
+            counts.unassociated += 1; // no keypoint can be that far outside the image
+            continue;
+        }
+        let (cx, cy) = key(o.x, o.y);
+        let mut nearest: Option<(usize, f64)> = None;
+        for gx in cx - reach..=cx + reach {
+            for gy in cy - reach..=cy + reach {
+                for &k in grid.get(&(gx, gy)).into_iter().flatten() {
+                    let p = &input.features.keypoints[k];
+                    let d = (p.x as f64 - o.x).hypot(p.y as f64 - o.y);
+                    if d <= radius && nearest.is_none_or(|n| d < n.1 || (d == n.1 && k < n.0)) {
+                        nearest = Some((k, d));
+                    }
+                }
+            }
+        }
+        let Some((k, d)) = nearest else {
+            counts.unassociated += 1;
+            continue;
+        };
+        match taken.get_mut(&k) {
+            Some(holder) => {
+                counts.unassociated += 1;
+                if d < holder.1 {
+                    *holder = (i, d);
+                }
+            }
+            None => {
+                taken.insert(k, (i, d));
+            }
+        }
+    }
+    // 4. Linked ids observe their landmark; new ids create one.
+    let mut pairs: Vec<(usize, usize)> = taken.into_iter().map(|(k, (i, _))| (i, k)).collect();
+    pairs.sort_unstable();
+    let mut plan =
+        ExternalPlan { new_landmarks: Vec::new(), observations: Vec::new(), external_ids: Vec::new(), counts };
+    let mut next = data.next_landmark;
+    for (i, k) in pairs {
+        let o = &external[i];
+        let landmark = match data.external_ids.get(&o.landmark_id) {
+            Some(&lm) => lm,
+            None => {
+                let id = next;
+                next += 1;
+                plan.new_landmarks.push((id, o.point));
+                plan.external_ids.push((o.landmark_id, id));
+                id
+            }
+        };
+        plan.observations.push(NewObservation { landmark, keyframe: input.id, keypoint: k as u32 });
+    }
+    plan.counts.associated = plan.observations.len();
+    Ok(plan)
 }

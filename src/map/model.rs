@@ -3,6 +3,10 @@
 //!
 //! Every change is a [`Record`]; [`MapData::apply`] is the only way state changes, both when a write is made
 //! and when the log is replayed at start, so a replayed map equals the map that acknowledged the writes.
+//!
+//! Landmarks given by an external SfM (COLMAP and the like) keep their external id: [`MapData::external_ids`]
+//! maps it to the landmark, so observations of one external id in several keyframes are one landmark. The
+//! mapping is part of the map (snapshot, export) and changes only through [`Record::AddExternalKeyframe`].
 
 use std::collections::BTreeMap;
 
@@ -114,6 +118,18 @@ pub enum Record {
     RemoveKeyframe { id: u64 },
     /// Replaces every keyframe's embeddings (and so every observation's) after a model change.
     Reembed { model_id: String, k: usize, dim: usize, keyframes: Vec<(u64, Vec<f32>)> },
+    /// A keyframe whose landmarks an external SfM gave: as `AddKeyframe`, plus `external_ids`, the
+    /// (external id, landmark id) links of the landmarks it creates. Observations of external ids the map
+    /// already links are in `observations` and name the linked landmark.
+    ///
+    /// Appended as the last variant so that records of format 1 (which bincode tags by variant index) decode
+    /// unchanged.
+    AddExternalKeyframe {
+        keyframe: Keyframe,
+        new_landmarks: Vec<(u64, [f64; 3])>,
+        observations: Vec<NewObservation>,
+        external_ids: Vec<(u64, u64)>,
+    },
 }
 
 /// The whole state of one map.
@@ -128,6 +144,8 @@ pub struct MapData {
     pub next_landmark: u64,
     /// Records applied since creation: the map's version.
     pub version: u64,
+    /// External landmark id (the SfM's point id) -> landmark id, for landmarks given by an external SfM.
+    pub external_ids: BTreeMap<u64, u64>,
 }
 
 impl MapData {
@@ -140,6 +158,7 @@ impl MapData {
             embeddings: Vec::new(),
             next_landmark: 0,
             version: 0,
+            external_ids: BTreeMap::new(),
         }
     }
 
@@ -152,49 +171,66 @@ impl MapData {
         self.observations.iter().filter(|o| o.live).count()
     }
 
+    /// The checks shared by both kinds of keyframe record.
+    fn check_keyframe(
+        &self,
+        keyframe: &Keyframe,
+        new_landmarks: &[(u64, [f64; 3])],
+        observations: &[NewObservation],
+    ) -> Result<(), String> {
+        if self.keyframes.contains_key(&keyframe.id) {
+            return Err(format!("keyframe {} exists", keyframe.id));
+        }
+        let n = keyframe.keypoints.len();
+        // Empty descriptors: keypoints of another detector (evaluation baselines); no re-embedding then.
+        if !keyframe.descriptors.is_empty() && keyframe.descriptors.len() != n * DESCRIPTOR_BYTES {
+            return Err("descriptor bytes do not match the keypoint count".into());
+        }
+        if keyframe.embeddings.len() != n * self.meta.dim {
+            return Err(format!("expected {} embedding values, got {}", n * self.meta.dim, keyframe.embeddings.len()));
+        }
+        keyframe.pose.validate()?;
+        for (id, p) in new_landmarks {
+            if self.landmarks.contains_key(id) || !p.iter().all(|v| v.is_finite()) {
+                return Err(format!("new landmark {id} exists or is not finite"));
+            }
+        }
+        let mut seen = std::collections::HashSet::new();
+        let observed = self.observed_keypoints();
+        for o in observations {
+            let known = self.landmarks.contains_key(&o.landmark) || new_landmarks.iter().any(|l| l.0 == o.landmark);
+            let size = if o.keyframe == keyframe.id {
+                Some(n)
+            } else {
+                self.keyframes.get(&o.keyframe).map(|k| k.keypoints.len())
+            };
+            let in_range = size.is_some_and(|s| (o.keypoint as usize) < s);
+            let fresh = seen.insert((o.keyframe, o.keypoint)) && !observed.contains_key(&(o.keyframe, o.keypoint));
+            if !known || !in_range || !fresh {
+                return Err(format!(
+                    "observation of landmark {} by keyframe {} keypoint {} is inconsistent",
+                    o.landmark, o.keyframe, o.keypoint
+                ));
+            }
+        }
+        Ok(())
+    }
+
     /// Checks that a record can be applied (ids, sizes); `apply` assumes it was.
     pub fn check(&self, record: &Record) -> Result<(), String> {
         match record {
             Record::AddKeyframe { keyframe, new_landmarks, observations } => {
-                if self.keyframes.contains_key(&keyframe.id) {
-                    return Err(format!("keyframe {} exists", keyframe.id));
-                }
-                let n = keyframe.keypoints.len();
-                // Empty descriptors: keypoints of another detector (evaluation baselines); no re-embedding then.
-                if !keyframe.descriptors.is_empty() && keyframe.descriptors.len() != n * DESCRIPTOR_BYTES {
-                    return Err("descriptor bytes do not match the keypoint count".into());
-                }
-                if keyframe.embeddings.len() != n * self.meta.dim {
-                    return Err(format!(
-                        "expected {} embedding values, got {}",
-                        n * self.meta.dim,
-                        keyframe.embeddings.len()
-                    ));
-                }
-                keyframe.pose.validate()?;
-                for (id, p) in new_landmarks {
-                    if self.landmarks.contains_key(id) || !p.iter().all(|v| v.is_finite()) {
-                        return Err(format!("new landmark {id} exists or is not finite"));
-                    }
-                }
+                self.check_keyframe(keyframe, new_landmarks, observations)
+            }
+            Record::AddExternalKeyframe { keyframe, new_landmarks, observations, external_ids } => {
+                self.check_keyframe(keyframe, new_landmarks, observations)?;
                 let mut seen = std::collections::HashSet::new();
-                let observed = self.observed_keypoints();
-                for o in observations {
-                    let known =
-                        self.landmarks.contains_key(&o.landmark) || new_landmarks.iter().any(|l| l.0 == o.landmark);
-                    let size = if o.keyframe == keyframe.id {
-                        Some(n)
-                    } else {
-                        self.keyframes.get(&o.keyframe).map(|k| k.keypoints.len())
-                    };
-                    let in_range = size.is_some_and(|s| (o.keypoint as usize) < s);
-                    let fresh =
-                        seen.insert((o.keyframe, o.keypoint)) && !observed.contains_key(&(o.keyframe, o.keypoint));
-                    if !known || !in_range || !fresh {
-                        return Err(format!(
-                            "observation of landmark {} by keyframe {} keypoint {} is inconsistent",
-                            o.landmark, o.keyframe, o.keypoint
-                        ));
+                for (external, landmark) in external_ids {
+                    if self.external_ids.contains_key(external) || !seen.insert(*external) {
+                        return Err(format!("external landmark {external} is linked already"));
+                    }
+                    if !new_landmarks.iter().any(|l| l.0 == *landmark) {
+                        return Err(format!("external landmark {external} links {landmark}, not a new landmark"));
                     }
                 }
                 Ok(())
@@ -226,30 +262,43 @@ impl MapData {
         self.observations.iter().filter(|o| o.live).map(|o| ((o.keyframe, o.keypoint), o.landmark)).collect()
     }
 
+    fn apply_keyframe(
+        &mut self,
+        keyframe: &Keyframe,
+        new_landmarks: &[(u64, [f64; 3])],
+        observations: &[NewObservation],
+    ) {
+        for (id, p) in new_landmarks {
+            self.landmarks.insert(*id, Landmark { point: *p, observations: Vec::new() });
+            self.next_landmark = self.next_landmark.max(id + 1);
+        }
+        self.keyframes.insert(keyframe.id, keyframe.clone());
+        let dim = self.meta.dim;
+        for o in observations {
+            let oid = self.observations.len() as u64;
+            self.observations.push(Observation {
+                landmark: o.landmark,
+                keyframe: o.keyframe,
+                keypoint: o.keypoint,
+                live: true,
+            });
+            let e = self.keyframes[&o.keyframe].embedding(o.keypoint as usize, dim).to_vec();
+            self.embeddings.extend_from_slice(&e);
+            if let Some(l) = self.landmarks.get_mut(&o.landmark) {
+                l.observations.push(oid);
+            }
+        }
+    }
+
     /// Applies a record (already checked).
     pub fn apply(&mut self, record: &Record) {
         match record {
             Record::AddKeyframe { keyframe, new_landmarks, observations } => {
-                for (id, p) in new_landmarks {
-                    self.landmarks.insert(*id, Landmark { point: *p, observations: Vec::new() });
-                    self.next_landmark = self.next_landmark.max(id + 1);
-                }
-                self.keyframes.insert(keyframe.id, keyframe.clone());
-                let dim = self.meta.dim;
-                for o in observations {
-                    let oid = self.observations.len() as u64;
-                    self.observations.push(Observation {
-                        landmark: o.landmark,
-                        keyframe: o.keyframe,
-                        keypoint: o.keypoint,
-                        live: true,
-                    });
-                    let e = self.keyframes[&o.keyframe].embedding(o.keypoint as usize, dim).to_vec();
-                    self.embeddings.extend_from_slice(&e);
-                    if let Some(l) = self.landmarks.get_mut(&o.landmark) {
-                        l.observations.push(oid);
-                    }
-                }
+                self.apply_keyframe(keyframe, new_landmarks, observations)
+            }
+            Record::AddExternalKeyframe { keyframe, new_landmarks, observations, external_ids } => {
+                self.apply_keyframe(keyframe, new_landmarks, observations);
+                self.external_ids.extend(external_ids.iter().copied());
             }
             Record::RemoveKeyframe { id } => {
                 self.keyframes.remove(id);

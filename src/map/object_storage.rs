@@ -73,7 +73,8 @@ use crate::error::MapError;
 use crate::map::backend::{MapBackend, MapJournal, S3Config};
 use crate::map::model::{MapData, Record};
 use crate::map::storage::{
-    decode_segment, decode_snapshot, encode_segment, encode_snapshot, write_atomic, LoadReport, FORMAT_VERSION,
+    decode_segment, decode_snapshot, encode_segment, encode_snapshot, readable_version, write_atomic, LoadReport,
+    FORMAT_VERSION, OLDEST_FORMAT_VERSION,
 };
 use crate::map::store::validate_map_id;
 
@@ -247,10 +248,13 @@ impl Shared {
         let path = self.object(id, MANIFEST);
         let m: Manifest =
             serde_json::from_slice(bytes).map_err(|e| self.corrupt(&path, format!("cannot parse: {e}")))?;
-        if m.format_version != FORMAT_VERSION {
+        if !readable_version(m.format_version) {
             return Err(self.corrupt(
                 &path,
-                format!("manifest format version {}, this build reads {FORMAT_VERSION}", m.format_version),
+                format!(
+                    "manifest format version {}, this build reads {OLDEST_FORMAT_VERSION} to {FORMAT_VERSION}",
+                    m.format_version
+                ),
             ));
         }
         let named = |name: &str, dir: &str| {
@@ -642,6 +646,8 @@ impl MapJournal for ObjectJournal {
         let path = s.object(&self.id, &name);
         s.block_on(s.put(&path, encode_segment(seq, record)?, PutMode::Create)).map_err(|e| s.io(&path, e))?;
         let mut next = self.manifest.clone();
+        // The manifest names an object of this format from now on (objects carry their own versions).
+        next.format_version = FORMAT_VERSION;
         next.writer = s.writer.clone();
         next.segments.push(name);
         next.next_seq += 1;
@@ -678,6 +684,7 @@ impl MapJournal for ObjectJournal {
         s.block_on(s.put(&path, encode_snapshot(data)?, PutMode::Create)).map_err(|e| s.io(&path, e))?;
         let old = self.manifest.clone();
         let mut next = old.clone();
+        next.format_version = FORMAT_VERSION;
         next.writer = s.writer.clone();
         next.snapshot = SnapshotRef { object: name.clone(), version: data.version };
         next.segments.clear();

@@ -15,15 +15,36 @@
 //!
 //! The snapshot format and the record framing are shared with the object-storage backend
 //! ([`crate::map::object_storage`]), whose segments are one framed record each behind the magic `SCONESEG`.
+//!
+//! Format versions. Every file (snapshot, log, segment; the object-storage manifest too) carries the version
+//! it was written in. This build writes [`FORMAT_VERSION`] 2 and reads 1 and 2:
+//!
+//! * 1: the first format.
+//! * 2: [`MapData`] gained `external_ids` (landmarks given by an external SfM, see
+//!   [`crate::map::model`]), and [`Record`] the variant `AddExternalKeyframe`, appended last so a format-1
+//!   record decodes unchanged. A format-1 snapshot decodes through its own layout ([`MapDataV1`]) with no
+//!   external ids.
+//!
+//! A format-1 log is folded into a format-2 snapshot with a fresh format-2 log as soon as it is opened (the
+//! same crash-safe steps as compaction), so a record of the new kind never lands in a file whose header
+//! says 1. A build that reads only format 1 refuses the upgraded files with a version message instead of
+//! misreading them.
 
 use std::fs::{File, OpenOptions};
 use std::io::{Read, Seek, SeekFrom, Write};
 use std::path::{Path, PathBuf};
 
-use crate::error::MapError;
-use crate::map::model::{MapData, Record};
+use std::collections::BTreeMap;
 
-pub const FORMAT_VERSION: u32 = 1;
+use serde::{Deserialize, Serialize};
+
+use crate::error::MapError;
+use crate::map::model::{Keyframe, Landmark, MapData, MapMeta, Observation, Record};
+
+/// The format this build writes.
+pub const FORMAT_VERSION: u32 = 2;
+/// The oldest format this build reads.
+pub const OLDEST_FORMAT_VERSION: u32 = 1;
 const SNAPSHOT_MAGIC: &[u8; 8] = b"SCONEMAP";
 const LOG_MAGIC: &[u8; 8] = b"SCONELOG";
 const SEGMENT_MAGIC: &[u8; 8] = b"SCONESEG";
@@ -39,6 +60,56 @@ fn corrupt(path: &Path, reason: impl Into<String>) -> MapError {
     MapError::Corrupt { path: path.to_path_buf(), reason: reason.into() }
 }
 
+/// Whether this build reads files of format `version`.
+pub fn readable_version(version: u32) -> bool {
+    (OLDEST_FORMAT_VERSION..=FORMAT_VERSION).contains(&version)
+}
+
+fn unreadable(path: &Path, what: &str, version: u32) -> MapError {
+    corrupt(
+        path,
+        format!("{what} format version {version}, this build reads {OLDEST_FORMAT_VERSION} to {FORMAT_VERSION}"),
+    )
+}
+
+/// [`MapData`] as format 1 stored it (before `external_ids`): the same fields in the same order.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct MapDataV1 {
+    pub meta: MapMeta,
+    pub keyframes: BTreeMap<u64, Keyframe>,
+    pub landmarks: BTreeMap<u64, Landmark>,
+    pub observations: Vec<Observation>,
+    pub embeddings: Vec<f32>,
+    pub next_landmark: u64,
+    pub version: u64,
+}
+
+impl From<MapDataV1> for MapData {
+    fn from(v: MapDataV1) -> Self {
+        Self {
+            meta: v.meta,
+            keyframes: v.keyframes,
+            landmarks: v.landmarks,
+            observations: v.observations,
+            embeddings: v.embeddings,
+            next_landmark: v.next_landmark,
+            version: v.version,
+            external_ids: BTreeMap::new(),
+        }
+    }
+}
+
+/// Frames a snapshot payload behind the header of format `version` (format 1 only for tests of the upgrade).
+pub fn frame_snapshot(version: u32, payload: &[u8]) -> Vec<u8> {
+    let mut out = Vec::with_capacity(payload.len() + 24);
+    out.extend_from_slice(SNAPSHOT_MAGIC);
+    out.extend_from_slice(&version.to_le_bytes());
+    out.extend_from_slice(&(payload.len() as u64).to_le_bytes());
+    out.extend_from_slice(&crc32fast::hash(payload).to_le_bytes());
+    out.extend_from_slice(payload);
+    out
+}
+
 /// fsync of a directory, so a rename or a new file in it is durable.
 pub fn sync_dir(dir: &Path) -> Result<(), MapError> {
     File::open(dir).and_then(|d| d.sync_all()).map_err(io_err(dir))
@@ -48,23 +119,17 @@ pub fn sync_dir(dir: &Path) -> Result<(), MapError> {
 pub fn encode_snapshot(data: &MapData) -> Result<Vec<u8>, MapError> {
     let payload = bincode::serialize(data)
         .map_err(|e| MapError::InvalidInput { field: "map".into(), reason: format!("cannot encode: {e}") })?;
-    let mut out = Vec::with_capacity(payload.len() + 24);
-    out.extend_from_slice(SNAPSHOT_MAGIC);
-    out.extend_from_slice(&FORMAT_VERSION.to_le_bytes());
-    out.extend_from_slice(&(payload.len() as u64).to_le_bytes());
-    out.extend_from_slice(&crc32fast::hash(&payload).to_le_bytes());
-    out.extend_from_slice(&payload);
-    Ok(out)
+    Ok(frame_snapshot(FORMAT_VERSION, &payload))
 }
 
-/// Decodes the snapshot/export format, checking magic, version, length and checksum.
+/// Decodes the snapshot/export format (format 1 or 2), checking magic, version, length and checksum.
 pub fn decode_snapshot(bytes: &[u8], path: &Path) -> Result<MapData, MapError> {
     if bytes.len() < 24 || &bytes[..8] != SNAPSHOT_MAGIC {
         return Err(corrupt(path, "not a scone map file (bad magic)"));
     }
     let version = u32::from_le_bytes(bytes[8..12].try_into().expect("4 bytes"));
-    if version != FORMAT_VERSION {
-        return Err(corrupt(path, format!("map format version {version}, this build reads {FORMAT_VERSION}")));
+    if !readable_version(version) {
+        return Err(unreadable(path, "map", version));
     }
     let len = u64::from_le_bytes(bytes[12..20].try_into().expect("8 bytes")) as usize;
     let crc = u32::from_le_bytes(bytes[20..24].try_into().expect("4 bytes"));
@@ -75,7 +140,12 @@ pub fn decode_snapshot(bytes: &[u8], path: &Path) -> Result<MapData, MapError> {
     if crc32fast::hash(payload) != crc {
         return Err(corrupt(path, "checksum mismatch"));
     }
-    bincode::deserialize(payload).map_err(|e| corrupt(path, format!("cannot decode: {e}")))
+    let decoded = if version == 1 {
+        bincode::deserialize::<MapDataV1>(payload).map(MapData::from)
+    } else {
+        bincode::deserialize::<MapData>(payload)
+    };
+    decoded.map_err(|e| corrupt(path, format!("cannot decode (format {version}): {e}")))
 }
 
 /// Writes `bytes` to `path` atomically (temporary file, fsync, rename, fsync of the directory).
@@ -158,8 +228,8 @@ pub fn decode_segment(bytes: &[u8], path: &Path) -> Result<(u64, Record), MapErr
         return Err(corrupt(path, "not a scone segment (bad magic)"));
     }
     let version = u32::from_le_bytes(bytes[8..12].try_into().expect("4 bytes"));
-    if version != FORMAT_VERSION {
-        return Err(corrupt(path, format!("segment format version {version}, this build reads {FORMAT_VERSION}")));
+    if !readable_version(version) {
+        return Err(unreadable(path, "segment", version));
     }
     match read_frame(bytes, 12, path)? {
         Frame::Record { seq, record, end } if end == bytes.len() => Ok((seq, *record)),
@@ -240,8 +310,8 @@ impl MapLog {
             return Err(corrupt(&log_path, "not a scone log (bad magic)"));
         }
         let version = u32::from_le_bytes(buf[8..12].try_into().expect("4 bytes"));
-        if version != FORMAT_VERSION {
-            return Err(corrupt(&log_path, format!("log format version {version}, this build reads {FORMAT_VERSION}")));
+        if !readable_version(version) {
+            return Err(unreadable(&log_path, "log", version));
         }
         let mut pos = LOG_HEADER as usize;
         let mut records = 0;
@@ -275,7 +345,13 @@ impl MapLog {
             tracing::warn!(log = %log_path.display(), bytes = report.truncated_bytes, "cut a torn record off the log");
         }
         file.seek(SeekFrom::End(0)).map_err(io_err(&log_path))?;
-        Ok((data, Self { dir: dir.to_path_buf(), file, records, compact_every }, report))
+        let mut log = Self { dir: dir.to_path_buf(), file, records, compact_every };
+        if version < FORMAT_VERSION {
+            // New kinds of record must not go into a file whose header promises the old format.
+            log.compact(&data)?;
+            tracing::info!(map = %dir.display(), from = version, to = FORMAT_VERSION, "upgraded the map's files");
+        }
+        Ok((data, log, report))
     }
 
     /// Appends the record that takes `data` to version `seq` and waits until it is on disk.

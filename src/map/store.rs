@@ -23,7 +23,7 @@ use serde::{Deserialize, Serialize};
 use crate::error::MapError;
 use crate::features::Features;
 use crate::map::backend::{open_backend, BackendConfig, MapBackend, MapJournal};
-use crate::map::builder::{plan_keyframe, BuildParams, KeyframeInput};
+use crate::map::builder::{plan, BuildParams, ExternalCounts, KeyframeInput};
 use crate::map::index::{EmbeddingIndex, IndexParams};
 use crate::map::localize::{localize, Localization, LocalizeParams, Prior};
 use crate::map::model::{MapData, MapMeta, Record};
@@ -87,6 +87,8 @@ pub struct KeyframeAdded {
     pub new_landmarks: usize,
     pub observations: usize,
     pub version: u64,
+    /// What became of the keyframe's external landmarks (all zero without them).
+    pub external: ExternalCounts,
 }
 
 struct MapState {
@@ -275,18 +277,26 @@ impl MapStore {
         let map = self.get(id)?;
         self.check_model(&map)?;
         let mut log = map.log.lock();
-        let record = {
+        let planned = {
             let s = map.state.read();
-            let r = plan_keyframe(&s.data, input, &self.config.build)?;
-            s.data.check(&r).map_err(|reason| MapError::InvalidInput { field: "keyframe".into(), reason })?;
-            r
+            let p = plan(&s.data, input, &self.config.build)?;
+            s.data.check(&p.record).map_err(|reason| MapError::InvalidInput { field: "keyframe".into(), reason })?;
+            p
         };
-        let Record::AddKeyframe { new_landmarks, observations, .. } = &record else {
+        let (Record::AddKeyframe { new_landmarks, observations, .. }
+        | Record::AddExternalKeyframe { new_landmarks, observations, .. }) = &planned.record
+        else {
             unreachable!("planned a keyframe")
         };
         let (new, obs) = (new_landmarks.len(), observations.len());
-        let version = self.commit(&map, log.as_mut(), record)?;
-        Ok(KeyframeAdded { keyframe: input.id, new_landmarks: new, observations: obs, version })
+        let version = self.commit(&map, log.as_mut(), planned.record)?;
+        Ok(KeyframeAdded {
+            keyframe: input.id,
+            new_landmarks: new,
+            observations: obs,
+            version,
+            external: planned.external,
+        })
     }
 
     pub fn remove_keyframe(&self, id: &str, keyframe: u64) -> Result<u64, MapError> {

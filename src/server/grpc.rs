@@ -14,6 +14,7 @@ use tonic::{Code, Request, Response, Status, Streaming};
 use super::proto::{self, frame::Source};
 use super::App;
 use crate::features::Keypoint;
+use crate::map::builder::ExternalObservation;
 use crate::map::localize::Prior;
 use crate::map::store::MapSummary;
 use crate::scene::Camera;
@@ -86,6 +87,17 @@ pub fn frame(f: Option<proto::Frame>, field: &str) -> Result<FrameInput, Service
         None => return Err(invalid(field, "needs an image or keypoints")),
     };
     Ok(FrameInput { source, camera: f.intrinsics.as_ref().map(camera) })
+}
+
+/// External SfM observations as the service's input (a missing point is the client's error, named).
+fn external_landmarks(obs: Vec<proto::ExternalObservation>) -> Result<Vec<ExternalObservation>, ServiceError> {
+    obs.into_iter()
+        .enumerate()
+        .map(|(i, o)| {
+            let p = o.point.ok_or_else(|| invalid(&format!("external_landmarks[{i}].point"), "is required"))?;
+            Ok(ExternalObservation { x: o.x, y: o.y, landmark_id: o.landmark_id, point: [p.x, p.y, p.z] })
+        })
+        .collect()
 }
 
 fn map_info(s: MapSummary) -> proto::MapInfo {
@@ -207,6 +219,7 @@ impl proto::maps_server::Maps for GrpcApi {
                             pose: pose_from_parts([p.tx, p.ty, p.tz], [p.qx, p.qy, p.qz, p.qw]),
                             depth_png: (!msg.depth_png.is_empty()).then_some(msg.depth_png),
                             depth_scale: if msg.depth_scale == 0.0 { 1.0 / 5000.0 } else { msg.depth_scale },
+                            external_landmarks: external_landmarks(msg.external_landmarks)?,
                         };
                         let (added, times) = a.service.add_keyframe(&msg.map_id, request)?;
                         a.metrics.stages(&times);
@@ -215,6 +228,8 @@ impl proto::maps_server::Maps for GrpcApi {
                             new_landmarks: added.new_landmarks as u64,
                             observations: added.observations as u64,
                             map_version: added.version,
+                            external_rejected: added.external.rejected as u64,
+                            external_unassociated: added.external.unassociated as u64,
                         })
                     })
                     .await;

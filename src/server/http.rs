@@ -23,6 +23,7 @@ use tokio::net::TcpListener;
 use super::App;
 use crate::decode::read_header;
 use crate::features::Keypoint;
+use crate::map::builder::ExternalObservation;
 use crate::map::localize::Prior;
 use crate::map::store::MapSummary;
 use crate::scene::Camera;
@@ -223,6 +224,25 @@ struct KeyframeJson {
     depth_png_base64: Option<String>,
     #[serde(default)]
     depth_scale: Option<f64>,
+    #[serde(default)]
+    external_landmarks: Vec<ExternalObservationJson>,
+}
+
+#[derive(Debug, Clone, Copy, Deserialize)]
+#[serde(deny_unknown_fields)]
+struct Point3Json {
+    x: f64,
+    y: f64,
+    z: f64,
+}
+
+#[derive(Debug, Clone, Copy, Deserialize)]
+#[serde(deny_unknown_fields)]
+struct ExternalObservationJson {
+    x: f64,
+    y: f64,
+    landmark_id: u64,
+    point: Point3Json,
 }
 
 #[derive(Debug, Deserialize)]
@@ -554,6 +574,16 @@ async fn add_keyframe(
             pose: pose_from_parts([p.tx, p.ty, p.tz], [p.qx, p.qy, p.qz, p.qw]),
             depth_png,
             depth_scale: j.depth_scale.unwrap_or(1.0 / 5000.0),
+            external_landmarks: j
+                .external_landmarks
+                .iter()
+                .map(|o| ExternalObservation {
+                    x: o.x,
+                    y: o.y,
+                    landmark_id: o.landmark_id,
+                    point: [o.point.x, o.point.y, o.point.z],
+                })
+                .collect(),
         };
         let (added, times) = a.service.add_keyframe(&map_id, request)?;
         a.metrics.stages(&times);
@@ -562,6 +592,8 @@ async fn add_keyframe(
             "new_landmarks": added.new_landmarks,
             "observations": added.observations,
             "map_version": added.version,
+            "external_rejected": added.external.rejected,
+            "external_unassociated": added.external.unassociated,
         }))
     })
     .await?;

@@ -137,6 +137,7 @@ fn reads_of_one_map_go_on_while_another_is_written() {
             features: &described[i].features,
             embeddings: &described[i].embeddings,
             depth: Some(scone::map::builder::Depth { image: &depths[i], scale: 1.0 / 5000.0 }),
+            external: None,
         };
         store.add_keyframe(map, &input).unwrap();
     };
@@ -199,6 +200,7 @@ fn a_map_from_another_model_is_refused_until_re_embedded() {
                 features: &d.features,
                 embeddings: &d.embeddings,
                 depth: Some(scone::map::builder::Depth { image: &depth, scale: 1.0 / 5000.0 }),
+                external: None,
             };
             store.add_keyframe("m", &input).unwrap();
         }

@@ -1,6 +1,7 @@
 //! Integration tests, one binary. Tests that read the real scenes in `../shared/data` (or `$SCONE_DATA`)
 //! skip when the data is absent, except under `CI=true`, where missing data is a failure.
 
+mod colmap;
 mod common;
 mod durability;
 mod embedding;

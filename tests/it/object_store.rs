@@ -175,6 +175,7 @@ impl Frames {
             features: &self.described[i].features,
             embeddings: &self.described[i].embeddings,
             depth: Some(Depth { image: &self.depths[i], scale: 1.0 / 5000.0 }),
+            external: None,
         };
         store.add_keyframe(map, &input).map(|a| a.version)
     }

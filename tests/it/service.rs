@@ -77,6 +77,7 @@ fn keyframe_requests(map: &str, scene: &Scene, frames: &[usize]) -> Vec<proto::A
                 pose: Some(pose_msg(&f.pose.unwrap())),
                 depth_png: f.depth.as_ref().map(|d| std::fs::read(d).unwrap()).unwrap_or_default(),
                 depth_scale: 0.0,
+                external_landmarks: Vec::new(),
             }
         })
         .collect()
@@ -323,6 +324,105 @@ async fn http_mirror_builds_a_map_and_localises_a_raw_image() {
         "{metrics}"
     );
     assert!(metrics.contains("scone_stage_duration_seconds_count{stage=\"embed\"}"));
+    server.shutdown().await.unwrap();
+}
+
+fn external_msg(o: &scone::map::builder::ExternalObservation) -> proto::ExternalObservation {
+    proto::ExternalObservation {
+        x: o.x,
+        y: o.y,
+        landmark_id: o.landmark_id,
+        point: Some(proto::Point3 { x: o.point[0], y: o.point[1], z: o.point[2] }),
+    }
+}
+
+/// Keyframes whose landmarks an external SfM gave (the synthetic one of `tests/it/colmap.rs`), over gRPC
+/// and HTTP: views of one id become one landmark, the map localises a held-out frame, a view that does not
+/// fit the pose is rejected and counted, and a NaN point is refused naming the field without a write.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn keyframes_with_external_landmarks_merge_by_id_localise_and_refuse_a_nan_point() {
+    let data = temp_dir("external");
+    let scene = Scene::load(&fixture("rendered")).unwrap();
+    let mapped = [0, 2, 4, 6, 8];
+    let sfm = crate::colmap::synthetic_sfm(&scene, &mapped, &[0, 2, 4, 6, 8, 9]);
+    let server = serve(settings(&data)).await;
+    let (mut maps, mut matching) = clients(&server).await;
+    maps.create_map(proto::CreateMapRequest { map_id: "sfm".into() }).await.unwrap();
+    let mut reqs = keyframe_requests("sfm", &scene, &mapped);
+    for (r, f) in reqs.iter_mut().zip(mapped) {
+        r.depth_png.clear();
+        r.external_landmarks = sfm.views[&f].iter().map(external_msg).collect();
+    }
+    // A view 20 px away from where its point projects.
+    let mut off = sfm.views[&0][0];
+    off.x += 20.0;
+    off.landmark_id = 1_000_000;
+    reqs[0].external_landmarks.push(external_msg(&off));
+    let acks = add_keyframes(&mut maps, reqs, None).await;
+    assert_eq!(acks[0].external_rejected, 1, "{:?}", acks[0]);
+    assert!(acks[1..].iter().all(|a| a.external_rejected == 0), "{acks:?}");
+    let new: u64 = acks.iter().map(|a| a.new_landmarks).sum();
+    let observations: u64 = acks.iter().map(|a| a.observations).sum();
+    let info = maps.get_map(proto::GetMapRequest { map_id: "sfm".into() }).await.unwrap().into_inner();
+    assert_eq!((info.landmarks, info.observations), (new, observations));
+    assert!(info.landmarks < info.observations, "{info:?}");
+
+    let r = matching
+        .localize(proto::LocalizeRequest {
+            map_id: "sfm".into(),
+            frame: Some(image_frame(&scene.frames[5].rgb, &scene.camera)),
+            prior: None,
+        })
+        .await
+        .unwrap()
+        .into_inner();
+    let (dt, dr) = pose_error(r.pose.as_ref().expect("localised"), &scene.frames[5].pose.unwrap());
+    assert!(dt < 0.05 && dr < 1.0, "pose off by {dt} m, {dr} deg");
+
+    // NaN in a point: INVALID_ARGUMENT naming the field, and the map does not move.
+    let v0 = info.version;
+    let mut nan = keyframe_requests("sfm", &scene, &[9]);
+    nan[0].depth_png.clear();
+    nan[0].external_landmarks = sfm.views[&9].iter().map(external_msg).collect();
+    nan[0].external_landmarks[3].point.as_mut().unwrap().y = f64::NAN;
+    let mut acks = maps.add_keyframes(tokio_stream::iter(nan)).await.unwrap().into_inner();
+    let e = acks.message().await.unwrap_err();
+    assert_eq!(e.code(), Code::InvalidArgument, "{e:?}");
+    assert!(e.message().contains("external_landmarks[3].point") && e.message().contains("not finite"), "{e:?}");
+    let info = maps.get_map(proto::GetMapRequest { map_id: "sfm".into() }).await.unwrap().into_inner();
+    assert_eq!(info.version, v0, "a refused request changed the map");
+
+    // The same frame over HTTP (multipart, JSON part): its views of known ids observe existing landmarks.
+    let f = &scene.frames[9];
+    let p = f.pose.unwrap();
+    let (q, t, c) = (p.rotation.quaternion(), p.translation.vector, scene.camera);
+    let external: Vec<serde_json::Value> = sfm.views[&9]
+        .iter()
+        .map(|o| {
+            serde_json::json!({"x": o.x, "y": o.y, "landmark_id": o.landmark_id,
+                               "point": {"x": o.point[0], "y": o.point[1], "z": o.point[2]}})
+        })
+        .collect();
+    let request = serde_json::json!({
+        "keyframe_id": 9,
+        "pose": {"tx": t.x, "ty": t.y, "tz": t.z, "qx": q.i, "qy": q.j, "qz": q.k, "qw": q.w},
+        "intrinsics": {"fx": c.fx, "fy": c.fy, "cx": c.cx, "cy": c.cy},
+        "external_landmarks": external,
+    });
+    let form = reqwest::multipart::Form::new()
+        .text("request", request.to_string())
+        .part("image", reqwest::multipart::Part::bytes(std::fs::read(&f.rgb).unwrap()).mime_str("image/png").unwrap());
+    let r = reqwest::Client::new()
+        .post(format!("http://{}/v1/maps/sfm/keyframes", server.http_addr))
+        .multipart(form)
+        .send()
+        .await
+        .unwrap();
+    assert_eq!(r.status(), 200);
+    let ack: serde_json::Value = r.json().await.unwrap();
+    assert_eq!(ack["external_rejected"], 0, "{ack}");
+    let (new, obs) = (ack["new_landmarks"].as_u64().unwrap(), ack["observations"].as_u64().unwrap());
+    assert!(obs > 30 && new * 5 < obs, "{ack}");
     server.shutdown().await.unwrap();
 }
 
