@@ -79,6 +79,8 @@ class PairBatch:
     pool: np.ndarray
     anchor_ids: np.ndarray
     pool_ids: np.ndarray
+    ids_a: np.ndarray  # landmark id of every keypoint of frame a (-1 none)
+    ids_b: np.ndarray
 
 
 class PairSampler:
@@ -123,4 +125,44 @@ class PairSampler:
             fb = u.frames[b]
             near = fb.neighbours[ib, : self.near][fb.mask[ib, : self.near] > 0]
             pool = np.unique(np.concatenate([pool, near]))
-        return PairBatch(u.frames[a], u.frames[b], ia, ib, pool, shared, idb[pool])
+        return PairBatch(u.frames[a], u.frames[b], ia, ib, pool, shared, idb[pool], ida, idb)
+
+
+@dataclass
+class FrameGroup:
+    """A few frames of one unit that see common landmarks; every ordered pair with shared landmarks is used."""
+
+    unit: Unit
+    frames: list[int]
+    pairs: list[tuple[int, int]]  # positions in `frames`
+
+
+class GroupSampler:
+    """Draws a frame pair as `PairSampler` does, then adds up to `size - 2` more frames that share landmarks
+    with the first. Each frame is embedded once per step and every pair of the group contributes, so the
+    whole-frame negatives cost one embedding per frame rather than one per pair."""
+
+    def __init__(self, units: list[Unit], size: int, seed: int, min_shared: int = 8):
+        self.pairs = PairSampler(units, anchors=128, pool=0, seed=seed, min_shared=min_shared)
+        self.rng = self.pairs.rng
+        self.size = size
+        self.partners: dict[tuple[int, int], list[int]] = {}
+        for u, a, b in self.pairs.pairs:
+            self.partners.setdefault((id(u), a), []).append(b)
+        self.min_shared = min_shared
+
+    def sample(self) -> FrameGroup:
+        u, a, b = self.pairs.pairs[self.rng.choice(len(self.pairs.pairs), p=self.pairs.weights)]
+        others = [f for f in self.partners[(id(u), a)] if f != b]
+        extra = list(self.rng.choice(others, min(self.size - 2, len(others)), replace=False)) if others else []
+        frames = [a, b, *[int(f) for f in extra]]
+        pairs = []
+        for i in range(len(frames)):
+            ids_i = u.ids[frames[i]]
+            for j in range(len(frames)):
+                if i == j:
+                    continue
+                shared = np.intersect1d(ids_i[ids_i >= 0], u.ids[frames[j]])
+                if len(shared) >= self.min_shared:
+                    pairs.append((i, j))
+        return FrameGroup(u, frames, pairs)

@@ -53,19 +53,80 @@ def unpack_bits(descriptors: torch.Tensor) -> torch.Tensor:
     return bits.reshape(descriptors.shape[0], 512).to(torch.float32) * 2.0 - 1.0
 
 
+class SetEncoder(nn.Module):
+    """Permutation-invariant reading of a constellation (the alternative to the paper's BiLSTM).
+
+    Each member j becomes phi([d_j, geometry_j]) (two layers, SELU); the members are pooled by a masked max
+    and a masked mean and read by FC 2h -> 64 -> 32. The first layer is split: its descriptor part
+    W_d d_j is computed once per keypoint and gathered by index (as the descriptor MLP itself), so only the
+    5-d geometry part and the second layer run per member. Unlike the nearest-first sequence, the result does
+    not change when two members swap places in the distance order, and a member that the detector missed in
+    the other view removes one element of a set instead of shifting every later step of a sequence.
+    """
+
+    def __init__(self, desc_dim: int, geo_dim: int, hidden: int):
+        super().__init__()
+        self.desc_part = nn.Linear(desc_dim, hidden)
+        self.geo_part = nn.Linear(geo_dim, hidden, bias=False)
+        self.second = nn.Linear(hidden, hidden)
+        for lin, fan_in in ((self.desc_part, desc_dim + geo_dim), (self.geo_part, desc_dim + geo_dim), (self.second, hidden)):
+            nn.init.normal_(lin.weight, std=1.0 / math.sqrt(fan_in))
+        nn.init.zeros_(self.desc_part.bias)
+        nn.init.zeros_(self.second.bias)
+        self.act = nn.SELU()
+        self.read = mlp([2 * hidden, 64, 32], last_activation=True)
+
+    def forward(self, d: torch.Tensor, neighbours: torch.Tensor, geo: torch.Tensor, m: torch.Tensor) -> torch.Tensor:
+        h = self.desc_part(d)[neighbours] + self.geo_part(geo)  # [n, k, hidden]
+        h = self.act(self.second(self.act(h)))
+        count = m.sum(1)
+        # SELU is bounded below by -1.7581, so -2 never wins the max against a real member.
+        pooled_max = (h * m + (m - 1.0) * 2.0).max(1).values
+        pooled_mean = (h * m).sum(1) / count.clamp_min(1.0)
+        any_real = (count > 0).to(h.dtype)
+        return self.read(torch.cat([pooled_max * any_real, pooled_mean], dim=-1))
+
+
 class SconeNet(nn.Module):
-    def __init__(self, k: int = 20, embed_dim: int = 48, desc_dim: int = 32, lstm_hidden: int = 32, use_neighbours: bool = True):
+    def __init__(
+        self,
+        k: int = 20,
+        embed_dim: int = 48,
+        desc_dim: int = 32,
+        lstm_hidden: int = 32,
+        use_neighbours: bool = True,
+        encoder: str = "lstm",
+        desc_hidden: tuple[int, int] = (512, 256),
+        set_hidden: int = 64,
+        head_hidden: int = 64,
+        bits_skip: int = 0,
+    ):
         super().__init__()
         self.k = k
         self.use_neighbours = use_neighbours
-        self.desc_mlp = mlp([512, 512, 256, desc_dim], last_activation=True)
+        self.encoder = encoder
+        self.desc_mlp = mlp([512, *desc_hidden, desc_dim], last_activation=True)
         geo_dim = 5  # u, v, sin dθ, cos dθ, Δlevel
-        self.lstm = nn.LSTM(desc_dim + geo_dim, lstm_hidden, num_layers=2, bidirectional=True, batch_first=True)
-        self.neigh_mlp = mlp([2 * lstm_hidden, 64, 64, 32], last_activation=True)
-        self.head = mlp([32 + desc_dim + 3, 64, 64, embed_dim], last_activation=False)
+        if encoder == "lstm":
+            self.lstm = nn.LSTM(desc_dim + geo_dim, lstm_hidden, num_layers=2, bidirectional=True, batch_first=True)
+            self.neigh_mlp = mlp([2 * lstm_hidden, 64, 64, 32], last_activation=True)
+        elif encoder == "set":
+            self.set_encoder = SetEncoder(desc_dim, geo_dim, set_hidden)
+        else:
+            raise ValueError(f"unknown neighbourhood encoder {encoder!r} (lstm or set)")
+        # Optional linear path from the central keypoint's bits to the head (bits_skip dimensions), beside the
+        # SELU MLP: a linear projection of the ±1 bits keeps their Hamming geometry more faithfully.
+        self.bits_skip = bits_skip
+        if bits_skip:
+            self.skip = nn.Linear(512, bits_skip, bias=False)
+            nn.init.normal_(self.skip.weight, std=1.0 / math.sqrt(512))
+        self.head = mlp([32 + desc_dim + bits_skip + 3, head_hidden, head_hidden, embed_dim], last_activation=False)
 
     def embed_descriptors(self, descriptors: torch.Tensor) -> torch.Tensor:
-        return self.desc_mlp(unpack_bits(descriptors))
+        """Per keypoint: the descriptor MLP's output, followed by the linear skip path when there is one."""
+        bits = unpack_bits(descriptors)
+        d = self.desc_mlp(bits)
+        return torch.cat([d, self.skip(bits)], dim=1) if self.bits_skip else d
 
     def forward(
         self,
@@ -80,25 +141,31 @@ class SconeNet(nn.Module):
 
     def embed_from(self, d, keypoints, neighbours, mask, relative, rows: torch.Tensor | None = None) -> torch.Tensor:
         """Embeddings of keypoints `rows` (all when None), given every keypoint's descriptor embedding `d`."""
+        full = d
+        if self.bits_skip:
+            d = full[:, : full.shape[1] - self.bits_skip]
         if rows is not None:
             keypoints, neighbours, mask, relative = keypoints[rows], neighbours[rows], mask[rows], relative[rows]
-            central = d[rows]
+            central = full[rows]
         else:
-            central = d
+            central = full
         angle = keypoints[:, 0:1] * (math.pi / 180.0)
         level = torch.log(keypoints[:, 1:2] / FAST_SIZE) / LEVEL_LOG
         central_geo = torch.cat([torch.sin(angle), torch.cos(angle), level / 5.0], dim=1)
         m = mask.unsqueeze(-1)
         if self.use_neighbours:
-            nd = d[neighbours]  # gather: [n, k, desc_dim]
             rel = relative
             geo = torch.cat(
                 [rel[..., 0:2] / UV_SCALE, torch.sin(rel[..., 2:3]), torch.cos(rel[..., 2:3]), rel[..., 3:4] / LEVEL_LOG / 5.0],
                 dim=-1,
             )
-            seq = torch.cat([nd, geo], dim=-1) * m
-            _, (h, _) = self.lstm(seq)
-            neigh = self.neigh_mlp(torch.cat([h[-2], h[-1]], dim=-1))
+            if self.encoder == "set":
+                neigh = self.set_encoder(d, neighbours, geo, m)
+            else:
+                nd = d[neighbours]  # gather: [n, k, desc_dim]
+                seq = torch.cat([nd, geo], dim=-1) * m
+                _, (h, _) = self.lstm(seq)
+                neigh = self.neigh_mlp(torch.cat([h[-2], h[-1]], dim=-1))
         else:
             neigh = torch.zeros(central.shape[0], 32, dtype=central.dtype, device=central.device)
         out = self.head(torch.cat([neigh, central, central_geo], dim=-1))

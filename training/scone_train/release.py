@@ -29,7 +29,7 @@ from .golden import make_golden
 from .train import load_units, plot_log, prefix, train
 from .validate import load_checkpoint, validate, validation_units
 
-CONFIG = Path(__file__).resolve().parents[1] / "configs" / "scone.yaml"
+CONFIG = Path(__file__).resolve().parents[1] / "configs" / "scone-set.yaml"
 MODEL = REPO / "models" / "scone-freak-k20.onnx"
 
 
@@ -75,6 +75,57 @@ def plot_ablation(ab: dict, path: Path) -> None:
     plt.close(fig)
 
 
+def describe_architecture(m: dict) -> str:
+    """One paragraph naming the layers the config builds (the card must say what the file is)."""
+    hidden = "-".join(str(v) for v in m.get("desc_hidden", [512, 256]))
+    desc = f"every keypoint's FREAK descriptor is embedded once (MLP 512-{hidden}-{m['desc_dim']}, SELU)"
+    if m.get("bits_skip"):
+        desc += f", beside a linear projection of its bits to {m['bits_skip']} dimensions that goes to the head"
+    k = m["k"]
+    if k == 0:
+        neigh = "no constellation (ablation: the central descriptor only)"
+    elif m.get("encoder", "lstm") == "set":
+        neigh = (
+            f"its {k} nearest neighbours' descriptor embeddings are gathered by index with their relative position, "
+            f"orientation and scale and read by a permutation-invariant set encoder (per member two layers of "
+            f"{m.get('set_hidden', 64)}, the first split so its descriptor part runs once per keypoint; masked max "
+            f"and mean pooling; FC 64-32) instead of the paper's bidirectional LSTM"
+        )
+    else:
+        neigh = (
+            f"its {k} nearest neighbours, gathered by index with their relative position, orientation and scale, are "
+            f"read by a 2-layer bidirectional LSTM ({m['lstm_hidden']} units) and FC 64-64-32 (the paper's Table 1)"
+        )
+    hh = m.get("head_hidden", 64)
+    return (
+        f"The SConE network of Trzcinski et al.: {desc}; {neigh}; the result is joined with the central descriptor "
+        f"embedding, orientation and scale in a head {hh}-{hh}-{m['embed_dim']}. Output: {m['embed_dim']}-d, unit "
+        f"length; match with L2."
+    )
+
+
+def describe_loss(t: dict) -> str:
+    if t.get("loss", "contrastive") == "triplet_frames":
+        kind = t.get("frame_loss", "softmax")
+        parts = {
+            "softmax": f"cross-entropy of picking the positive among every keypoint of the other frame (cosine / {t.get('tau', 0.05)})",
+            "triplet": f"triplet margin {t['margin']} with the hardest negative among every keypoint of both frames",
+            "softmax+triplet": (
+                f"cross-entropy of picking the positive among every keypoint of the other frame (cosine / "
+                f"{t.get('tau', 0.05)}) plus a triplet margin {t['margin']} on the hardest negative of both frames"
+            ),
+        }[kind]
+        return (
+            f"Loss: {parts}, both directions, over groups of {t.get('group_frames', 4)} frames of one sequence "
+            f"(every pair of the group with shared landmarks; up to {t['anchors']} anchors per pair); keypoints "
+            f"within {t.get('exclude_px', 2.0)} px of the positive are not negatives."
+        )
+    return (
+        f"Loss: contrastive with margin {t['margin']}, hardest negative among the other anchors' positives and "
+        f"{t['pool']} random keypoints of the second frame."
+    )
+
+
 def model_card(cfg: dict, run: Path, ckpt: dict, val: dict, ab: dict | None, parity: dict, units) -> tuple[dict, str]:
     train_units, sel_units = units
     card = {
@@ -82,7 +133,8 @@ def model_card(cfg: dict, run: Path, ckpt: dict, val: dict, ab: dict | None, par
         "file": MODEL.name,
         "sha256": X.sha256(MODEL),
         "date": datetime.date.today().isoformat(),
-        "architecture": "SConE (Trzcinski et al.), Table 1: FREAK MLP 512-256-32, 2-layer BiLSTM 32, FC 64-64-32, head 64-64-48, SELU; L2-normalised output",
+        "architecture": describe_architecture(cfg["model"]),
+        "loss": describe_loss(cfg["train"]),
         "inputs": {
             "descriptors": "uint8 [N, 64] FREAK bytes, bit i in byte i//8 at i%8 (LSB first)",
             "keypoints": "float32 [N, 2] angle (degrees), size (pixels)",
@@ -121,10 +173,7 @@ def model_card(cfg: dict, run: Path, ckpt: dict, val: dict, ab: dict | None, par
 
 `{MODEL.name}` (sha256 `{card['sha256']}`), exported {card['date']} by `scripts/train`.
 
-**What it is.** The SConE network of Trzcinski et al. (Table 1): every keypoint's FREAK descriptor is embedded
-once (MLP 512-256-32, SELU), gathered for the keypoint's 20 nearest neighbours with their relative position,
-orientation and scale, read by a 2-layer bidirectional LSTM (32 units) and FC 64-64-32, and joined with the
-central descriptor embedding, orientation and scale in a head 64-64-48. Output: 48-d, unit length; match with L2.
+**What it is.** {card['architecture']}
 
 **Input contract** (one call per image, dynamic N; all normalisation is inside the graph):
 
@@ -139,10 +188,9 @@ multi-view sequences with exact depth and poses (textured planes and boxes with 
 from scikit-image, strong in-plane rotation, scale and viewpoint change, lighting, noise, blur) and frames 0-19 of
 strecha-castle-P30 (geometry-only landmarks). {card['training']['train_observations']} landmark observations.
 Similar pairs: two keypoints observing the same landmark (depth reprojection, or epipolar + triangulation +
-third-view check; no descriptor is consulted). Loss: contrastive with margin {cfg['train']['margin']}, hardest
-negative among the other anchors' positives and {cfg['train']['pool']} random keypoints of the second frame.
-Checkpoint selected on the selection split ({', '.join(u.name for u in sel_units)}): step {ckpt['step']},
-precision {ckpt['selection_precision']:.3f}.
+third-view check; no descriptor is consulted). {card['loss']}
+Checkpoint selected on the selection split ({', '.join(u.name for u in sel_units)}): step {ckpt['step']}
+(selected on {ckpt.get('selected_on', 'nn_precision')}), nearest-neighbour precision {ckpt['selection_precision']:.3f}.
 
 **Validation** (never used for a choice), nearest-neighbour precision on geometry-only ground truth, SConE (L2)
 vs FREAK (Hamming) on the same keypoints, bootstrap 95 % intervals:
@@ -174,6 +222,7 @@ def main() -> None:
     ckpt = torch.load(best, weights_only=False)
     model = load_checkpoint(best)
     X.export_onnx(model, MODEL)
+    torch.save({"model": ckpt["model"], "config": cfg, "step": ckpt["step"]}, MODEL.with_suffix(".pt"))
     f = units[1][0].frames[0]
     real = X.run_onnx(X.session(MODEL), f.descriptors, f.keypoints[:, [3, 2]], f.neighbours, f.mask, f.relative)
     parity = {"random": X.check_parity(model, MODEL), "real": float(np.abs(real - E.embed_frames(model, [f])[0]).max())}

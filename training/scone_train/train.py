@@ -17,13 +17,14 @@ from pathlib import Path
 
 import numpy as np
 import torch
+import torch.nn.functional as F
 import yaml
 from tqdm import tqdm
 
 from . import correspondences as C
 from . import evaluate as E
 from .data import FrameFeatures, shared_data
-from .dataset import PairSampler, Unit, build_unit
+from .dataset import GroupSampler, PairSampler, Unit, build_unit
 from .model import SconeNet
 
 
@@ -75,7 +76,8 @@ def build_model(m: dict) -> SconeNet:
     """k = 0 is the ablation without neighbours (central descriptor only)."""
     return SconeNet(
         k=max(m["k"], 1), embed_dim=m["embed_dim"], desc_dim=m["desc_dim"], lstm_hidden=m["lstm_hidden"],
-        use_neighbours=m["k"] > 0,
+        use_neighbours=m["k"] > 0, encoder=m.get("encoder", "lstm"), desc_hidden=tuple(m.get("desc_hidden", [512, 256])),
+        set_hidden=m.get("set_hidden", 64), head_hidden=m.get("head_hidden", 64), bits_skip=m.get("bits_skip", 0),
     )
 
 
@@ -107,6 +109,125 @@ def contrastive_loss(ea, ep, epool, aid, pid, margin: float, hard: bool, gen: to
     pos_term = 0.5 * (d_pos**2).mean()
     neg_term = 0.5 * (torch.relu(margin - neg) ** 2).mean()
     return pos_term + neg_term, d_pos.detach().mean().item(), neg.detach().mean().item()
+
+
+def near(xy: np.ndarray, centres: np.ndarray, radius: float) -> torch.Tensor:
+    """[len(centres), len(xy)] bool: keypoint within `radius` pixels of each centre."""
+    d2 = ((centres[:, None, :] - xy[None, :, :]) ** 2).sum(-1)
+    return torch.from_numpy(d2 <= radius * radius)
+
+
+def frame_triplet_loss(ea_all, eb_all, fa, fb, ia, ib, lid, ida, idb, margin: float, exclude_px: float, kind: str = "triplet", tau: float = 0.05):
+    """Triplet margin loss with the hardest negative of whole frames (as HardNet, but over every keypoint of
+    both images, which is what nearest-neighbour matching with a ratio test searches).
+
+    For anchor a_i in frame a with positive b_i in frame b: the nearest keypoint of b that does not observe
+    the landmark, and the nearest keypoint of a that does not observe it (seen from b_i); the loss is
+    relu(margin + D(a_i, b_i) - min of the two). Keypoints within `exclude_px` of the positive (or anchor) are
+    not negatives: they are the same corner found again (another pyramid level, an unlabelled duplicate),
+    which the geometric ground truth cannot tell from the labelled one, and a match to them is correct.
+    """
+    a, p = ea_all[ia], eb_all[ib]
+    d_pos = (a - p).norm(dim=1)
+    lid_t = torch.from_numpy(lid)
+    bad_b = (torch.from_numpy(idb)[None, :] == lid_t[:, None]) | near(fb.keypoints[:, :2], fb.keypoints[ib, :2], exclude_px)
+    bad_a = (torch.from_numpy(ida)[None, :] == lid_t[:, None]) | near(fa.keypoints[:, :2], fa.keypoints[ia, :2], exclude_px)
+    if kind.startswith("softmax"):
+        # Cross-entropy of picking the positive among every keypoint of the other frame (cosine / tau), both
+        # directions; excluded keypoints take no part. Unlike the hardest-negative triplet it does not collapse
+        # from a random start, and it still weights the hardest negatives most.
+        rows = torch.arange(len(ia))
+        la = (a @ eb_all.T / tau).masked_fill(bad_b, float("-inf"))
+        la[rows, torch.from_numpy(ib)] = (a * p).sum(1) / tau
+        lb = (p @ ea_all.T / tau).masked_fill(bad_a, float("-inf"))
+        lb[rows, torch.from_numpy(ia)] = (a * p).sum(1) / tau
+        loss = 0.5 * (F.cross_entropy(la, torch.from_numpy(ib)) + F.cross_entropy(lb, torch.from_numpy(ia)))
+        with torch.no_grad():
+            neg = torch.minimum(
+                pair_distances(a, eb_all).masked_fill(bad_b, float("inf")).min(1).values,
+                pair_distances(p, ea_all).masked_fill(bad_a, float("inf")).min(1).values,
+            )
+        if kind == "softmax+triplet":
+            # Plus the hardest-negative margin term: the ratio test needs D- well above D+, not only ranked above.
+            neg_g = torch.minimum(
+                pair_distances(a, eb_all).masked_fill(bad_b, float("inf")).min(1).values,
+                pair_distances(p, ea_all).masked_fill(bad_a, float("inf")).min(1).values,
+            )
+            ok = torch.isfinite(neg_g)
+            loss = loss + torch.relu(margin + d_pos[ok] - neg_g[ok]).mean()
+        return loss, d_pos.detach().mean().item(), neg[torch.isfinite(neg)].mean().item()
+    neg_ab = pair_distances(a, eb_all).masked_fill(bad_b, float("inf")).min(1).values
+    neg_ba = pair_distances(p, ea_all).masked_fill(bad_a, float("inf")).min(1).values
+    neg = torch.minimum(neg_ab, neg_ba)
+    ok = torch.isfinite(neg)
+    loss = torch.relu(margin + d_pos[ok] - neg[ok]).mean()
+    return loss, d_pos.detach().mean().item(), neg[ok].detach().mean().item()
+
+
+def group_step(model: SconeNet, g, tensors: "TensorCache", t: dict) -> tuple[float, float, float]:
+    """Embeds every frame of the group once and backpropagates the whole-frame triplet loss of all its pairs,
+    each pair's anchors capped at `anchors` (drawn at random). Returns (loss, mean D+, mean D-)."""
+    u = g.unit
+    emb = [model(*tensors.get(u.frames[f])) for f in g.frames]
+    losses, dps, dns = [], [], []
+    rng = np.random.default_rng(int(torch.randint(0, 2**31 - 1, (1,)).item()))
+    for i, j in g.pairs:
+        fa, fb = g.frames[i], g.frames[j]
+        ida, idb = u.ids[fa], u.ids[fb]
+        shared, ia, ib = np.intersect1d(ida, idb, return_indices=True)
+        keep = shared >= 0
+        shared, ia, ib = shared[keep], ia[keep], ib[keep]
+        if len(shared) > t["anchors"]:
+            pick = rng.choice(len(shared), t["anchors"], replace=False)
+            shared, ia, ib = shared[pick], ia[pick], ib[pick]
+        loss, dp, dn = frame_triplet_loss(
+            emb[i], emb[j], u.frames[fa], u.frames[fb], ia, ib, shared, ida, idb, t["margin"], t.get("exclude_px", 2.0),
+            t.get("frame_loss", "softmax"), t.get("tau", 0.05),
+        )
+        losses.append(loss)
+        dps.append(dp)
+        dns.append(dn)
+    if not losses:
+        return 0.0, 0.0, 0.0
+    total = torch.stack(losses).mean()
+    total.backward()
+    return total.item(), float(np.mean(dps)), float(np.mean(dns))
+
+
+def ratio_matches(qa: np.ndarray, qb: np.ndarray, kind: str, ratio: float = 0.8) -> tuple[np.ndarray, np.ndarray]:
+    """Nearest neighbour of every row of qa among qb with the ratio test: (query indices, target indices)."""
+    if kind == "hamming":
+        d = (qa.shape[1] - qa @ qb.T) / 2.0
+    else:
+        d = np.sqrt(np.maximum((qa * qa).sum(1)[:, None] - 2 * qa @ qb.T + (qb * qb).sum(1)[None, :], 0))
+    two = np.partition(d, 1, axis=1)[:, :2]
+    nn = d.argmin(1)
+    keep = two[:, 0] < ratio * two[:, 1]
+    return np.nonzero(keep)[0], nn[keep]
+
+
+def ratio_test_score(vectors: list[np.ndarray], unit: Unit, kind: str, gap: int = 3) -> dict:
+    """Ratio-test (0.8) matching between frames `gap` apart, as pair matching does: precision of the matches
+    whose query observes a landmark seen in the other frame, recall = correct matches / such queries."""
+    correct = verifiable = queries = 0
+    for i in range(len(vectors) - gap):
+        j = i + gap
+        ida, idb = unit.ids[i], unit.ids[j]
+        q, t = ratio_matches(vectors[i], vectors[j], kind)
+        labelled = (ida >= 0) & np.isin(ida, idb[idb >= 0])
+        queries += int(labelled.sum())
+        v = labelled[q]
+        verifiable += int(v.sum())
+        correct += int((idb[t[v]] == ida[q[v]]).sum())
+    p = correct / max(verifiable, 1)
+    r = correct / max(queries, 1)
+    return {"precision": p, "recall": r, "f1": 2 * p * r / max(p + r, 1e-12)}
+
+
+def selection_ratio_score(model, units: list[Unit]) -> dict:
+    rows = [ratio_test_score(E.embed_frames(model, u.frames) if model is not None else [E.freak_pm1(f.descriptors) for f in u.frames],
+                             u, "l2" if model is not None else "hamming") for u in units]
+    return {k: float(np.mean([r[k] for r in rows])) for k in rows[0]}
 
 
 def selection_precision(model: SconeNet, units: list[Unit], max_q: int) -> float:
@@ -155,13 +276,19 @@ def train(cfg: dict, run_dir: Path, steps: int | None = None, units=None) -> Pat
             ]
         ).mean()
     )
+    freak_ratio = selection_ratio_score(None, sel_units)
+    select_on = t.get("select_on", "nn_precision")
     m = cfg["model"]
     model = build_model(m)
     opt = torch.optim.Adam(model.parameters(), lr=t["lr"], weight_decay=t["weight_decay"])
     sched = torch.optim.lr_scheduler.LambdaLR(
         opt, lambda s: (t["lr_final"] + 0.5 * (t["lr"] - t["lr_final"]) * (1 + math.cos(math.pi * min(s, steps) / steps))) / t["lr"]
     )
-    sampler = PairSampler(train_units, t["anchors"], t["pool"], seed=cfg["seed"], near=t.get("near_negatives", 0))
+    grouped = t.get("loss", "contrastive") == "triplet_frames"
+    if grouped:
+        sampler = GroupSampler(train_units, t.get("group_frames", 4), seed=cfg["seed"])
+    else:
+        sampler = PairSampler(train_units, t["anchors"], t["pool"], seed=cfg["seed"], near=t.get("near_negatives", 0))
     gen = torch.Generator().manual_seed(cfg["seed"])
     start, best, log = 0, -1.0, []
     last = run_dir / "last.pt"
@@ -186,7 +313,11 @@ def train(cfg: dict, run_dir: Path, steps: int | None = None, units=None) -> Pat
         model.train()
         opt.zero_grad()
         total = 0.0
-        for _ in range(t["pairs_per_step"]):
+        if grouped:
+            total, dp, dn = group_step(model, sampler.sample(), tensors, t)
+            acc["pos"] += dp
+            acc["neg"] += dn
+        for _ in range(0 if grouped else t["pairs_per_step"]):
             b = sampler.sample()
             ta, tb = tensors.get(b.fa), tensors.get(b.fb)
             da = model.embed_descriptors(ta[0])
@@ -210,11 +341,14 @@ def train(cfg: dict, run_dir: Path, steps: int | None = None, units=None) -> Pat
         bar.set_postfix(loss=f"{total:.3f}")
         done = step + 1
         if done % t["eval_every"] == 0 or done == steps:
-            prec = selection_precision(model, sel_units, cfg["data"]["selection_max_queries"])
+            nn_prec = selection_precision(model, sel_units, cfg["data"]["selection_max_queries"])
+            ratio = selection_ratio_score(model, sel_units)
+            prec = ratio["f1"] if select_on == "ratio_f1" else nn_prec
             n = max(acc["n"], 1)
             row = {
                 "step": done, "loss": acc["loss"] / n, "d_pos": acc["pos"] / n, "d_neg": acc["neg"] / n,
-                "selection_precision": prec, "freak_selection_precision": freak_sel,
+                "selection_precision": nn_prec, "freak_selection_precision": freak_sel,
+                "selection_ratio": ratio, "freak_selection_ratio": freak_ratio, "selected_on": select_on,
                 "lr": sched.get_last_lr()[0], "seconds": time.time() - t0,
             }
             log.append(row)
@@ -225,7 +359,8 @@ def train(cfg: dict, run_dir: Path, steps: int | None = None, units=None) -> Pat
             acc = {"loss": 0.0, "pos": 0.0, "neg": 0.0, "n": 0}
             if prec > best:
                 best = prec
-                torch.save({"model": model.state_dict(), "config": cfg, "step": done, "selection_precision": prec}, run_dir / "best.pt")
+                torch.save({"model": model.state_dict(), "config": cfg, "step": done, "selection_precision": nn_prec,
+                            "selection_ratio": ratio, "selected_on": select_on}, run_dir / "best.pt")
         if done % t["checkpoint_every"] == 0 or done == steps:
             ck = {
                 "model": model.state_dict(), "opt": opt.state_dict(), "sched": sched.state_dict(),

@@ -3,6 +3,7 @@ steps -> ONNX export -> onnxruntime parity. Plus unit checks of the corresponden
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 
 import numpy as np
@@ -132,3 +133,79 @@ def test_pair_sampler_gives_consistent_positives(tiny_unit):
     fb = [i for i, f in enumerate(tiny_unit.frames) if f is b.fb][0]
     assert np.array_equal(ida[fa][b.anchors], ida[fb][b.positives])
     assert np.array_equal(ida[fb][b.pool], b.pool_ids)
+
+
+SET_CONFIG = Path(__file__).resolve().parents[1] / "configs" / "scone-set.yaml"
+
+
+def test_set_encoder_training_steps_export_and_parity(tiny_unit, tmp_path):
+    """The committed configuration (set encoder, bits skip, whole-frame loss over frame groups) trains, resumes,
+    exports with the same five-input contract and matches onnxruntime on real features."""
+    from scone_train.train import build_model
+
+    cfg = yaml.safe_load(SET_CONFIG.read_text())
+    cfg["train"].update(steps=4, eval_every=2, checkpoint_every=2, anchors=32, threads=1, group_frames=3)
+    best = train(cfg, tmp_path / "run", units=([tiny_unit], [tiny_unit]))
+    rows = [json.loads(line) for line in (tmp_path / "run" / "log.jsonl").read_text().splitlines()]
+    assert rows[-1]["step"] == 4 and np.isfinite(rows[-1]["loss"]) and rows[-1]["loss"] > 0
+    assert 0.0 <= rows[-1]["selection_ratio"]["precision"] <= 1.0
+    model = build_model(cfg["model"])
+    model.load_state_dict(torch.load(best, weights_only=False)["model"])
+    path = X.export_onnx(model, tmp_path / "set.onnx")
+    assert [i.name for i in onnx.load(str(path)).graph.input] == X.INPUT_NAMES
+    assert X.check_parity(model, path, n=211) <= 1e-4
+    f = tiny_unit.frames[2]
+    got = X.run_onnx(X.session(path, 1), f.descriptors, f.keypoints[:, [3, 2]], f.neighbours, f.mask, f.relative)
+    assert np.abs(got - E.embed_frames(model, [f])[0]).max() <= 1e-4
+
+
+def test_set_encoder_ignores_padding_and_member_order():
+    """Padding slots change nothing, and neither does the order of the members (the LSTM's weak point)."""
+    torch.manual_seed(0)
+    model = SconeNet(encoder="set", desc_dim=16, desc_hidden=(32, 32), bits_skip=8).eval()
+    x = list(X.example_inputs(n=30, k=20, seed=3))
+    x[3][:, 15:] = 0.0  # last five slots are padding
+    with torch.no_grad():
+        ref = model(*x)
+        y = [t.clone() for t in x]
+        y[2][:, 15:] = torch.arange(30)[:, None]  # padding points anywhere: still ignored
+        y[4][:, 15:] = 123.0
+        assert torch.allclose(model(*y), ref, atol=1e-6)
+        perm = torch.randperm(15)
+        z = [t.clone() for t in x]
+        z[2][:, :15], z[3][:, :15], z[4][:, :15] = x[2][:, perm], x[3][:, perm], x[4][:, perm]
+        assert torch.allclose(model(*z), ref, atol=1e-5)
+        x[3][:3] = 0.0  # keypoints without any neighbour still get a finite, unit embedding
+        e = model(*x)
+        assert torch.isfinite(e).all() and torch.allclose(e.norm(dim=1), torch.ones(30), atol=1e-5)
+
+
+def test_group_sampler_pairs_share_landmarks(tiny_unit):
+    from scone_train.dataset import GroupSampler
+
+    s = GroupSampler([tiny_unit], size=3, seed=0, min_shared=4)
+    for _ in range(5):
+        g = s.sample()
+        assert 2 <= len(g.frames) <= 3 and len(set(g.frames)) == len(g.frames) and g.pairs
+        for i, j in g.pairs:
+            a, b = tiny_unit.ids[g.frames[i]], tiny_unit.ids[g.frames[j]]
+            assert len(np.intersect1d(a[a >= 0], b)) >= 4
+
+
+def test_frame_loss_prefers_the_true_positive():
+    """The whole-frame loss is lower when each anchor's embedding equals its positive's than when the
+    positives are shuffled, for every loss kind (so a broken positive index would show)."""
+    from scone_train.train import frame_triplet_loss
+
+    rng = np.random.default_rng(0)
+    n = 40
+    emb = torch.nn.functional.normalize(torch.randn(n, 48), dim=1)
+    kps = np.c_[rng.uniform(0, 300, (n, 2)), np.full((n, 4), 1.0)].astype(np.float32)
+    fa = fb = _frame(kps)
+    ids = np.arange(n)
+    ia = np.arange(0, 20)
+    for kind in ("softmax", "triplet", "softmax+triplet"):
+        good, _, _ = frame_triplet_loss(emb, emb, fa, fb, ia, ia, ids[ia], ids, ids, 0.5, 0.0, kind)
+        shuffled = np.roll(ia, 1)
+        bad, _, _ = frame_triplet_loss(emb, emb, fa, fb, ia, shuffled, ids[ia], ids, ids, 0.5, 0.0, kind)
+        assert good.item() < bad.item(), kind
