@@ -100,6 +100,7 @@ class SconeNet(nn.Module):
         set_hidden: int = 64,
         head_hidden: int = 64,
         bits_skip: int = 0,
+        central_orientation: bool = True,
     ):
         super().__init__()
         self.k = k
@@ -120,7 +121,10 @@ class SconeNet(nn.Module):
         if bits_skip:
             self.skip = nn.Linear(512, bits_skip, bias=False)
             nn.init.normal_(self.skip.weight, std=1.0 / math.sqrt(512))
-        self.head = mlp([32 + desc_dim + bits_skip + 3, head_hidden, head_hidden, embed_dim], last_activation=False)
+        # The paper gives the head the central keypoint's orientation (sin, cos) and scale; without the
+        # orientation the embedding cannot change with in-plane rotation of the whole image.
+        self.central_orientation = central_orientation
+        self.head = mlp([32 + desc_dim + bits_skip + (3 if central_orientation else 1), head_hidden, head_hidden, embed_dim], last_activation=False)
 
     def embed_descriptors(self, descriptors: torch.Tensor) -> torch.Tensor:
         """Per keypoint: the descriptor MLP's output, followed by the linear skip path when there is one."""
@@ -151,7 +155,10 @@ class SconeNet(nn.Module):
             central = full
         angle = keypoints[:, 0:1] * (math.pi / 180.0)
         level = torch.log(keypoints[:, 1:2] / FAST_SIZE) / LEVEL_LOG
-        central_geo = torch.cat([torch.sin(angle), torch.cos(angle), level / 5.0], dim=1)
+        if self.central_orientation:
+            central_geo = torch.cat([torch.sin(angle), torch.cos(angle), level / 5.0], dim=1)
+        else:
+            central_geo = level / 5.0
         m = mask.unsqueeze(-1)
         if self.use_neighbours:
             rel = relative

@@ -78,6 +78,7 @@ def build_model(m: dict) -> SconeNet:
         k=max(m["k"], 1), embed_dim=m["embed_dim"], desc_dim=m["desc_dim"], lstm_hidden=m["lstm_hidden"],
         use_neighbours=m["k"] > 0, encoder=m.get("encoder", "lstm"), desc_hidden=tuple(m.get("desc_hidden", [512, 256])),
         set_hidden=m.get("set_hidden", 64), head_hidden=m.get("head_hidden", 64), bits_skip=m.get("bits_skip", 0),
+        central_orientation=m.get("central_orientation", True),
     )
 
 
@@ -147,6 +148,15 @@ def frame_triplet_loss(ea_all, eb_all, fa, fb, ia, ib, lid, ida, idb, margin: fl
                 pair_distances(a, eb_all).masked_fill(bad_b, float("inf")).min(1).values,
                 pair_distances(p, ea_all).masked_fill(bad_a, float("inf")).min(1).values,
             )
+        if kind == "softmax+ratio":
+            # Plus a hinge on Lowe's ratio itself: D+ / D- of the hardest negative below `margin` (a ratio here),
+            # the test pair matching applies (at 0.8), so positives are pushed until they would pass it.
+            neg_g = torch.minimum(
+                pair_distances(a, eb_all).masked_fill(bad_b, float("inf")).min(1).values,
+                pair_distances(p, ea_all).masked_fill(bad_a, float("inf")).min(1).values,
+            )
+            ok = torch.isfinite(neg_g)
+            loss = loss + torch.relu(d_pos[ok] / neg_g[ok].clamp_min(1e-3) - margin).mean()
         if kind == "softmax+triplet":
             # Plus the hardest-negative margin term: the ratio test needs D- well above D+, not only ranked above.
             neg_g = torch.minimum(
