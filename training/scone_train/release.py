@@ -200,6 +200,12 @@ vs FREAK (Hamming) on the same keypoints, bootstrap 95 % intervals:
 {rows}
 | **mean** | {val['mean']['freak']:.3f} | {val['mean']['scone']:.3f} | {val['mean']['gain_points']:+.1f} | |
 
+**How the configuration was chosen.** On the selection split only, with the pair protocol (`scone eval pairs
+--window 10` on each held-out sequence and on castle frames 20-29): whole-frame loss against the previous
+contrastive loss, set encoder against the BiLSTM, the linear bits path, k = 0 against k = 20, margins and a
+ratio hinge. The table and what it shows are in BENCHMARKS.md ("What the current model is, and the experiments
+behind it"). Pair-matching and relocalisation results on the validation scenes are there too.
+
 **Parity.** PyTorch vs onnxruntime max |diff| {parity['random']:.2e} (random inputs), {parity['real']:.2e} (real features).
 
 **Versions.** torch {torch.__version__}, onnxruntime {onnxruntime.__version__}, Python {platform.python_version()}.
