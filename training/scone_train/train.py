@@ -119,59 +119,48 @@ def near(xy: np.ndarray, centres: np.ndarray, radius: float) -> torch.Tensor:
 
 
 def frame_triplet_loss(ea_all, eb_all, fa, fb, ia, ib, lid, ida, idb, margin: float, exclude_px: float, kind: str = "triplet", tau: float = 0.05):
-    """Triplet margin loss with the hardest negative of whole frames (as HardNet, but over every keypoint of
-    both images, which is what nearest-neighbour matching with a ratio test searches).
+    """Losses over whole frames, which is what nearest-neighbour matching with a ratio test searches.
 
-    For anchor a_i in frame a with positive b_i in frame b: the nearest keypoint of b that does not observe
-    the landmark, and the nearest keypoint of a that does not observe it (seen from b_i); the loss is
-    relu(margin + D(a_i, b_i) - min of the two). Keypoints within `exclude_px` of the positive (or anchor) are
-    not negatives: they are the same corner found again (another pyramid level, an unlabelled duplicate),
-    which the geometric ground truth cannot tell from the labelled one, and a match to them is correct.
+    For anchor a_i in frame a with positive b_i in frame b, the hardest negative is the nearest keypoint of b
+    that does not observe the landmark, or the nearest keypoint of a that does not (seen from b_i), whichever
+    is nearer. `kind`:
+
+    * "triplet": relu(margin + D(a_i, b_i) - D-) (HardNet's loss, over every keypoint of both images);
+    * "softmax": cross-entropy of picking the positive among every keypoint of the other frame (cosine / tau),
+      both directions. Unlike the triplet it does not collapse from a random start, and it still weights the
+      hardest negatives most;
+    * "softmax+triplet": both; the ratio test needs D- well above D+, not only ranked above;
+    * "softmax+ratio": softmax plus relu(D+ / D- - margin), a hinge on Lowe's ratio itself.
+
+    Keypoints within `exclude_px` of the positive (or anchor) are not negatives: they are the same corner found
+    again (another pyramid level, an unlabelled duplicate), which the geometric ground truth cannot tell from
+    the labelled one, and a match to them is correct. Returns (loss, mean D+, mean D-).
     """
     a, p = ea_all[ia], eb_all[ib]
     d_pos = (a - p).norm(dim=1)
     lid_t = torch.from_numpy(lid)
     bad_b = (torch.from_numpy(idb)[None, :] == lid_t[:, None]) | near(fb.keypoints[:, :2], fb.keypoints[ib, :2], exclude_px)
     bad_a = (torch.from_numpy(ida)[None, :] == lid_t[:, None]) | near(fa.keypoints[:, :2], fa.keypoints[ia, :2], exclude_px)
+    neg = torch.minimum(
+        pair_distances(a, eb_all).masked_fill(bad_b, float("inf")).min(1).values,
+        pair_distances(p, ea_all).masked_fill(bad_a, float("inf")).min(1).values,
+    )
+    ok = torch.isfinite(neg)
+    terms = []
     if kind.startswith("softmax"):
-        # Cross-entropy of picking the positive among every keypoint of the other frame (cosine / tau), both
-        # directions; excluded keypoints take no part. Unlike the hardest-negative triplet it does not collapse
-        # from a random start, and it still weights the hardest negatives most.
         rows = torch.arange(len(ia))
         la = (a @ eb_all.T / tau).masked_fill(bad_b, float("-inf"))
         la[rows, torch.from_numpy(ib)] = (a * p).sum(1) / tau
         lb = (p @ ea_all.T / tau).masked_fill(bad_a, float("-inf"))
         lb[rows, torch.from_numpy(ia)] = (a * p).sum(1) / tau
-        loss = 0.5 * (F.cross_entropy(la, torch.from_numpy(ib)) + F.cross_entropy(lb, torch.from_numpy(ia)))
-        with torch.no_grad():
-            neg = torch.minimum(
-                pair_distances(a, eb_all).masked_fill(bad_b, float("inf")).min(1).values,
-                pair_distances(p, ea_all).masked_fill(bad_a, float("inf")).min(1).values,
-            )
-        if kind == "softmax+ratio":
-            # Plus a hinge on Lowe's ratio itself: D+ / D- of the hardest negative below `margin` (a ratio here),
-            # the test pair matching applies (at 0.8), so positives are pushed until they would pass it.
-            neg_g = torch.minimum(
-                pair_distances(a, eb_all).masked_fill(bad_b, float("inf")).min(1).values,
-                pair_distances(p, ea_all).masked_fill(bad_a, float("inf")).min(1).values,
-            )
-            ok = torch.isfinite(neg_g)
-            loss = loss + torch.relu(d_pos[ok] / neg_g[ok].clamp_min(1e-3) - margin).mean()
-        if kind == "softmax+triplet":
-            # Plus the hardest-negative margin term: the ratio test needs D- well above D+, not only ranked above.
-            neg_g = torch.minimum(
-                pair_distances(a, eb_all).masked_fill(bad_b, float("inf")).min(1).values,
-                pair_distances(p, ea_all).masked_fill(bad_a, float("inf")).min(1).values,
-            )
-            ok = torch.isfinite(neg_g)
-            loss = loss + torch.relu(margin + d_pos[ok] - neg_g[ok]).mean()
-        return loss, d_pos.detach().mean().item(), neg[torch.isfinite(neg)].mean().item()
-    neg_ab = pair_distances(a, eb_all).masked_fill(bad_b, float("inf")).min(1).values
-    neg_ba = pair_distances(p, ea_all).masked_fill(bad_a, float("inf")).min(1).values
-    neg = torch.minimum(neg_ab, neg_ba)
-    ok = torch.isfinite(neg)
-    loss = torch.relu(margin + d_pos[ok] - neg[ok]).mean()
-    return loss, d_pos.detach().mean().item(), neg[ok].detach().mean().item()
+        terms.append(0.5 * (F.cross_entropy(la, torch.from_numpy(ib)) + F.cross_entropy(lb, torch.from_numpy(ia))))
+    if kind in ("triplet", "softmax+triplet"):
+        terms.append(torch.relu(margin + d_pos[ok] - neg[ok]).mean())
+    if kind == "softmax+ratio":
+        terms.append(torch.relu(d_pos[ok] / neg[ok].clamp_min(1e-3) - margin).mean())
+    if not terms:
+        raise ValueError(f"unknown frame loss {kind!r}")
+    return sum(terms), d_pos.detach().mean().item(), neg[ok].detach().mean().item()
 
 
 def group_step(model: SconeNet, g, tensors: "TensorCache", t: dict) -> tuple[float, float, float]:
