@@ -1,4 +1,8 @@
-"""The SConE network (paper's Table 1), written as the one-pass graph that is exported.
+"""The SConE network, written as the one-pass graph that is exported.
+
+Two readings of the constellation: the paper's Table 1 (a 2-layer BiLSTM over the nearest-first members,
+`encoder="lstm"`) and a permutation-invariant set encoder (`encoder="set"`, the committed model; see
+`SetEncoder` and the experiments in BENCHMARKS.md). Both take the same inputs and give the same output.
 
 Inputs are those of a whole image, as the Rust service builds them (`src/constellation.rs`):
 
@@ -13,7 +17,7 @@ Inputs are those of a whole image, as the Rust service builds them (`src/constel
 Output `embeddings` float32 [N, 48], L2-normalised.
 
 Every normalisation happens in here, so the Rust side passes raw values and cannot drift from training:
-bits become ±1; angles become (sin, cos); u, v are divided by `UV_SCALE`; sizes become pyramid levels
+bits become ±1 (one table lookup per byte); angles become (sin, cos); u, v are divided by `UV_SCALE`; sizes become pyramid levels
 (log base 1.2 of size / 7). The descriptor MLP runs once per keypoint and neighbours are gathered by index
 (not embedded 21 times per keypoint). SELU follows every hidden fully connected layer; the last layer of
 each block is linear (the head's output is L2-normalised, the neighbourhood block feeds the head).
