@@ -68,6 +68,18 @@ def build_unit(
     return Unit(name or scene_dir.name, frames, ids)
 
 
+def shared_anchors(ida: np.ndarray, idb: np.ndarray, cap: int, rng: np.random.Generator):
+    """Landmarks seen in both frames with the keypoint that observes each in a and in b: (ids, ia, ib),
+    at most `cap` of them, drawn with `rng` when there are more."""
+    shared, ia, ib = np.intersect1d(ida, idb, return_indices=True)
+    keep = shared >= 0
+    shared, ia, ib = shared[keep], ia[keep], ib[keep]
+    if len(shared) > cap:
+        pick = rng.choice(len(shared), cap, replace=False)
+        shared, ia, ib = shared[pick], ia[pick], ib[pick]
+    return shared, ia, ib
+
+
 @dataclass
 class PairBatch:
     """One frame pair: anchors in frame a, their positives in frame b, and a pool of other keypoints of b."""
@@ -79,8 +91,6 @@ class PairBatch:
     pool: np.ndarray
     anchor_ids: np.ndarray
     pool_ids: np.ndarray
-    ids_a: np.ndarray  # landmark id of every keypoint of frame a (-1 none)
-    ids_b: np.ndarray
 
 
 class PairSampler:
@@ -110,13 +120,8 @@ class PairSampler:
 
     def sample(self) -> PairBatch:
         u, a, b = self.pairs[self.rng.choice(len(self.pairs), p=self.weights)]
-        ida, idb = u.ids[a], u.ids[b]
-        shared, ia, ib = np.intersect1d(ida, idb, return_indices=True)
-        keep = shared >= 0
-        shared, ia, ib = shared[keep], ia[keep], ib[keep]
-        if len(shared) > self.anchors:
-            pick = self.rng.choice(len(shared), self.anchors, replace=False)
-            shared, ia, ib = shared[pick], ia[pick], ib[pick]
+        idb = u.ids[b]
+        shared, ia, ib = shared_anchors(u.ids[a], idb, self.anchors, self.rng)
         nb = len(u.frames[b])
         pool = self.rng.choice(nb, min(self.pool, nb), replace=False)
         if self.near:
@@ -125,7 +130,7 @@ class PairSampler:
             fb = u.frames[b]
             near = fb.neighbours[ib, : self.near][fb.mask[ib, : self.near] > 0]
             pool = np.unique(np.concatenate([pool, near]))
-        return PairBatch(u.frames[a], u.frames[b], ia, ib, pool, shared, idb[pool], ida, idb)
+        return PairBatch(u.frames[a], u.frames[b], ia, ib, pool, shared, idb[pool])
 
 
 @dataclass

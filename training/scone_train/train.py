@@ -24,7 +24,7 @@ from tqdm import tqdm
 from . import correspondences as C
 from . import evaluate as E
 from .data import FrameFeatures, shared_data
-from .dataset import GroupSampler, PairSampler, Unit, build_unit
+from .dataset import GroupSampler, PairSampler, Unit, build_unit, shared_anchors
 from .model import SconeNet
 
 
@@ -173,12 +173,7 @@ def group_step(model: SconeNet, g, tensors: "TensorCache", t: dict) -> tuple[flo
     for i, j in g.pairs:
         fa, fb = g.frames[i], g.frames[j]
         ida, idb = u.ids[fa], u.ids[fb]
-        shared, ia, ib = np.intersect1d(ida, idb, return_indices=True)
-        keep = shared >= 0
-        shared, ia, ib = shared[keep], ia[keep], ib[keep]
-        if len(shared) > t["anchors"]:
-            pick = rng.choice(len(shared), t["anchors"], replace=False)
-            shared, ia, ib = shared[pick], ia[pick], ib[pick]
+        shared, ia, ib = shared_anchors(ida, idb, t["anchors"], rng)
         loss, dp, dn = frame_triplet_loss(
             emb[i], emb[j], u.frames[fa], u.frames[fb], ia, ib, shared, ida, idb, t["margin"], t.get("exclude_px", 2.0),
             t.get("frame_loss", "softmax"), t.get("tau", 0.05),
