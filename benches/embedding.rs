@@ -13,7 +13,7 @@ use scone::constellation;
 use scone::decode::{decode_grey, ImageLimits};
 use scone::embedding::{default_model_path, Embedder, EmbedderConfig};
 use scone::features::{self, ExtractorConfig};
-use scone::matching::{match_hamming, match_l2};
+use scone::matching::{match_hamming, match_l2, RatioTest};
 
 fn bench(c: &mut Criterion) {
     features::set_opencv_threads(1).unwrap();
@@ -41,10 +41,18 @@ fn bench(c: &mut Criterion) {
         if threads == 1 {
             let emb = e.embed(&f, &cons).unwrap();
             g.bench_function("match_scone_l2_1000x1000", |b| {
-                b.iter(|| match_l2(black_box(&emb), &emb, e.dim(), 0.8, false).unwrap())
+                b.iter(|| match_l2(black_box(&emb), &emb, e.dim(), &RatioTest::plain(0.8), &[]).unwrap())
             });
             g.bench_function("match_freak_hamming_1000x1000", |b| {
-                b.iter(|| match_hamming(black_box(&f), &f, 0.8, false).unwrap())
+                b.iter(|| match_hamming(black_box(&f), &f, &RatioTest::plain(0.8)).unwrap())
+            });
+            // The project's default ratio test looks past same-corner candidates (10 neighbours instead of 2).
+            let points = f.points();
+            g.bench_function("match_scone_l2_same_corner_1000x1000", |b| {
+                b.iter(|| match_l2(black_box(&emb), &emb, e.dim(), &RatioTest::new(0.8), &points).unwrap())
+            });
+            g.bench_function("match_freak_hamming_same_corner_1000x1000", |b| {
+                b.iter(|| match_hamming(black_box(&f), &f, &RatioTest::new(0.8)).unwrap())
             });
         }
     }

@@ -137,6 +137,11 @@ impl Features {
         self.keypoints.is_empty()
     }
 
+    /// Keypoint positions `(x, y)` in pixels, in keypoint order.
+    pub fn points(&self) -> Vec<(f32, f32)> {
+        self.keypoints.iter().map(|k| (k.x, k.y)).collect()
+    }
+
     /// Descriptors as an OpenCV matrix [N, 64] of u8, for OpenCV's matchers.
     pub fn descriptor_mat(&self) -> Result<Mat, FeatureError> {
         if self.descriptors.is_empty() {

@@ -146,9 +146,16 @@ enum EvalCommand {
         /// Keep only mutual nearest neighbours.
         #[arg(long)]
         mutual: bool,
+        /// Ratio test: candidates within this many pixels of the nearest neighbour's keypoint are the same
+        /// corner, not competitors (0 = OpenCV's plain test). Default 2, or 0 with --single-scale.
+        #[arg(long)]
+        same_corner_px: Option<f32>,
         /// RANSAC inlier threshold in pixels.
         #[arg(long, default_value_t = 1.0)]
         ransac_px: f64,
+        /// Essential-matrix estimator. Default usac-accurate, or ransac with --single-scale.
+        #[arg(long, value_enum)]
+        essential: Option<scone::pose::EssentialMethod>,
         /// Match precision: a match with depth at the reference keypoint is correct within this many pixels.
         #[arg(long, default_value_t = 4.0)]
         depth_px: f64,
@@ -406,13 +413,27 @@ fn main() -> anyhow::Result<()> {
             seeds,
             ratio,
             mutual,
+            same_corner_px,
             ransac_px,
+            essential,
             depth_px,
             epipolar_px,
             single_scale,
             report: out,
             extractor,
         }) => {
+            // --single-scale is OpenCV's own pipeline, plain ratio test and plain RANSAC included.
+            let essential = essential.unwrap_or(if single_scale {
+                scone::pose::EssentialMethod::Ransac
+            } else {
+                scone::pose::EssentialMethod::UsacAccurate
+            });
+            let same_corner_px =
+                same_corner_px.unwrap_or(if single_scale { 0.0 } else { scone::matching::SAME_CORNER_PX });
+            anyhow::ensure!(
+                same_corner_px.is_finite() && same_corner_px >= 0.0,
+                "--same-corner-px must be a finite number >= 0"
+            );
             let mut cfg = extractor.config()?;
             if single_scale {
                 cfg = ExtractorConfig::single_scale(20, 2000);
@@ -425,7 +446,8 @@ fn main() -> anyhow::Result<()> {
                 seeds,
                 ratio,
                 mutual,
-                ransac: scone::pose::RansacParams { threshold_px: ransac_px, ..Default::default() },
+                same_corner_px,
+                ransac: scone::pose::RansacParams { threshold_px: ransac_px, essential, ..Default::default() },
                 extractor: cfg,
                 depth_px,
                 epipolar_px,

@@ -22,7 +22,7 @@ use crate::map::builder::{Depth, ExternalObservation, KeyframeInput};
 use crate::map::localize::{LandmarkMatch, Prior};
 use crate::map::model::Pose;
 use crate::map::store::{KeyframeAdded, MapStore, MapSummary};
-use crate::matching::{match_l2, Match};
+use crate::matching::{match_l2, Match, RatioTest, SAME_CORNER_PX};
 use crate::pipeline::{DescribeError, Describer};
 use crate::pose::{relative_pose, validate_camera, AbsolutePose, RansacParams, RelativePose};
 use crate::scene::Camera;
@@ -78,7 +78,8 @@ pub struct Description {
     pub times: StageTimes,
 }
 
-/// Pair matching settings a client may choose.
+/// Pair matching settings a client may choose. The ratio test's same-corner radius is the project's
+/// default ([`crate::matching::SAME_CORNER_PX`]).
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct PairOptions {
     pub ratio: f32,
@@ -397,8 +398,9 @@ impl Service {
                 None => times.0.push((s, *t)),
             }
         }
+        let test = RatioTest { ratio: options.ratio, mutual: options.mutual, same_corner_px: SAME_CORNER_PX };
         let matches =
-            times.time("match", || match_l2(&d1.embeddings, &d2.embeddings, d1.dim, options.ratio, options.mutual))?;
+            times.time("match", || match_l2(&d1.embeddings, &d2.embeddings, d1.dim, &test, &d2.features.points()))?;
         let p1: Vec<(f32, f32)> = matches.iter().map(|m| d1.features.keypoints[m.query]).map(|k| (k.x, k.y)).collect();
         let p2: Vec<(f32, f32)> = matches.iter().map(|m| d2.features.keypoints[m.train]).map(|k| (k.x, k.y)).collect();
         let pose = times.time("pose", || relative_pose(&p1, &p2, &cam1, &cam2, &self.ransac))?;

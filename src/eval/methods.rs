@@ -13,7 +13,7 @@ use crate::decode::GreyImage;
 use crate::embedding::Embedder;
 use crate::error::FeatureError;
 use crate::features::{self, ExtractorConfig, Keypoint};
-use crate::matching::{embedding_mat, match_descriptors, Match};
+use crate::matching::{embedding_mat, match_descriptors, Match, RatioTest};
 
 /// A description method.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Serialize, Deserialize, clap::ValueEnum)]
@@ -112,19 +112,19 @@ pub fn describe(
     })
 }
 
-/// Putative matches of `a` to `b`: ratio test (and mutual check) for every method but FREAK+GMS, which takes
-/// every nearest neighbour and keeps those GMS supports (rotation and scale enabled, threshold factor 6).
+/// Putative matches of `a` to `b`: `test` for every method but FREAK+GMS, which takes every nearest neighbour
+/// and keeps those GMS supports (rotation and scale enabled, threshold factor 6).
 pub fn putative_matches(
     method: Method,
     a: &Described,
     b: &Described,
-    ratio: f32,
-    mutual: bool,
+    test: &RatioTest,
 ) -> Result<Vec<Match>, FeatureError> {
+    let b_points: Vec<(f32, f32)> = b.keypoints.iter().map(|k| (k.x, k.y)).collect();
     if method != Method::FreakGms {
-        return match_descriptors(&a.descriptors, &b.descriptors, a.norm, ratio, mutual);
+        return match_descriptors(&a.descriptors, &b.descriptors, a.norm, test, &b_points);
     }
-    let all = match_descriptors(&a.descriptors, &b.descriptors, a.norm, 1.01, false)?;
+    let all = match_descriptors(&a.descriptors, &b.descriptors, a.norm, &RatioTest::plain(1.01), &[])?;
     let dm: Vector<opencv::core::DMatch> = all
         .iter()
         .map(|m| opencv::core::DMatch::new(m.query as i32, m.train as i32, m.distance))

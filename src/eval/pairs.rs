@@ -25,6 +25,7 @@ use super::{accuracy, auc, median};
 use crate::decode::{decode_depth_png, decode_grey, ImageLimits};
 use crate::embedding::Embedder;
 use crate::features::ExtractorConfig;
+use crate::matching::RatioTest;
 use crate::pose::{
     ransac_iterations_needed, relative_motion, relative_pose, rotation_error_deg, translation_angle_deg, RansacParams,
 };
@@ -40,6 +41,10 @@ pub struct PairsConfig {
     pub seeds: u64,
     pub ratio: f32,
     pub mutual: bool,
+    /// The ratio test's same-corner radius in pixels (`matching::RatioTest`); 0 = OpenCV's plain test, which
+    /// reports written before the option existed used.
+    #[serde(default)]
+    pub same_corner_px: f32,
     pub ransac: RansacParams,
     pub depth_px: f64,
     pub epipolar_px: f64,
@@ -54,6 +59,7 @@ impl Default for PairsConfig {
             seeds: 5,
             ratio: 0.8,
             mutual: false,
+            same_corner_px: crate::matching::SAME_CORNER_PX,
             ransac: RansacParams::default(),
             depth_px: 4.0,
             epipolar_px: 2.0,
@@ -223,7 +229,8 @@ pub fn evaluate(scene: &Scene, cfg: &PairsConfig, embedder: Option<&Embedder>) -
         for &(i, j) in &pairs {
             let (a, b) = (&described[&i], &described[&j]);
             let t0 = Instant::now();
-            let matches = putative_matches(method, a, b, cfg.ratio, cfg.mutual)?;
+            let test = RatioTest { ratio: cfg.ratio, mutual: cfg.mutual, same_corner_px: cfg.same_corner_px };
+            let matches = putative_matches(method, a, b, &test)?;
             let match_seconds = t0.elapsed().as_secs_f64();
             let t_w1 = scene.frames[i].pose.expect("filtered");
             let t_w2 = scene.frames[j].pose.expect("filtered");
@@ -340,12 +347,14 @@ fn summarise(method: Method, records: &[PairRecord], seeds: usize, describe_seco
 /// The summaries as a markdown table.
 pub fn markdown(report: &PairsReport) -> String {
     let mut s = format!(
-        "{} ({} pairs, window {}, {} seeds, ratio {}, RANSAC {} px)\n\n",
+        "{} ({} pairs, window {}, {} seeds, ratio {}, same-corner radius {} px, {:?} {} px)\n\n",
         report.scene,
         report.summaries.first().map(|m| m.pairs).unwrap_or(0),
         report.config.window,
         report.config.seeds,
         report.config.ratio,
+        report.config.same_corner_px,
+        report.config.ransac.essential,
         report.config.ransac.threshold_px
     );
     s.push_str("| method | AUC@5 | AUC@10 | AUC@20 | acc@5 | acc@10 | acc@20 | med. rot | med. trans | fail | matches | match precision | RANSAC iters needed (median) | describe ms | match ms |\n");

@@ -51,7 +51,7 @@ use serde::{Deserialize, Serialize};
 use crate::error::MapError;
 use crate::features::Features;
 use crate::map::model::{Keyframe, MapData, NewObservation, Pose, Record};
-use crate::matching::match_l2;
+use crate::matching::{match_l2, RatioTest};
 use crate::scene::Camera;
 
 /// Settings of map building.
@@ -311,7 +311,9 @@ pub fn plan(data: &MapData, input: &KeyframeInput, params: &BuildParams) -> Resu
     let mut to_triangulate: Vec<(&Keyframe, usize, usize)> = Vec::new();
 
     for cand in &candidates {
-        let matches = match_l2(input.embeddings, &cand.embeddings, dim, params.ratio, true)?;
+        // OpenCV's plain ratio test with the mutual check: the maps' figures (issue 5) were measured with it.
+        let test = RatioTest { ratio: params.ratio, mutual: true, same_corner_px: 0.0 };
+        let matches = match_l2(input.embeddings, &cand.embeddings, dim, &test, &[])?;
         for m in matches {
             let (a, b) = (m.query, m.train as u32);
             if assigned.contains_key(&(a as u32)) {

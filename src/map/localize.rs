@@ -33,7 +33,7 @@ impl Default for LocalizeParams {
         Self {
             ratio: 0.8,
             knn: 4,
-            ransac: RansacParams { threshold_px: 4.0, confidence: 0.999, max_iters: 2000 },
+            ransac: RansacParams { threshold_px: 4.0, confidence: 0.999, max_iters: 2000, ..Default::default() },
             min_inliers: 15,
         }
     }

@@ -8,7 +8,7 @@ use opencv::{calib3d, imgproc};
 use scone::constellation::{self, wrap_angle};
 use scone::decode::{decode_grey, GreyImage, ImageLimits};
 use scone::features::{extract, ExtractorConfig, Features};
-use scone::matching::match_hamming;
+use scone::matching::{match_hamming, RatioTest};
 
 use crate::common::{fixture, shared_data};
 
@@ -131,7 +131,7 @@ fn graffiti_matches(dir: &std::path::Path, n: u32, cfg: &ExtractorConfig) -> (us
     let a = extract(&load(&dir.join("1.png")), cfg).unwrap();
     let b = extract(&load(&dir.join(format!("{n}.png"))), cfg).unwrap();
     let h = read_homography(&dir.join(format!("H_1_{n}")));
-    let matches = match_hamming(&a, &b, 0.8, false).unwrap();
+    let matches = match_hamming(&a, &b, &RatioTest::plain(0.8)).unwrap();
     let good = matches
         .iter()
         .filter(|m| {
@@ -171,7 +171,7 @@ fn graffiti_homography_estimate_matches_ground_truth() {
     let cfg = ExtractorConfig::default();
     let a = extract(&load(&dir.join("1.png")), &cfg).unwrap();
     let b = extract(&load(&dir.join("2.png")), &cfg).unwrap();
-    let matches = match_hamming(&a, &b, 0.8, false).unwrap();
+    let matches = match_hamming(&a, &b, &RatioTest::plain(0.8)).unwrap();
     let src: Vector<Point2f> =
         matches.iter().map(|m| Point2f::new(a.keypoints[m.query].x, a.keypoints[m.query].y)).collect();
     let dst: Vector<Point2f> =

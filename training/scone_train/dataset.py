@@ -96,7 +96,12 @@ class PairBatch:
 class PairSampler:
     """Draws frame pairs (weighted by their shared landmarks) and, per pair, anchors with their positives."""
 
-    def __init__(self, units: list[Unit], anchors: int, pool: int, seed: int, min_shared: int = 8, near: int = 0):
+    def __init__(self, units: list[Unit], anchors: int, pool: int, seed: int, min_shared: int = 8, near: int = 0,
+                 weight: str = "shared"):
+        """`weight`: "shared" draws a pair in proportion to its shared landmarks (capped at `anchors`);
+        "uniform" draws every pair with at least `min_shared` alike, which gives wide baselines more weight."""
+        if weight not in ("shared", "uniform"):
+            raise ValueError(f"unknown pair weight {weight!r}")
         self.anchors = anchors
         self.pool = pool
         self.near = near
@@ -112,7 +117,7 @@ class PairSampler:
                     shared = len(np.intersect1d(ids_a, u.ids[b], assume_unique=False))
                     if shared >= min_shared:
                         self.pairs.append((u, a, b))
-                        weights.append(min(shared, anchors))
+                        weights.append(min(shared, anchors) if weight == "shared" else 1)
         if not self.pairs:
             raise RuntimeError("no frame pair with enough shared landmarks")
         w = np.asarray(weights, dtype=np.float64)
@@ -147,8 +152,8 @@ class GroupSampler:
     with the first. Each frame is embedded once per step and every pair of the group contributes, so the
     whole-frame negatives cost one embedding per frame rather than one per pair."""
 
-    def __init__(self, units: list[Unit], size: int, seed: int, min_shared: int = 8):
-        self.pairs = PairSampler(units, anchors=128, pool=0, seed=seed, min_shared=min_shared)
+    def __init__(self, units: list[Unit], size: int, seed: int, min_shared: int = 8, weight: str = "shared"):
+        self.pairs = PairSampler(units, anchors=128, pool=0, seed=seed, min_shared=min_shared, weight=weight)
         self.rng = self.pairs.rng
         self.size = size
         self.partners: dict[tuple[int, int], list[int]] = {}

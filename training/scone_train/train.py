@@ -163,13 +163,37 @@ def frame_triplet_loss(ea_all, eb_all, fa, fb, ia, ib, lid, ida, idb, margin: fl
     return sum(terms), d_pos.detach().mean().item(), neg[ok].detach().mean().item()
 
 
+def augment_constellations(inputs: tuple, affine: float, drop: float, rng: np.random.Generator) -> tuple:
+    """A copy of one frame's model inputs with each constellation distorted as a change of viewpoint distorts
+    it: the members' offsets (u, v) go through a random affine map R(phi) diag(s1, s2) R(-phi) per keypoint,
+    ln s uniform in [-affine, affine] (foreshortening and scale), and each real member is dropped with
+    probability `drop` (a neighbour the detector misses in the other view)."""
+    desc, kps, nbr, mask, rel = inputs
+    n, k = mask.shape
+    rel, mask = rel.clone(), mask.clone()
+    if affine > 0:
+        phi = rng.uniform(0, math.pi, n)
+        s = np.exp(rng.uniform(-affine, affine, (n, 2)))
+        c, si = np.cos(phi), np.sin(phi)
+        R = np.stack([np.stack([c, -si], -1), np.stack([si, c], -1)], -2)  # [n, 2, 2]
+        A = R @ (s[:, :, None] * np.transpose(R, (0, 2, 1)))
+        rel[:, :, :2] = torch.einsum("nij,nkj->nki", torch.from_numpy(A).float(), rel[:, :, :2])
+    if drop > 0:
+        mask = mask * torch.from_numpy((rng.random((n, k)) >= drop).astype(np.float32))
+    return desc, kps, nbr, mask, rel
+
+
 def group_step(model: SconeNet, g, tensors: "TensorCache", t: dict) -> tuple[float, float, float]:
     """Embeds every frame of the group once and backpropagates the whole-frame triplet loss of all its pairs,
     each pair's anchors capped at `anchors` (drawn at random). Returns (loss, mean D+, mean D-)."""
     u = g.unit
-    emb = [model(*tensors.get(u.frames[f])) for f in g.frames]
-    losses, dps, dns = [], [], []
     rng = np.random.default_rng(int(torch.randint(0, 2**31 - 1, (1,)).item()))
+    aff, drop = t.get("augment_affine", 0.0), t.get("augment_drop", 0.0)
+    inputs = [tensors.get(u.frames[f]) for f in g.frames]
+    if aff > 0 or drop > 0:
+        inputs = [augment_constellations(x, aff, drop, rng) for x in inputs]
+    emb = [model(*x) for x in inputs]
+    losses, dps, dns = [], [], []
     for i, j in g.pairs:
         fa, fb = g.frames[i], g.frames[j]
         ida, idb = u.ids[fa], u.ids[fb]
@@ -280,7 +304,7 @@ def train(cfg: dict, run_dir: Path, steps: int | None = None, units=None) -> Pat
     )
     grouped = t.get("loss", "contrastive") == "triplet_frames"
     if grouped:
-        sampler = GroupSampler(train_units, t.get("group_frames", 4), seed=cfg["seed"])
+        sampler = GroupSampler(train_units, t.get("group_frames", 4), seed=cfg["seed"], weight=t.get("pair_weight", "shared"))
     else:
         sampler = PairSampler(train_units, t["anchors"], t["pool"], seed=cfg["seed"], near=t.get("near_negatives", 0))
     gen = torch.Generator().manual_seed(cfg["seed"])

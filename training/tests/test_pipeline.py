@@ -209,3 +209,35 @@ def test_frame_loss_prefers_the_true_positive():
         shuffled = np.roll(ia, 1)
         bad, _, _ = frame_triplet_loss(emb, emb, fa, fb, ia, shuffled, ids[ia], ids, ids, 0.5, 0.0, kind)
         assert good.item() < bad.item(), kind
+
+
+def test_pair_weights_shared_or_uniform(tiny_unit):
+    # anchors (the cap on a pair's weight) above every pair's shared count: weights follow the shared landmarks
+    shared = PairSampler([tiny_unit], anchors=10**6, pool=0, seed=0, min_shared=4)
+    uniform = PairSampler([tiny_unit], anchors=10**6, pool=0, seed=0, min_shared=4, weight="uniform")
+    assert len(shared.pairs) == len(uniform.pairs) > 1
+    assert np.allclose(uniform.weights, 1.0 / len(uniform.pairs))
+    counts = np.array([len(np.intersect1d(u.ids[a][u.ids[a] >= 0], u.ids[b])) for u, a, b in shared.pairs], float)
+    assert np.allclose(shared.weights, counts / counts.sum()) and counts.std() > 0
+    with pytest.raises(ValueError):
+        PairSampler([tiny_unit], anchors=128, pool=0, seed=0, weight="angle")
+
+
+def test_constellation_augmentation_distorts_offsets_and_drops_only_real_members():
+    from scone_train.train import augment_constellations
+
+    rng = np.random.default_rng(0)
+    n, k = 50, 20
+    rel = torch.from_numpy(rng.normal(size=(n, k, 4)).astype(np.float32))
+    mask = torch.ones(n, k)
+    mask[:, 15:] = 0
+    rel[:, 15:] = 0
+    x = (torch.zeros(n, 64, dtype=torch.uint8), torch.zeros(n, 2), torch.zeros(n, k, dtype=torch.int64), mask, rel)
+    same = augment_constellations(x, 0.0, 0.0, np.random.default_rng(1))
+    assert torch.equal(same[4], rel) and torch.equal(same[3], mask)
+    out = augment_constellations(x, 0.4, 0.2, np.random.default_rng(1))
+    assert torch.equal(x[4], rel) and torch.equal(x[3], mask), "inputs must not change (they are cached)"
+    ratio = out[4][:, :15, :2].norm(dim=-1) / rel[:, :15, :2].norm(dim=-1)
+    assert ratio.min() >= np.exp(-0.4) - 1e-5 and ratio.max() <= np.exp(0.4) + 1e-5 and ratio.std() > 0.05
+    assert torch.equal(out[4][..., 2:], rel[..., 2:]) and torch.equal(out[4][:, 15:], rel[:, 15:])
+    assert torch.all(out[3][:, 15:] == 0) and 0.7 < out[3][:, :15].mean() < 0.9
