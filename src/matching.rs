@@ -2,8 +2,8 @@
 //!
 //! The ratio test compares the nearest descriptor with the nearest *competitor*. With OpenCV's plain test
 //! (`same_corner_px = 0`) the competitor is the second-nearest descriptor. On a pyramid detector that is often
-//! the same corner found again on another level, a pixel or two away: on kitti-clip2 the project's extractor
-//! gives 1,164 keypoint pairs within 2 px per frame of 1,500 keypoints. Such a pair is not an ambiguity, and a
+//! the same corner found again on another level, a pixel or two away: on castle-P30 the project's extractor
+//! gives 1,140 keypoint pairs within 2 px per frame of 1,500 keypoints. Such a pair is not an ambiguity, and a
 //! match to either is correct, so with `same_corner_px > 0` candidates whose keypoint lies within that radius of
 //! the nearest one's are skipped and the ratio is taken against the nearest candidate beyond it. SConE is
 //! trained on the same rule: keypoints within 2 px of the positive are not negatives (`exclude_px`).

@@ -19,6 +19,7 @@ class Unit:
     name: str
     frames: list[FrameFeatures]
     ids: list[np.ndarray]  # landmark id per keypoint, -1 none
+    real: bool = False  # photographs (castle-P30) rather than rendered frames
 
     def observations(self) -> int:
         return int(sum((i >= 0).sum() for i in self.ids))
@@ -152,8 +153,19 @@ class GroupSampler:
     with the first. Each frame is embedded once per step and every pair of the group contributes, so the
     whole-frame negatives cost one embedding per frame rather than one per pair."""
 
-    def __init__(self, units: list[Unit], size: int, seed: int, min_shared: int = 8, weight: str = "shared"):
+    def __init__(self, units: list[Unit], size: int, seed: int, min_shared: int = 8, weight: str = "shared",
+                 real_share: float = 0.0):
+        """`real_share` > 0: that share of the groups comes from real units (`Unit.real`), the rest from
+        rendered ones; within each part pairs are drawn by `weight`. 0 draws from all pairs alike, which gives
+        the real scene about 1 % of the groups next to 36 rendered sequences."""
         self.pairs = PairSampler(units, anchors=128, pool=0, seed=seed, min_shared=min_shared, weight=weight)
+        self.real_share = real_share
+        if real_share > 0:
+            real = np.array([u.real for u, _, _ in self.pairs.pairs])
+            if real.all() or not real.any():
+                raise ValueError("real_share needs both real and rendered frame pairs")
+            w = self.pairs.weights
+            self.parts = [(np.nonzero(sel)[0], w[sel] / w[sel].sum()) for sel in (~real, real)]
         self.rng = self.pairs.rng
         self.size = size
         self.partners: dict[tuple[int, int], list[int]] = {}
@@ -162,7 +174,11 @@ class GroupSampler:
         self.min_shared = min_shared
 
     def sample(self) -> FrameGroup:
-        u, a, b = self.pairs.pairs[self.rng.choice(len(self.pairs.pairs), p=self.pairs.weights)]
+        if self.real_share > 0:
+            idx, p = self.parts[int(self.rng.random() < self.real_share)]
+            u, a, b = self.pairs.pairs[idx[self.rng.choice(len(idx), p=p)]]
+        else:
+            u, a, b = self.pairs.pairs[self.rng.choice(len(self.pairs.pairs), p=self.pairs.weights)]
         others = [f for f in self.partners[(id(u), a)] if f != b]
         extra = list(self.rng.choice(others, min(self.size - 2, len(others)), replace=False)) if others else []
         frames = [a, b, *[int(f) for f in extra]]

@@ -53,7 +53,12 @@ def load_units(cfg: dict, rendered_root: Path | None = None) -> tuple[list[Unit]
         if castle.is_dir():
             cut = d["castle_train_frames"]
             total = len([line for line in (castle / "rgb.txt").read_text().splitlines() if line and line[0] != "#"])
-            train.append(build_unit(castle, cache / "real", list(range(cut)), C.GeometryParams(), "castle-train"))
+            # castle_window: link frames (and look for third views) at most this many frames apart. With all 20
+            # training frames (0), chance third-view hits make nearly every link ambiguous: 23 observations
+            # per frame and 12 usable pairs, against 188 and 166 with a window of 3.
+            geo = C.GeometryParams(window=d.get("castle_window", 0))
+            train.append(build_unit(castle, cache / "real", list(range(cut)), geo, "castle-train"))
+            train[-1].real = True
             select.append(build_unit(castle, cache / "real", list(range(cut, total)), C.GeometryParams(), "castle-sel"))
     return train, select
 
@@ -304,7 +309,8 @@ def train(cfg: dict, run_dir: Path, steps: int | None = None, units=None) -> Pat
     )
     grouped = t.get("loss", "contrastive") == "triplet_frames"
     if grouped:
-        sampler = GroupSampler(train_units, t.get("group_frames", 4), seed=cfg["seed"], weight=t.get("pair_weight", "shared"))
+        sampler = GroupSampler(train_units, t.get("group_frames", 4), seed=cfg["seed"], weight=t.get("pair_weight", "shared"),
+                               real_share=t.get("real_share", 0.0))
     else:
         sampler = PairSampler(train_units, t["anchors"], t["pool"], seed=cfg["seed"], near=t.get("near_negatives", 0))
     gen = torch.Generator().manual_seed(cfg["seed"])

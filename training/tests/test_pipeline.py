@@ -241,3 +241,16 @@ def test_constellation_augmentation_distorts_offsets_and_drops_only_real_members
     assert ratio.min() >= np.exp(-0.4) - 1e-5 and ratio.max() <= np.exp(0.4) + 1e-5 and ratio.std() > 0.05
     assert torch.equal(out[4][..., 2:], rel[..., 2:]) and torch.equal(out[4][:, 15:], rel[:, 15:])
     assert torch.all(out[3][:, 15:] == 0) and 0.7 < out[3][:, :15].mean() < 0.9
+
+
+def test_group_sampler_real_share(tiny_unit):
+    from dataclasses import replace
+
+    from scone_train.dataset import GroupSampler
+
+    real = replace(tiny_unit, name="real", real=True)
+    s = GroupSampler([tiny_unit, real], size=3, seed=0, min_shared=4, real_share=0.25)
+    share = np.mean([s.sample().unit.real for _ in range(2000)])
+    assert 0.2 < share < 0.3
+    with pytest.raises(ValueError):
+        GroupSampler([tiny_unit], size=3, seed=0, min_shared=4, real_share=0.25)
