@@ -74,7 +74,9 @@ fn bench(c: &mut Criterion) {
 
 /// `n` correspondences between two views of random points 4-8 m ahead (0.5 m baseline, 5° yaw), 0.3 px
 /// noise, a share `outliers` of them replaced by random pixels.
-fn synthetic_pair(n: usize, outliers: f64) -> (Vec<(f32, f32)>, Vec<(f32, f32)>) {
+type Points = Vec<(f32, f32)>;
+
+fn synthetic_pair(n: usize, outliers: f64) -> (Points, Points) {
     use rand::{Rng, SeedableRng};
     let mut rng = rand::rngs::StdRng::seed_from_u64(7);
     let (yaw, tx) = (5f64.to_radians(), 0.5);
