@@ -26,9 +26,9 @@ pub struct Match {
 /// The project's default radius for [`RatioTest::same_corner_px`]: the training loss's `exclude_px`.
 pub const SAME_CORNER_PX: f32 = 2.0;
 
-/// Candidates examined for a competitor beyond the same-corner radius. A corner is found on at most one
-/// keypoint per pyramid level, so 10 covers the default six levels; when all of them are the same corner the
-/// last one's distance stands in, which can only make the test stricter.
+/// Candidates examined for a competitor beyond the same-corner radius. FAST's non-maximum suppression leaves
+/// a corner about one keypoint per pyramid level, so 10 covers the default six levels with room to spare; when
+/// all of them are the same corner the last one's distance stands in, which can only make the test stricter.
 const SAME_CORNER_CANDIDATES: i32 = 10;
 
 /// Lowe's ratio test and the checks around it.

@@ -1,4 +1,4 @@
-//! Pose estimation with OpenCV: relative pose from an essential matrix (RANSAC + recoverPose) and absolute
+//! Pose estimation with OpenCV: relative pose from an essential matrix (USAC or RANSAC + recoverPose) and absolute
 //! camera pose from 2D-3D matches (solvePnPRansac + Levenberg-Marquardt refinement on the inliers).
 //!
 //! Conventions: a relative pose `(R, t)` maps points of camera 1 into camera 2, `X2 = R X1 + t`, with `t` of
@@ -101,8 +101,8 @@ fn mat3(m: &Mat) -> Result<Matrix3<f64>, PoseError> {
     Ok(out)
 }
 
-/// Essential matrix with RANSAC on normalised coordinates (threshold converted by the mean focal length),
-/// then recoverPose. `None` when fewer than 5 correspondences or no pose has support.
+/// Essential matrix by `params.essential` on normalised coordinates (threshold converted by the mean focal
+/// length), then recoverPose. `None` when fewer than 5 correspondences or no pose has support.
 pub fn relative_pose(
     p1: &[(f32, f32)],
     p2: &[(f32, f32)],

@@ -120,8 +120,8 @@ pub fn putative_matches(
     b: &Described,
     test: &RatioTest,
 ) -> Result<Vec<Match>, FeatureError> {
-    let b_points: Vec<(f32, f32)> = b.keypoints.iter().map(|k| (k.x, k.y)).collect();
     if method != Method::FreakGms {
+        let b_points: Vec<(f32, f32)> = b.keypoints.iter().map(|k| (k.x, k.y)).collect();
         return match_descriptors(&a.descriptors, &b.descriptors, a.norm, test, &b_points);
     }
     let all = match_descriptors(&a.descriptors, &b.descriptors, a.norm, &RatioTest::plain(1.01), &[])?;
