@@ -431,10 +431,7 @@ mod tests {
 
     #[test]
     fn a_model_on_disk_reads_and_its_references_are_checked() {
-        let dir =
-            std::env::temp_dir().join(format!("scone-colmap-{}-{:?}", std::process::id(), std::thread::current().id()));
-        let _ = std::fs::remove_dir_all(&dir);
-        std::fs::create_dir_all(&dir).unwrap();
+        let dir = crate::map::tests::temp_dir("colmap");
         std::fs::write(dir.join("cameras.txt"), "1 PINHOLE 320 240 250 250 160 120\n").unwrap();
         std::fs::write(dir.join("images.txt"), IMAGES).unwrap();
         std::fs::write(dir.join("points3D.txt"), "7 -1 2 3 10 20 30 0.4 1 0\n").unwrap();
@@ -450,6 +447,5 @@ mod tests {
         std::fs::write(dir.join("cameras.txt"), "2 PINHOLE 320 240 250 250 160 120\n").unwrap();
         let e = ColmapModel::read(&dir).unwrap_err().to_string();
         assert!(e.contains("images.txt:3") && e.contains("camera 1"), "{e}");
-        std::fs::remove_dir_all(&dir).unwrap();
     }
 }

@@ -209,8 +209,7 @@ mod tests {
 
     #[test]
     fn loads_a_tum_layout_with_offset_stamps() {
-        let dir = std::env::temp_dir().join(format!("scone-scene-{}", std::process::id()));
-        std::fs::create_dir_all(&dir).unwrap();
+        let dir = crate::map::tests::temp_dir("scene");
         std::fs::write(dir.join("camera.txt"), "# fx fy cx cy w h\n500 500 320 240 640 480\n").unwrap();
         std::fs::write(dir.join("rgb.txt"), "# c\n1305031102.175304 rgb/a.png\n1305031102.211214 rgb/b.png\n").unwrap();
         std::fs::write(dir.join("depth.txt"), "1305031102.160407 depth/a.png\n").unwrap();
@@ -228,6 +227,5 @@ mod tests {
         assert!((p.rotation.angle() - std::f64::consts::FRAC_PI_2).abs() < 1e-6);
         std::fs::write(dir.join("groundtruth.txt"), "1 0 0 0 0 0 0 2\n").unwrap();
         assert!(matches!(Scene::load(&dir), Err(SceneError::Parse { line: 1, .. })));
-        std::fs::remove_dir_all(&dir).unwrap();
     }
 }

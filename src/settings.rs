@@ -270,8 +270,7 @@ mod tests {
 
     #[test]
     fn layers_apply_in_order_file_env_flags() {
-        let dir = std::env::temp_dir().join(format!("scone-settings-{}", std::process::id()));
-        std::fs::create_dir_all(&dir).unwrap();
+        let dir = crate::map::tests::temp_dir("settings");
         let file = dir.join("scone.toml");
         std::fs::write(
             &file,
@@ -348,8 +347,7 @@ mod tests {
 
     #[test]
     fn keys_file_lines_are_parsed_and_bad_lines_named() {
-        let dir = std::env::temp_dir().join(format!("scone-keys-{}", std::process::id()));
-        std::fs::create_dir_all(&dir).unwrap();
+        let dir = crate::map::tests::temp_dir("keys");
         let f = dir.join("keys");
         std::fs::write(&f, "# comment\nwrite aaaaaaaaaaaaaaaa\nread bbbbbbbbbbbbbbbb # phone\n").unwrap();
         let mut s = Settings::default();

@@ -19,4 +19,4 @@ pub mod object_storage;
 pub mod storage;
 pub mod store;
 #[cfg(test)]
-mod tests;
+pub(crate) mod tests;

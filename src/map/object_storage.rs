@@ -846,7 +846,8 @@ mod tests {
     #[test]
     fn the_backend_can_be_called_from_spawn_blocking() {
         let mem = Arc::new(InMemory::new());
-        let b = Arc::new(backend(&mem, &temp_dir("objects-blocking"), 0));
+        let cache = temp_dir("objects-blocking");
+        let b = Arc::new(backend(&mem, &cache, 0));
         let rt = tokio::runtime::Builder::new_multi_thread().worker_threads(1).build().unwrap();
         let b2 = Arc::clone(&b);
         let listed = rt.block_on(async move { tokio::task::spawn_blocking(move || b2.list()).await.unwrap() });
@@ -859,7 +860,8 @@ mod tests {
     #[should_panic(expected = "Cannot start a runtime from within a runtime")]
     fn calling_the_backend_on_an_async_worker_panics() {
         let mem = Arc::new(InMemory::new());
-        let b = backend(&mem, &temp_dir("objects-async"), 0);
+        let cache = temp_dir("objects-async");
+        let b = backend(&mem, &cache, 0);
         let rt = tokio::runtime::Builder::new_current_thread().build().unwrap();
         rt.block_on(async move {
             let _ = b.list();

@@ -1,6 +1,6 @@
 //! Unit tests of the map data, storage and index.
 
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 
 use crate::features::{Keypoint, DESCRIPTOR_BYTES};
 use crate::map::index::{exact_search, EmbeddingIndex, IndexParams};
@@ -8,11 +8,30 @@ use crate::map::model::{Keyframe, MapData, MapMeta, NewObservation, Pose, Record
 use crate::map::storage::{decode_snapshot, encode_snapshot, MapLog};
 use crate::scene::Camera;
 
-pub(crate) fn temp_dir(name: &str) -> PathBuf {
-    let d = std::env::temp_dir().join(format!("scone-{name}-{}-{:?}", std::process::id(), std::thread::current().id()));
-    let _ = std::fs::remove_dir_all(&d);
-    std::fs::create_dir_all(&d).unwrap();
-    d
+/// A fresh directory under the system temp dir, removed with everything in it when dropped.
+pub(crate) struct TestDir(tempfile::TempDir);
+
+impl std::ops::Deref for TestDir {
+    type Target = Path;
+    fn deref(&self) -> &Path {
+        self.0.path()
+    }
+}
+
+impl AsRef<Path> for TestDir {
+    fn as_ref(&self) -> &Path {
+        self.0.path()
+    }
+}
+
+impl AsRef<std::ffi::OsStr> for TestDir {
+    fn as_ref(&self) -> &std::ffi::OsStr {
+        self.0.path().as_os_str()
+    }
+}
+
+pub(crate) fn temp_dir(name: &str) -> TestDir {
+    TestDir(tempfile::Builder::new().prefix(&format!("scone-{name}-")).tempdir().unwrap())
 }
 
 fn meta(dim: usize) -> MapMeta {
@@ -83,7 +102,7 @@ fn log_replays_to_the_same_map() {
 }
 
 /// A map directory with two logged keyframe records (10 observations each, dimension 8).
-fn logged_map(name: &str) -> PathBuf {
+fn logged_map(name: &str) -> TestDir {
     let dir = temp_dir(name);
     let mut data = MapData::new(meta(8));
     let mut log = MapLog::create(&dir, &data, 0).unwrap();

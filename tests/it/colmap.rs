@@ -22,7 +22,7 @@ use scone::pipeline::Describer;
 use scone::pose::rotation_error_deg;
 use scone::scene::{Camera, Scene};
 
-use crate::common::fixture;
+use crate::common::{fixture, temp_dir};
 
 /// A synthetic SfM reconstruction of a scene.
 pub struct SyntheticSfm {
@@ -145,13 +145,6 @@ pub fn write_colmap(dir: &Path, scene: &Scene, sfm: &SyntheticSfm, images: &[usi
     std::fs::write(dir.join("points3D.txt"), text).unwrap();
 }
 
-fn temp_dir(name: &str) -> std::path::PathBuf {
-    let d = std::env::temp_dir().join(format!("scone-it-colmap-{name}-{}", std::process::id()));
-    let _ = std::fs::remove_dir_all(&d);
-    std::fs::create_dir_all(&d).unwrap();
-    d
-}
-
 fn open(dir: &Path) -> (MapStore, Describer) {
     let embedder = Arc::new(Embedder::load(&EmbedderConfig::default()).unwrap());
     let info = ModelInfo { model_id: embedder.model_id().into(), k: embedder.k(), dim: embedder.dim() };
@@ -260,7 +253,6 @@ fn a_colmap_model_imports_localises_and_keeps_its_merged_landmarks_across_restar
     let (store, _) = open(&cli_dir);
     let cli = store.summary("cli").unwrap();
     assert_eq!((cli.keyframes, cli.landmarks, cli.observations), (5, summary.map.landmarks, summary.map.observations));
-    std::fs::remove_dir_all(&root).unwrap();
 }
 
 #[test]
@@ -283,5 +275,4 @@ fn a_model_with_a_distorted_camera_is_refused_by_the_command_naming_it() {
     let err = String::from_utf8_lossy(&out.stderr);
     assert!(err.contains("cameras.txt:1") && err.contains("camera 1") && err.contains("SIMPLE_RADIAL"), "{err}");
     assert!(!root.join("data/maps/x").exists(), "a refused model created the map");
-    std::fs::remove_dir_all(&root).unwrap();
 }

@@ -1,4 +1,4 @@
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 
 /// Directory of committed fixtures.
 pub fn fixture(name: &str) -> PathBuf {
@@ -18,4 +18,31 @@ pub fn shared_data() -> Option<PathBuf> {
     }
     eprintln!("skipping: no shared data at {}", dir.display());
     None
+}
+
+/// A fresh directory under the system temp dir, removed with everything in it when dropped.
+pub struct TestDir(tempfile::TempDir);
+
+impl std::ops::Deref for TestDir {
+    type Target = Path;
+    fn deref(&self) -> &Path {
+        self.0.path()
+    }
+}
+
+impl AsRef<Path> for TestDir {
+    fn as_ref(&self) -> &Path {
+        self.0.path()
+    }
+}
+
+impl AsRef<std::ffi::OsStr> for TestDir {
+    fn as_ref(&self) -> &std::ffi::OsStr {
+        self.0.path().as_os_str()
+    }
+}
+
+/// A [`TestDir`] named `scone-it-{name}-...`.
+pub fn temp_dir(name: &str) -> TestDir {
+    TestDir(tempfile::Builder::new().prefix(&format!("scone-it-{name}-")).tempdir().unwrap())
 }

@@ -14,7 +14,7 @@ use scone::pipeline::Describer;
 use scone::pose::rotation_error_deg;
 use scone::scene::Scene;
 
-use crate::common::fixture;
+use crate::common::{fixture, temp_dir};
 
 fn open(dir: &std::path::Path) -> (MapStore, Describer) {
     let embedder = Arc::new(Embedder::load(&EmbedderConfig::default()).unwrap());
@@ -25,8 +25,7 @@ fn open(dir: &std::path::Path) -> (MapStore, Describer) {
 
 #[test]
 fn acknowledged_keyframes_survive_kill_9_and_the_map_localises() {
-    let dir = std::env::temp_dir().join(format!("scone-kill9-{}", std::process::id()));
-    let _ = std::fs::remove_dir_all(&dir);
+    let dir = temp_dir("kill9");
     let scene_dir = fixture("rendered");
     let mut child = Command::new(env!("CARGO_BIN_EXE_scone"))
         .args(["map", "write-scene", "--map", "kill", "--stride", "2", "--repeat", "40"])
@@ -69,13 +68,11 @@ fn acknowledged_keyframes_survive_kill_9_and_the_map_localises() {
     let dr = rotation_error_deg(&pose.camera_to_world.rotation.to_rotation_matrix(), &gt.rotation.to_rotation_matrix());
     assert!(dt < 0.05 && dr < 1.0, "pose off by {dt} m, {dr} deg");
     assert!(loc.confidence > 0.5, "confidence {}", loc.confidence);
-    std::fs::remove_dir_all(&dir).unwrap();
 }
 
 #[test]
 fn a_corrupt_map_is_held_back_and_the_others_serve() {
-    let dir = std::env::temp_dir().join(format!("scone-heldback-{}", std::process::id()));
-    let _ = std::fs::remove_dir_all(&dir);
+    let dir = temp_dir("heldback");
     let status = Command::new(env!("CARGO_BIN_EXE_scone"))
         .args(["map", "write-scene", "--map", "good", "--stride", "3"])
         .arg("--data-dir")
@@ -107,15 +104,13 @@ fn a_corrupt_map_is_held_back_and_the_others_serve() {
     let err = store.summary("bad").unwrap_err().to_string();
     assert!(err.contains("unavailable"), "{err}");
     assert!(store.summary("good").unwrap().keyframes > 0);
-    std::fs::remove_dir_all(&dir).unwrap();
 }
 
 /// Queries of one map go on while another map is being written: a writer thread adds keyframes to map "b"
 /// while this thread localises against map "a"; several localisations must complete inside the write stream.
 #[test]
 fn reads_of_one_map_go_on_while_another_is_written() {
-    let dir = std::env::temp_dir().join(format!("scone-rw-{}", std::process::id()));
-    let _ = std::fs::remove_dir_all(&dir);
+    let dir = temp_dir("rw");
     let (store, describer) = open(&dir);
     let store = Arc::new(store);
     let scene = Scene::load(&fixture("rendered")).unwrap();
@@ -170,21 +165,19 @@ fn reads_of_one_map_go_on_while_another_is_written() {
     eprintln!("{during} localisations of map a completed while map b was written");
     assert!(during >= 3, "only {during} localisations of map a completed while map b was written");
     assert_eq!(store.summary("b").unwrap().keyframes, 2 * scene.frames.len());
-    std::fs::remove_dir_all(&dir).unwrap();
 }
 
 /// A map recorded by another model is refused for queries with a clear error, and re-embedding it from the
 /// stored keypoints and FREAK descriptors makes it answer again.
 #[test]
 fn a_map_from_another_model_is_refused_until_re_embedded() {
-    let dir = std::env::temp_dir().join(format!("scone-reembed-{}", std::process::id()));
-    let _ = std::fs::remove_dir_all(&dir);
+    let dir = temp_dir("reembed");
     let (_, describer) = open(&dir);
     let scene = Scene::load(&fixture("rendered")).unwrap();
     {
         // Written by a store that believes it runs an older model.
         let old = ModelInfo { model_id: "sha256:older-model".into(), k: 20, dim: describer.embedder.dim() };
-        let store = MapStore::open(StoreConfig { data_dir: dir.clone(), ..StoreConfig::default() }, old).unwrap();
+        let store = MapStore::open(StoreConfig { data_dir: dir.to_path_buf(), ..StoreConfig::default() }, old).unwrap();
         store.create("m").unwrap();
         for i in (0..scene.frames.len()).step_by(2) {
             let d = describer.describe_image(&std::fs::read(&scene.frames[i].rgb).unwrap()).unwrap();
@@ -225,5 +218,4 @@ fn a_map_from_another_model_is_refused_until_re_embedded() {
     drop(store);
     let (store, _) = open(&dir);
     assert_eq!(store.summary("m").unwrap().model_id, describer.embedder.model_id());
-    std::fs::remove_dir_all(&dir).unwrap();
 }

@@ -27,7 +27,7 @@ use scone::pose::rotation_error_deg;
 use scone::scene::Scene;
 use scone::MapError;
 
-use crate::common::fixture;
+use crate::common::{fixture, temp_dir};
 
 const KEY_ID: &str = "testing";
 const SECRET: &str = "testing";
@@ -134,13 +134,6 @@ fn keys(store: &impl ObjectStore, under: &str) -> Vec<String> {
         .unwrap();
     v.sort();
     v
-}
-
-fn temp_dir(name: &str) -> PathBuf {
-    let d = std::env::temp_dir().join(format!("scone-it-s3-{name}-{}", std::process::id()));
-    let _ = std::fs::remove_dir_all(&d);
-    std::fs::create_dir_all(&d).unwrap();
-    d
 }
 
 /// The fixture scene, described once, with its depth images.
@@ -255,7 +248,6 @@ fn a_map_in_object_storage_reloads_equal_localises_compacts_and_deletes() {
     assert!(d.list().is_empty());
     d.create("m").unwrap();
     assert_eq!(d.summary("m").unwrap().keyframes, 0);
-    std::fs::remove_dir_all(&tmp).unwrap();
 }
 
 #[test]
@@ -306,7 +298,6 @@ fn a_second_writer_is_refused_by_the_conditional_write_and_reloads_the_map() {
     assert!(matches!(y.create("n", &empty), Err(MapError::MapExists { .. })));
     assert_eq!(keys(&moto.raw(&bucket), "it/maps/n").len(), 2, "the loser removed its snapshot");
     assert!(matches!(second.create("n"), Err(MapError::MapExists { .. })));
-    std::fs::remove_dir_all(&tmp).unwrap();
 }
 
 #[test]
@@ -352,7 +343,6 @@ fn an_orphan_segment_is_ignored_and_a_corrupt_segment_holds_back_only_its_map() 
     // A held-back map can still be deleted.
     b.delete("bad").unwrap();
     assert!(keys(&raw, "it/maps/bad").is_empty());
-    std::fs::remove_dir_all(&tmp).unwrap();
 }
 
 /// The server binary picks the backend from its settings (environment variables here) and the credentials
@@ -432,5 +422,4 @@ fn scone_serve_stores_maps_in_the_bucket_its_settings_name() {
     assert_eq!((summary.keyframes, summary.version), (1, 1));
     // The shutdown flush compacted the map into one snapshot.
     assert_eq!(keys(&moto.raw(&bucket), "it/maps/served").len(), 2);
-    std::fs::remove_dir_all(&tmp).unwrap();
 }

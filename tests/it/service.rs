@@ -1,6 +1,6 @@
 //! The real server on ephemeral loopback ports, driven with a tonic client and an HTTP client.
 
-use std::path::{Path, PathBuf};
+use std::path::Path;
 use std::time::Duration;
 
 use nalgebra::Isometry3;
@@ -11,17 +11,10 @@ use scone::settings::Settings;
 use tonic::transport::Channel;
 use tonic::{Code, Request};
 
-use crate::common::{fixture, shared_data};
+use crate::common::{fixture, shared_data, temp_dir};
 
 const WRITE_KEY: &str = "write-key-0123456789";
 const READ_KEY: &str = "read-key-0123456789";
-
-fn temp_dir(name: &str) -> PathBuf {
-    let d = std::env::temp_dir().join(format!("scone-it-service-{name}-{}", std::process::id()));
-    let _ = std::fs::remove_dir_all(&d);
-    std::fs::create_dir_all(&d).unwrap();
-    d
-}
 
 fn settings(data: &Path) -> Settings {
     let mut s = Settings::default();
