@@ -583,8 +583,15 @@ def _spread_keys(rng: np.random.Generator, k: int) -> np.ndarray:
     return vals
 
 
-def _random_path(rng: np.random.Generator, frames: int) -> list[tuple[np.ndarray, np.ndarray]]:
-    """Smooth camera path through 3-5 random key poses: (R_wc, centre) per frame."""
+# Range of the orbit's azimuth span over one sequence, degrees.
+ORBIT_DEG = (20.0, 60.0)
+
+
+def _random_path(
+    rng: np.random.Generator, frames: int, orbit_deg: tuple[float, float] = ORBIT_DEG
+) -> list[tuple[np.ndarray, np.ndarray]]:
+    """Smooth camera path through 3-5 random key poses: (R_wc, centre) per frame. The azimuth sweeps a span drawn
+    from `orbit_deg` (degrees) over the sequence."""
     k = int(rng.integers(3, 6))
     # Roll: monotonic sweep, nearly a full turn in some sequences, a smaller range in others.
     sweep = rng.uniform(4.7, 6.1) if rng.random() < 0.4 else rng.uniform(1.0, 4.7)
@@ -596,7 +603,7 @@ def _random_path(rng: np.random.Generator, frames: int) -> list[tuple[np.ndarray
     ratio = rng.uniform(1.2, 2.5)
     dist_keys = near * ratio ** _spread_keys(rng, k)
     # Orbit (azimuth about the vertical) and elevation.
-    span = math.radians(rng.uniform(20, 60))
+    span = math.radians(rng.uniform(*orbit_deg))
     azim_keys = math.radians(rng.uniform(-35, 35)) + span * (_spread_keys(rng, k) - 0.5)
     elev_keys = np.clip(math.radians(rng.uniform(20, 45)) + np.radians(rng.uniform(-12, 12, k)), 0.17, 1.05)
     target_c = np.array([rng.uniform(-0.6, 0.6), rng.uniform(-1.6, -0.7), rng.uniform(0.3, 0.8)])
@@ -766,10 +773,12 @@ def render_sequence(
     height: int = 480,
     *,
     photometric: bool = True,
+    orbit_deg: tuple[float, float] = ORBIT_DEG,
 ) -> None:
     """Renders one sequence into out_dir (created if needed). The same arguments give byte-identical files.
     With photometric=False the images are the clean renderings (no lighting change, blur or noise); the
-    geometry, depth and poses do not depend on that switch."""
+    geometry, depth and poses do not depend on that switch. `orbit_deg` bounds the azimuth span of the path
+    (a wider span gives wider baselines between the sequence's frames)."""
     if frames < 1:
         raise ValueError("frames must be >= 1")
     out_dir = Path(out_dir)
@@ -783,7 +792,7 @@ def render_sequence(
     for _scene_try in range(20):
         scene = _make_scene(scene_rng)
         for _path_try in range(40):
-            candidate = _random_path(path_rng, frames)
+            candidate = _random_path(path_rng, frames, orbit_deg)
             if _path_is_good(scene, candidate, width, height):
                 path = candidate
                 break
@@ -841,6 +850,7 @@ def render_dataset(
     width: int = 640,
     height: int = 480,
     skip_existing: bool = True,
+    orbit_deg: tuple[float, float] = ORBIT_DEG,
 ) -> list[Path]:
     """Renders seq000 ... into out_root; sequences already complete are skipped (resumable). Each sequence is
     rendered into a temporary directory and moved into place when finished. Returns the sequence paths."""
@@ -857,7 +867,7 @@ def render_dataset(
         partial = out_root / f".seq{i:03d}.partial"
         if partial.exists():
             shutil.rmtree(partial)
-        render_sequence(partial, sequence_seed(seed, i), frames, width, height)
+        render_sequence(partial, sequence_seed(seed, i), frames, width, height, orbit_deg=tuple(orbit_deg))
         if final.exists():
             shutil.rmtree(final)
         os.replace(partial, final)
@@ -872,11 +882,15 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--width", type=int, default=640)
     ap.add_argument("--height", type=int, default=480)
+    ap.add_argument(
+        "--orbit-deg", type=float, nargs=2, default=ORBIT_DEG, metavar=("LO", "HI"), help="azimuth span range"
+    )
     ap.add_argument("--overwrite", action="store_true", help="re-render sequences that are already complete")
     args = ap.parse_args(argv)
     cv2.setNumThreads(1)
     render_dataset(
-        args.out, args.sequences, args.frames, args.seed, args.width, args.height, skip_existing=not args.overwrite
+        args.out, args.sequences, args.frames, args.seed, args.width, args.height, skip_existing=not args.overwrite,
+        orbit_deg=tuple(args.orbit_deg),
     )
 
 

@@ -48,6 +48,17 @@ def load_units(cfg: dict, rendered_root: Path | None = None) -> tuple[list[Unit]
     for k, s in enumerate(tqdm(seqs, desc="features + landmarks", leave=False)):
         unit = build_unit(s, cache / rendered_root.name)
         (select if k >= len(seqs) - n_sel else train).append(unit)
+    # Wide-orbit sequences (training only, so the selection split stays as it was): the default paths sweep
+    # 20-60 degrees of azimuth, and 99 % of their frame pairs are within 43 degrees of each other.
+    if d.get("wide_sequences", 0) > 0:
+        from .render import render_dataset
+
+        lo, hi = (float(x) for x in d.get("wide_orbit_deg", [70, 120]))
+        wide_root = prefix() / "data" / f"rendered-orbit{lo:g}-{hi:g}-{d.get('wide_seed', 1)}"
+        render_dataset(wide_root, d["wide_sequences"], d["rendered_frames"], d.get("wide_seed", 1), orbit_deg=(lo, hi))
+        wide = sorted(p for p in wide_root.iterdir() if p.is_dir())[: d["wide_sequences"]]
+        for s in tqdm(wide, desc="wide features + landmarks", leave=False):
+            train.append(build_unit(s, cache / wide_root.name, name=f"wide-{s.name}"))
     if d.get("castle"):
         castle = shared_data() / "scenes" / d["castle"]
         if castle.is_dir():
