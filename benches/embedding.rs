@@ -64,9 +64,23 @@ fn bench(c: &mut Criterion) {
 
     let (p1, p2) = synthetic_pair(300, 0.25);
     let cam = Camera { fx: 500.0, fy: 500.0, cx: 320.0, cy: 240.0, width: 640, height: 480 };
+    let opencv = RansacParams::opencv(1.0);
     let mut g = c.benchmark_group("relative_pose_300_matches");
-    for (name, essential) in [("ransac", EssentialMethod::Ransac), ("usac_accurate", EssentialMethod::UsacAccurate)] {
-        let params = RansacParams { essential, ..RansacParams::default() };
+    for (name, params) in [
+        ("ransac", opencv),
+        ("usac_accurate_1000iters", RansacParams { essential: EssentialMethod::UsacAccurate, ..opencv }),
+        ("usac_accurate_default", RansacParams::default()),
+    ] {
+        g.bench_function(name, |b| b.iter(|| relative_pose(black_box(&p1), &p2, &cam, &cam, &params).unwrap()));
+    }
+    g.finish();
+    // A wide-baseline pair: 100 matches, 70 % of them wrong, where the iteration cap binds.
+    let (p1, p2) = synthetic_pair(100, 0.7);
+    let mut g = c.benchmark_group("relative_pose_100_matches_70pct_outliers");
+    for (name, params) in [
+        ("usac_accurate_1000iters", RansacParams { essential: EssentialMethod::UsacAccurate, ..opencv }),
+        ("usac_accurate_default", RansacParams::default()),
+    ] {
         g.bench_function(name, |b| b.iter(|| relative_pose(black_box(&p1), &p2, &cam, &cam, &params).unwrap()));
     }
     g.finish();

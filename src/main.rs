@@ -153,6 +153,13 @@ enum EvalCommand {
         /// RANSAC inlier threshold in pixels.
         #[arg(long, default_value_t = 1.0)]
         ransac_px: f64,
+        /// RANSAC iteration cap. Default 10,000, or OpenCV's 1,000 with --single-scale.
+        #[arg(long)]
+        ransac_iters: Option<i32>,
+        /// RANSAC confidence: the search stops once a better model is this unlikely. Default 0.9999, or
+        /// OpenCV's 0.999 with --single-scale.
+        #[arg(long)]
+        ransac_confidence: Option<f64>,
         /// Essential-matrix estimator. Default usac-accurate, or ransac with --single-scale.
         #[arg(long, value_enum)]
         essential: Option<scone::pose::EssentialMethod>,
@@ -415,6 +422,8 @@ fn main() -> anyhow::Result<()> {
             mutual,
             same_corner_px,
             ransac_px,
+            ransac_iters,
+            ransac_confidence,
             essential,
             depth_px,
             epipolar_px,
@@ -422,17 +431,29 @@ fn main() -> anyhow::Result<()> {
             report: out,
             extractor,
         }) => {
-            // --single-scale is OpenCV's own pipeline, plain ratio test and plain RANSAC included.
-            let essential = essential.unwrap_or(if single_scale {
-                scone::pose::EssentialMethod::Ransac
+            // --single-scale is OpenCV's own pipeline, plain ratio test and plain RANSAC (with OpenCV's
+            // iteration cap and confidence) included.
+            let base = if single_scale {
+                scone::pose::RansacParams::opencv(ransac_px)
             } else {
-                scone::pose::EssentialMethod::UsacAccurate
-            });
+                scone::pose::RansacParams { threshold_px: ransac_px, ..Default::default() }
+            };
+            let ransac = scone::pose::RansacParams {
+                essential: essential.unwrap_or(base.essential),
+                max_iters: ransac_iters.unwrap_or(base.max_iters),
+                confidence: ransac_confidence.unwrap_or(base.confidence),
+                ..base
+            };
             let same_corner_px =
                 same_corner_px.unwrap_or(if single_scale { 0.0 } else { scone::matching::SAME_CORNER_PX });
             anyhow::ensure!(
                 same_corner_px.is_finite() && same_corner_px >= 0.0,
                 "--same-corner-px must be a finite number >= 0"
+            );
+            anyhow::ensure!(ransac.max_iters >= 1, "--ransac-iters must be at least 1");
+            anyhow::ensure!(
+                ransac.confidence > 0.0 && ransac.confidence < 1.0,
+                "--ransac-confidence must lie strictly between 0 and 1"
             );
             let mut cfg = extractor.config()?;
             if single_scale {
@@ -447,7 +468,7 @@ fn main() -> anyhow::Result<()> {
                 ratio,
                 mutual,
                 same_corner_px,
-                ransac: scone::pose::RansacParams { threshold_px: ransac_px, essential, ..Default::default() },
+                ransac,
                 extractor: cfg,
                 depth_px,
                 epipolar_px,

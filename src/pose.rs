@@ -24,9 +24,22 @@ pub struct RansacParams {
     pub essential: EssentialMethod,
 }
 
+/// The relative-pose defaults: 1 px, USAC_ACCURATE, and a search of up to 10,000 iterations at confidence
+/// 0.9999. OpenCV's own defaults (1,000 at 0.999) stop short on wide baselines: at 30 % inliers a 5-point
+/// search needs about 2,800 iterations for 0.999, and on the selection split (5 standard scenes + 4
+/// wide-orbit sequences) the larger budget raised mean AUC@10 from 0.678 to 0.694 for SConE and from 0.684 to
+/// 0.707 for FREAK. Relocalisation sets its own PnP parameters (`map::localize`).
 impl Default for RansacParams {
     fn default() -> Self {
-        Self { threshold_px: 1.0, confidence: 0.999, max_iters: 1000, essential: EssentialMethod::UsacAccurate }
+        Self { threshold_px: 1.0, confidence: 0.9999, max_iters: 10_000, essential: EssentialMethod::UsacAccurate }
+    }
+}
+
+impl RansacParams {
+    /// OpenCV's `findEssentialMat` defaults (plain RANSAC, 1,000 iterations, confidence 0.999) at `threshold_px`:
+    /// the data README's baseline pipeline.
+    pub fn opencv(threshold_px: f64) -> Self {
+        Self { threshold_px, confidence: 0.999, max_iters: 1000, essential: EssentialMethod::Ransac }
     }
 }
 

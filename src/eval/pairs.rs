@@ -347,7 +347,7 @@ fn summarise(method: Method, records: &[PairRecord], seeds: usize, describe_seco
 /// The summaries as a markdown table.
 pub fn markdown(report: &PairsReport) -> String {
     let mut s = format!(
-        "{} ({} pairs, window {}, {} seeds, ratio {}, same-corner radius {} px, {:?} {} px)\n\n",
+        "{} ({} pairs, window {}, {} seeds, ratio {}, same-corner radius {} px, {:?} {} px, at most {} iterations, confidence {})\n\n",
         report.scene,
         report.summaries.first().map(|m| m.pairs).unwrap_or(0),
         report.config.window,
@@ -355,7 +355,9 @@ pub fn markdown(report: &PairsReport) -> String {
         report.config.ratio,
         report.config.same_corner_px,
         report.config.ransac.essential,
-        report.config.ransac.threshold_px
+        report.config.ransac.threshold_px,
+        report.config.ransac.max_iters,
+        report.config.ransac.confidence
     );
     s.push_str("| method | AUC@5 | AUC@10 | AUC@20 | acc@5 | acc@10 | acc@20 | med. rot | med. trans | fail | matches | match precision | RANSAC iters needed (median) | describe ms | match ms |\n");
     s.push_str("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|\n");
