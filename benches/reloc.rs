@@ -134,7 +134,7 @@ fn main() {
             let ready = t.elapsed().as_secs_f64();
             let observations = store.summary("m").unwrap().observations;
             let rss_per_k = (rss_mb() - rss_before.min(rss0)) / observations as f64 * 1000.0;
-            let service = Service::new(describer.clone(), KeypointLimits::default());
+            let service = Service::new(describer.clone(), KeypointLimits::default(), Default::default());
             service.attach_store(Arc::new(store));
             let runs = match (label, target) {
                 ("HNSW", _) => 20,

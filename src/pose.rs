@@ -36,6 +36,20 @@ impl Default for RansacParams {
 }
 
 impl RansacParams {
+    /// A finite positive threshold, a confidence strictly between 0 and 1 and at least one iteration.
+    pub fn validate(&self) -> Result<(), String> {
+        if !(self.threshold_px.is_finite() && self.threshold_px > 0.0) {
+            return Err(format!("threshold_px must be a positive number, got {}", self.threshold_px));
+        }
+        if !(self.confidence > 0.0 && self.confidence < 1.0) {
+            return Err(format!("confidence must lie strictly between 0 and 1, got {}", self.confidence));
+        }
+        if self.max_iters < 1 {
+            return Err(format!("max_iters must be at least 1, got {}", self.max_iters));
+        }
+        Ok(())
+    }
+
     /// OpenCV's `findEssentialMat` defaults (plain RANSAC, 1,000 iterations, confidence 0.999) at `threshold_px`:
     /// the data README's baseline pipeline.
     pub fn opencv(threshold_px: f64) -> Self {

@@ -291,8 +291,9 @@ pub struct Service {
 }
 
 impl Service {
-    pub fn new(describer: Describer, keypoint_limits: KeypointLimits) -> Self {
-        Self { describer, keypoint_limits, ransac: RansacParams::default(), store: OnceLock::new() }
+    /// `ransac`: MatchPair's essential-matrix search (`Settings::relative_pose`).
+    pub fn new(describer: Describer, keypoint_limits: KeypointLimits, ransac: RansacParams) -> Self {
+        Self { describer, keypoint_limits, ransac, store: OnceLock::new() }
     }
 
     /// Makes maps available (once, after they loaded).

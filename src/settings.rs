@@ -14,6 +14,7 @@ use crate::decode::ImageLimits;
 use crate::embedding::EmbedderConfig;
 use crate::features::{ExtractorConfig, KeypointLimits};
 use crate::map::store::StoreConfig;
+use crate::pose::RansacParams;
 
 /// Listeners and request lifetime.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -105,6 +106,9 @@ pub struct Settings {
     pub model: EmbedderConfig,
     pub extractor: ExtractorConfig,
     pub store: StoreConfig,
+    /// MatchPair's essential-matrix search (`[relative_pose]`: threshold_px, confidence, max_iters, essential).
+    /// The defaults favour accuracy; a smaller `max_iters` bounds the time a hard pair can take.
+    pub relative_pose: RansacParams,
 }
 
 /// Flags that override everything else.
@@ -190,6 +194,7 @@ impl Settings {
             return bad("limits.image.max_bytes", "must not exceed server.max_request_bytes");
         }
         self.extractor.validate().map_err(|e| SettingsError::Invalid { field: "extractor", reason: e.to_string() })?;
+        self.relative_pose.validate().map_err(|reason| SettingsError::Invalid { field: "relative_pose", reason })?;
         self.store.backend.validate().map_err(|reason| SettingsError::Invalid { field: "store.backend", reason })?;
         self.store.build.validate().map_err(|reason| SettingsError::Invalid { field: "store.build", reason })?;
         let keys = self.keys()?;
@@ -303,6 +308,33 @@ mod tests {
             assert!(e.contains("workers.threads"), "{e}");
             Ok(())
         });
+    }
+
+    #[test]
+    fn the_relative_pose_search_is_set_by_field_and_checked() {
+        figment::Jail::expect_with(|jail| {
+            let s = Settings::load(None, &Overrides::default()).map_err(|e| e.to_string())?;
+            assert_eq!(s.relative_pose, RansacParams::default());
+            jail.set_env("SCONE_RELATIVE_POSE__MAX_ITERS", "2000");
+            jail.set_env("SCONE_RELATIVE_POSE__ESSENTIAL", "ransac");
+            let s = Settings::load(None, &Overrides::default()).map_err(|e| e.to_string())?;
+            assert_eq!(s.relative_pose.max_iters, 2000);
+            assert_eq!(s.relative_pose.essential, crate::pose::EssentialMethod::Ransac);
+            assert_eq!(s.relative_pose.confidence, RansacParams::default().confidence, "unset fields keep defaults");
+            Ok(())
+        });
+        for (var, value, word) in [
+            ("SCONE_RELATIVE_POSE__MAX_ITERS", "0", "max_iters"),
+            ("SCONE_RELATIVE_POSE__CONFIDENCE", "1.0", "confidence"),
+            ("SCONE_RELATIVE_POSE__THRESHOLD_PX", "-1", "threshold_px"),
+        ] {
+            figment::Jail::expect_with(|jail| {
+                jail.set_env(var, value);
+                let e = Settings::load(None, &Overrides::default()).unwrap_err().to_string();
+                assert!(e.contains("relative_pose") && e.contains(word), "{e}");
+                Ok(())
+            });
+        }
     }
 
     #[test]

@@ -159,7 +159,7 @@ pub async fn start(settings: Settings) -> anyhow::Result<Running> {
         limits: settings.limits.image,
         embedder: Arc::clone(&embedder),
     };
-    let service = Service::new(describer, settings.limits.keypoints);
+    let service = Service::new(describer, settings.limits.keypoints, settings.relative_pose);
     let grpc_listener = TcpListener::bind(settings.server.grpc_addr)
         .await
         .with_context(|| format!("binding gRPC to {}", settings.server.grpc_addr))?;
