@@ -35,6 +35,8 @@ pub mod scene;
 pub mod server;
 pub mod service;
 pub mod settings;
+#[cfg(test)]
+pub(crate) mod test_dir;
 pub mod workers;
 
 pub use error::{EmbeddingError, FeatureError, ImportError, MapError, PoseError, SceneError};

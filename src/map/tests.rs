@@ -1,6 +1,6 @@
 //! Unit tests of the map data, storage and index.
 
-use std::path::{Path, PathBuf};
+use std::path::PathBuf;
 
 use crate::features::{Keypoint, DESCRIPTOR_BYTES};
 use crate::map::index::{exact_search, EmbeddingIndex, IndexParams};
@@ -8,31 +8,7 @@ use crate::map::model::{Keyframe, MapData, MapMeta, NewObservation, Pose, Record
 use crate::map::storage::{decode_snapshot, encode_snapshot, MapLog};
 use crate::scene::Camera;
 
-/// A fresh directory under the system temp dir, removed with everything in it when dropped.
-pub(crate) struct TestDir(tempfile::TempDir);
-
-impl std::ops::Deref for TestDir {
-    type Target = Path;
-    fn deref(&self) -> &Path {
-        self.0.path()
-    }
-}
-
-impl AsRef<Path> for TestDir {
-    fn as_ref(&self) -> &Path {
-        self.0.path()
-    }
-}
-
-impl AsRef<std::ffi::OsStr> for TestDir {
-    fn as_ref(&self) -> &std::ffi::OsStr {
-        self.0.path().as_os_str()
-    }
-}
-
-pub(crate) fn temp_dir(name: &str) -> TestDir {
-    TestDir(tempfile::Builder::new().prefix(&format!("scone-{name}-")).tempdir().unwrap())
-}
+pub(crate) use crate::test_dir::{temp_dir, TestDir};
 
 fn meta(dim: usize) -> MapMeta {
     MapMeta { id: "m".into(), model_id: "sha256:test".into(), k: 20, dim, created_unix_ms: 1 }

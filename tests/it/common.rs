@@ -1,4 +1,4 @@
-use std::path::{Path, PathBuf};
+use std::path::PathBuf;
 
 /// Directory of committed fixtures.
 pub fn fixture(name: &str) -> PathBuf {
@@ -20,29 +20,4 @@ pub fn shared_data() -> Option<PathBuf> {
     None
 }
 
-/// A fresh directory under the system temp dir, removed with everything in it when dropped.
-pub struct TestDir(tempfile::TempDir);
-
-impl std::ops::Deref for TestDir {
-    type Target = Path;
-    fn deref(&self) -> &Path {
-        self.0.path()
-    }
-}
-
-impl AsRef<Path> for TestDir {
-    fn as_ref(&self) -> &Path {
-        self.0.path()
-    }
-}
-
-impl AsRef<std::ffi::OsStr> for TestDir {
-    fn as_ref(&self) -> &std::ffi::OsStr {
-        self.0.path().as_os_str()
-    }
-}
-
-/// A [`TestDir`] named `scone-it-{name}-...`.
-pub fn temp_dir(name: &str) -> TestDir {
-    TestDir(tempfile::Builder::new().prefix(&format!("scone-it-{name}-")).tempdir().unwrap())
-}
+pub use crate::test_dir::temp_dir;

@@ -9,3 +9,5 @@ mod object_store;
 
 mod pipeline;
 mod service;
+#[path = "../../src/test_dir.rs"]
+mod test_dir;
