@@ -431,7 +431,7 @@ mod tests {
 
     #[test]
     fn a_model_on_disk_reads_and_its_references_are_checked() {
-        let dir = crate::map::tests::temp_dir("colmap");
+        let dir = crate::test_dir::temp_dir("colmap");
         std::fs::write(dir.join("cameras.txt"), "1 PINHOLE 320 240 250 250 160 120\n").unwrap();
         std::fs::write(dir.join("images.txt"), IMAGES).unwrap();
         std::fs::write(dir.join("points3D.txt"), "7 -1 2 3 10 20 30 0.4 1 0\n").unwrap();

@@ -156,8 +156,8 @@ enum EvalCommand {
         /// RANSAC iteration cap. Default 10,000, or OpenCV's 1,000 with --single-scale.
         #[arg(long)]
         ransac_iters: Option<i32>,
-        /// RANSAC confidence: the search stops once a better model is this unlikely. Default 0.9999, or
-        /// OpenCV's 0.999 with --single-scale.
+        /// RANSAC confidence: the search stops once it is this sure that no better model is left to find.
+        /// Default 0.9999, or OpenCV's 0.999 with --single-scale.
         #[arg(long)]
         ransac_confidence: Option<f64>,
         /// Essential-matrix estimator. Default usac-accurate, or ransac with --single-scale.
@@ -450,11 +450,9 @@ fn main() -> anyhow::Result<()> {
                 same_corner_px.is_finite() && same_corner_px >= 0.0,
                 "--same-corner-px must be a finite number >= 0"
             );
-            anyhow::ensure!(ransac.max_iters >= 1, "--ransac-iters must be at least 1");
-            anyhow::ensure!(
-                ransac.confidence > 0.0 && ransac.confidence < 1.0,
-                "--ransac-confidence must lie strictly between 0 and 1"
-            );
+            ransac
+                .validate()
+                .map_err(|e| anyhow::anyhow!("--ransac-px / --ransac-iters / --ransac-confidence: {e}"))?;
             let mut cfg = extractor.config()?;
             if single_scale {
                 cfg = ExtractorConfig::single_scale(20, 2000);

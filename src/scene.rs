@@ -209,7 +209,7 @@ mod tests {
 
     #[test]
     fn loads_a_tum_layout_with_offset_stamps() {
-        let dir = crate::map::tests::temp_dir("scene");
+        let dir = crate::test_dir::temp_dir("scene");
         std::fs::write(dir.join("camera.txt"), "# fx fy cx cy w h\n500 500 320 240 640 480\n").unwrap();
         std::fs::write(dir.join("rgb.txt"), "# c\n1305031102.175304 rgb/a.png\n1305031102.211214 rgb/b.png\n").unwrap();
         std::fs::write(dir.join("depth.txt"), "1305031102.160407 depth/a.png\n").unwrap();

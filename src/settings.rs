@@ -275,7 +275,7 @@ mod tests {
 
     #[test]
     fn layers_apply_in_order_file_env_flags() {
-        let dir = crate::map::tests::temp_dir("settings");
+        let dir = crate::test_dir::temp_dir("settings");
         let file = dir.join("scone.toml");
         std::fs::write(
             &file,
@@ -379,7 +379,7 @@ mod tests {
 
     #[test]
     fn keys_file_lines_are_parsed_and_bad_lines_named() {
-        let dir = crate::map::tests::temp_dir("keys");
+        let dir = crate::test_dir::temp_dir("keys");
         let f = dir.join("keys");
         std::fs::write(&f, "# comment\nwrite aaaaaaaaaaaaaaaa\nread bbbbbbbbbbbbbbbb # phone\n").unwrap();
         let mut s = Settings::default();
