@@ -160,6 +160,10 @@ enum EvalCommand {
         /// Default 0.9999, or OpenCV's 0.999 with --single-scale.
         #[arg(long)]
         ransac_confidence: Option<f64>,
+        /// Leave out of the essential-matrix estimation correspondences within this many pixels of an earlier
+        /// one in both images (0 = off).
+        #[arg(long)]
+        duplicate_px: Option<f64>,
         /// Essential-matrix estimator. Default usac-accurate, or ransac with --single-scale.
         #[arg(long, value_enum)]
         essential: Option<scone::pose::EssentialMethod>,
@@ -424,6 +428,7 @@ fn main() -> anyhow::Result<()> {
             ransac_px,
             ransac_iters,
             ransac_confidence,
+            duplicate_px,
             essential,
             depth_px,
             epipolar_px,
@@ -442,6 +447,7 @@ fn main() -> anyhow::Result<()> {
                 essential: essential.unwrap_or(base.essential),
                 max_iters: ransac_iters.unwrap_or(base.max_iters),
                 confidence: ransac_confidence.unwrap_or(base.confidence),
+                duplicate_px: duplicate_px.unwrap_or(base.duplicate_px),
                 ..base
             };
             let same_corner_px =

@@ -22,6 +22,10 @@ pub struct RansacParams {
     pub max_iters: i32,
     /// The essential-matrix estimator (relative pose only; PnP always refines its inliers).
     pub essential: EssentialMethod,
+    /// Relative pose only: a correspondence within this many pixels of an earlier one in both images (one
+    /// corner matched again through its copies on other pyramid levels) is left out of the estimation and
+    /// takes that one's inlier flag. 0 = off.
+    pub duplicate_px: f64,
 }
 
 /// The relative-pose defaults: 1 px, USAC_ACCURATE, and a search of up to 10,000 iterations at confidence
@@ -31,7 +35,13 @@ pub struct RansacParams {
 /// 0.707 for FREAK. Relocalisation sets its own PnP parameters (`map::localize`).
 impl Default for RansacParams {
     fn default() -> Self {
-        Self { threshold_px: 1.0, confidence: 0.9999, max_iters: 10_000, essential: EssentialMethod::UsacAccurate }
+        Self {
+            threshold_px: 1.0,
+            confidence: 0.9999,
+            max_iters: 10_000,
+            essential: EssentialMethod::UsacAccurate,
+            duplicate_px: 0.0,
+        }
     }
 }
 
@@ -47,13 +57,16 @@ impl RansacParams {
         if self.max_iters < 1 {
             return Err(format!("max_iters must be at least 1, got {}", self.max_iters));
         }
+        if !(self.duplicate_px.is_finite() && self.duplicate_px >= 0.0) {
+            return Err(format!("duplicate_px must be a number >= 0, got {}", self.duplicate_px));
+        }
         Ok(())
     }
 
     /// OpenCV's `findEssentialMat` defaults (plain RANSAC, 1,000 iterations, confidence 0.999) at `threshold_px`:
     /// the data README's baseline pipeline.
     pub fn opencv(threshold_px: f64) -> Self {
-        Self { threshold_px, confidence: 0.999, max_iters: 1000, essential: EssentialMethod::Ransac }
+        Self { threshold_px, confidence: 0.999, max_iters: 1000, essential: EssentialMethod::Ransac, duplicate_px: 0.0 }
     }
 }
 
@@ -145,8 +158,15 @@ pub fn relative_pose(
     if p1.len() < 5 {
         return Ok(None);
     }
-    let n1 = normalised(p1, cam1);
-    let n2 = normalised(p2, cam2);
+    // rep[i]: the position in `kept` of correspondence i's representative.
+    let (kept, rep) = representatives(p1, p2, params.duplicate_px);
+    if kept.len() < 5 {
+        return Ok(None);
+    }
+    let q1: Vec<(f32, f32)> = kept.iter().map(|&i| p1[i]).collect();
+    let q2: Vec<(f32, f32)> = kept.iter().map(|&i| p2[i]).collect();
+    let n1 = normalised(&q1, cam1);
+    let n2 = normalised(&q2, cam2);
     let focal = (cam1.fx + cam1.fy + cam2.fx + cam2.fy) / 4.0;
     let mut mask = Mat::default();
     let e = opencv::calib3d::find_essential_mat_1(
@@ -173,10 +193,34 @@ pub fn relative_pose(
     }
     let rotation = Rotation3::from_matrix_unchecked(mat3(&r)?);
     let translation = Vector3::new(*t.at_2d::<f64>(0, 0)?, *t.at_2d::<f64>(1, 0)?, *t.at_2d::<f64>(2, 0)?);
-    let inliers: Vec<bool> =
-        (0..p1.len()).map(|i| mask.at::<u8>(i as i32).map(|v| *v != 0)).collect::<Result<_, _>>()?;
+    let kept_inlier: Vec<bool> =
+        (0..kept.len()).map(|i| mask.at::<u8>(i as i32).map(|v| *v != 0)).collect::<Result<_, _>>()?;
+    let inliers: Vec<bool> = rep.iter().map(|&r| kept_inlier[r]).collect();
     let inlier_count = inliers.iter().filter(|&&b| b).count();
     Ok(Some(RelativePose { rotation, translation: translation.normalize(), inliers, inlier_count }))
+}
+
+/// Greedy duplicate suppression: correspondence i is kept unless an earlier kept one lies within `radius` px of
+/// it in both images. Returns the kept indices and, per input, the position in that list of its representative
+/// (itself when kept). `radius <= 0` keeps everything.
+fn representatives(p1: &[(f32, f32)], p2: &[(f32, f32)], radius: f64) -> (Vec<usize>, Vec<usize>) {
+    if radius <= 0.0 {
+        return ((0..p1.len()).collect(), (0..p1.len()).collect());
+    }
+    let r2 = (radius * radius) as f32;
+    let near = |a: (f32, f32), b: (f32, f32)| (a.0 - b.0).powi(2) + (a.1 - b.1).powi(2) <= r2;
+    let mut kept: Vec<usize> = Vec::new();
+    let mut rep = Vec::with_capacity(p1.len());
+    for i in 0..p1.len() {
+        match kept.iter().position(|&k| near(p1[i], p1[k]) && near(p2[i], p2[k])) {
+            Some(pos) => rep.push(pos),
+            None => {
+                rep.push(kept.len());
+                kept.push(i);
+            }
+        }
+    }
+    (kept, rep)
 }
 
 /// An absolute camera pose with its RANSAC support.
@@ -345,6 +389,43 @@ mod tests {
         assert!(rotation_error_deg(&pose.rotation, &gt.rotation.to_rotation_matrix()) < 0.5);
         assert!(translation_angle_deg(&pose.translation, &gt.translation.vector) < 2.0);
         assert!(pose.inlier_count >= p1.len() * 6 / 10);
+    }
+
+    #[test]
+    fn duplicates_are_left_out_of_the_estimate_and_share_their_representative_flag() {
+        let p1 = [(10.0, 10.0), (11.0, 10.5), (10.5, 10.0), (50.0, 50.0), (11.0, 10.0)];
+        let p2 = [(20.0, 20.0), (21.0, 20.0), (40.0, 20.0), (60.0, 60.0), (20.5, 21.0)];
+        // 1 and 4 copy 0 in both images; 2 is near 0 in image 1 only, so it stays.
+        let (kept, rep) = representatives(&p1, &p2, 2.0);
+        assert_eq!(kept, vec![0, 2, 3]);
+        assert_eq!(rep, vec![0, 0, 1, 2, 0]);
+        assert_eq!(representatives(&p1, &p2, 0.0).0.len(), 5);
+        // The same motion as above with every correspondence given three times, 1 px apart: the pose is the
+        // same, and each input gets a flag, copies included.
+        let c = cam();
+        let t_w2 = Isometry3::new(Vector3::new(0.5, 0.05, 0.1), Vector3::new(0.02, -0.15, 0.03));
+        let (mut p1, mut p2) = (Vec::new(), Vec::new());
+        for i in 0..120 {
+            let x = Vector3::new(
+                ((i * 37) % 100) as f64 / 25.0 - 2.0,
+                ((i * 53) % 100) as f64 / 33.0 - 1.5,
+                4.0 + ((i * 71) % 100) as f64 / 20.0,
+            );
+            let (Some(a), Some(b)) = (project(&c, &Isometry3::identity(), &x), project(&c, &t_w2.inverse(), &x)) else {
+                continue;
+            };
+            for d in [0.0, 0.7, -0.7] {
+                p1.push((a.0 + d, a.1));
+                p2.push((b.0, b.1 + d));
+            }
+        }
+        let params = RansacParams { duplicate_px: 2.0, threshold_px: 2.0, ..Default::default() };
+        let pose = relative_pose(&p1, &p2, &c, &c, &params).unwrap().unwrap();
+        let gt = relative_motion(&Isometry3::identity(), &t_w2);
+        assert!(rotation_error_deg(&pose.rotation, &gt.rotation.to_rotation_matrix()) < 0.5);
+        assert_eq!(pose.inliers.len(), p1.len());
+        assert!(pose.inlier_count >= p1.len() * 9 / 10, "{} of {}", pose.inlier_count, p1.len());
+        assert!(RansacParams { duplicate_px: f64::NAN, ..Default::default() }.validate().is_err());
     }
 
     #[test]
