@@ -456,9 +456,9 @@ fn main() -> anyhow::Result<()> {
                 same_corner_px.is_finite() && same_corner_px >= 0.0,
                 "--same-corner-px must be a finite number >= 0"
             );
-            ransac
-                .validate()
-                .map_err(|e| anyhow::anyhow!("--ransac-px / --ransac-iters / --ransac-confidence: {e}"))?;
+            ransac.validate().map_err(|e| {
+                anyhow::anyhow!("--ransac-px / --ransac-iters / --ransac-confidence / --duplicate-px: {e}")
+            })?;
             let mut cfg = extractor.config()?;
             if single_scale {
                 cfg = ExtractorConfig::single_scale(20, 2000);

@@ -365,27 +365,41 @@ mod tests {
         (c.z > 0.1).then(|| ((cam.fx * c.x / c.z + cam.cx) as f32, (cam.fy * c.y / c.z + cam.cy) as f32))
     }
 
+    /// Camera 2's pose (camera-to-world) in the relative-pose tests; camera 1 is at the origin.
+    fn second_camera() -> Isometry3<f64> {
+        Isometry3::new(Vector3::new(0.5, 0.05, 0.1), Vector3::new(0.02, -0.15, 0.03))
+    }
+
+    /// A point's index and its pixel positions in cameras 1 and 2.
+    type Seen = (usize, (f32, f32), (f32, f32));
+
+    /// Point `i` of `n` spread 4-9 m in front of camera 1, projected into both cameras, for the points both
+    /// cameras see.
+    fn two_views(n: usize) -> Vec<Seen> {
+        let (c, t_w2) = (cam(), second_camera());
+        (0..n)
+            .filter_map(|i| {
+                let x = Vector3::new(
+                    ((i * 37) % 100) as f64 / 25.0 - 2.0,
+                    ((i * 53) % 100) as f64 / 33.0 - 1.5,
+                    4.0 + ((i * 71) % 100) as f64 / 20.0,
+                );
+                Some((i, project(&c, &Isometry3::identity(), &x)?, project(&c, &t_w2.inverse(), &x)?))
+            })
+            .collect()
+    }
+
     /// Points spread in front of both cameras, a known motion, 30 % outliers: the pose comes back.
     #[test]
     fn relative_pose_recovers_a_known_motion() {
         let c = cam();
-        let t_w1 = Isometry3::identity();
-        let t_w2 = Isometry3::new(Vector3::new(0.5, 0.05, 0.1), Vector3::new(0.02, -0.15, 0.03));
         let (mut p1, mut p2) = (Vec::new(), Vec::new());
-        for i in 0..200 {
-            let x = Vector3::new(
-                ((i * 37) % 100) as f64 / 25.0 - 2.0,
-                ((i * 53) % 100) as f64 / 33.0 - 1.5,
-                4.0 + ((i * 71) % 100) as f64 / 20.0,
-            );
-            let (Some(a), Some(b)) = (project(&c, &t_w1.inverse(), &x), project(&c, &t_w2.inverse(), &x)) else {
-                continue;
-            };
+        for (i, a, b) in two_views(200) {
             p1.push(a);
             p2.push(if i % 10 < 3 { (b.0 + 40.0 + (i % 7) as f32 * 9.0, b.1 - 25.0) } else { b });
         }
         let pose = relative_pose(&p1, &p2, &c, &c, &RansacParams::default()).unwrap().unwrap();
-        let gt = relative_motion(&t_w1, &t_w2);
+        let gt = relative_motion(&Isometry3::identity(), &second_camera());
         assert!(rotation_error_deg(&pose.rotation, &gt.rotation.to_rotation_matrix()) < 0.5);
         assert!(translation_angle_deg(&pose.translation, &gt.translation.vector) < 2.0);
         assert!(pose.inlier_count >= p1.len() * 6 / 10);
@@ -403,17 +417,8 @@ mod tests {
         // The same motion as above with every correspondence given three times, 1 px apart: the pose is the
         // same, and each input gets a flag, copies included.
         let c = cam();
-        let t_w2 = Isometry3::new(Vector3::new(0.5, 0.05, 0.1), Vector3::new(0.02, -0.15, 0.03));
         let (mut p1, mut p2) = (Vec::new(), Vec::new());
-        for i in 0..120 {
-            let x = Vector3::new(
-                ((i * 37) % 100) as f64 / 25.0 - 2.0,
-                ((i * 53) % 100) as f64 / 33.0 - 1.5,
-                4.0 + ((i * 71) % 100) as f64 / 20.0,
-            );
-            let (Some(a), Some(b)) = (project(&c, &Isometry3::identity(), &x), project(&c, &t_w2.inverse(), &x)) else {
-                continue;
-            };
+        for (_, a, b) in two_views(120) {
             for d in [0.0, 0.7, -0.7] {
                 p1.push((a.0 + d, a.1));
                 p2.push((b.0, b.1 + d));
@@ -421,7 +426,7 @@ mod tests {
         }
         let params = RansacParams { duplicate_px: 2.0, threshold_px: 2.0, ..Default::default() };
         let pose = relative_pose(&p1, &p2, &c, &c, &params).unwrap().unwrap();
-        let gt = relative_motion(&Isometry3::identity(), &t_w2);
+        let gt = relative_motion(&Isometry3::identity(), &second_camera());
         assert!(rotation_error_deg(&pose.rotation, &gt.rotation.to_rotation_matrix()) < 0.5);
         assert_eq!(pose.inliers.len(), p1.len());
         assert!(pose.inlier_count >= p1.len() * 9 / 10, "{} of {}", pose.inlier_count, p1.len());

@@ -107,8 +107,7 @@ pub struct Settings {
     pub extractor: ExtractorConfig,
     pub store: StoreConfig,
     /// MatchPair's essential-matrix search (`[relative_pose]`: threshold_px, confidence, max_iters, essential,
-    /// duplicate_px).
-    /// The defaults favour accuracy; a smaller `max_iters` bounds the time a hard pair can take.
+    /// duplicate_px). The defaults favour accuracy; a smaller `max_iters` bounds the time a hard pair can take.
     pub relative_pose: RansacParams,
 }
 

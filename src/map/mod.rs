@@ -19,4 +19,4 @@ pub mod object_storage;
 pub mod storage;
 pub mod store;
 #[cfg(test)]
-pub(crate) mod tests;
+mod tests;

@@ -731,7 +731,8 @@ impl MapJournal for ObjectJournal {
 mod tests {
     use super::*;
     use crate::map::model::MapMeta;
-    use crate::map::tests::{keyframe_record, temp_dir};
+    use crate::map::tests::keyframe_record;
+    use crate::test_dir::temp_dir;
     use object_store::memory::InMemory;
 
     fn backend(store: &Arc<InMemory>, cache: &Path, compact_every: usize) -> ObjectStorageBackend {

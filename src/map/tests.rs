@@ -8,7 +8,7 @@ use crate::map::model::{Keyframe, MapData, MapMeta, NewObservation, Pose, Record
 use crate::map::storage::{decode_snapshot, encode_snapshot, MapLog};
 use crate::scene::Camera;
 
-pub(crate) use crate::test_dir::{temp_dir, TestDir};
+use crate::test_dir::{temp_dir, TestDir};
 
 fn meta(dim: usize) -> MapMeta {
     MapMeta { id: "m".into(), model_id: "sha256:test".into(), k: 20, dim, created_unix_ms: 1 }

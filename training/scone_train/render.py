@@ -867,7 +867,7 @@ def render_dataset(
         partial = out_root / f".seq{i:03d}.partial"
         if partial.exists():
             shutil.rmtree(partial)
-        render_sequence(partial, sequence_seed(seed, i), frames, width, height, orbit_deg=tuple(orbit_deg))
+        render_sequence(partial, sequence_seed(seed, i), frames, width, height, orbit_deg=orbit_deg)
         if final.exists():
             shutil.rmtree(final)
         os.replace(partial, final)

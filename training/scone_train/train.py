@@ -41,8 +41,7 @@ def load_units(cfg: dict, rendered_root: Path | None = None) -> tuple[list[Unit]
     if d["rendered_sequences"] > 0:
         from .render import render_dataset
 
-        render_dataset(rendered_root, d["rendered_sequences"], d["rendered_frames"], d["rendered_seed"])
-        seqs = sorted(p for p in rendered_root.iterdir() if p.is_dir())[: d["rendered_sequences"]]
+        seqs = render_dataset(rendered_root, d["rendered_sequences"], d["rendered_frames"], d["rendered_seed"])
     n_sel = d["selection_sequences"]
     train, select = [], []
     for k, s in enumerate(tqdm(seqs, desc="features + landmarks", leave=False)):
@@ -54,9 +53,9 @@ def load_units(cfg: dict, rendered_root: Path | None = None) -> tuple[list[Unit]
         from .render import render_dataset
 
         lo, hi = (float(x) for x in d.get("wide_orbit_deg", [70, 120]))
-        wide_root = prefix() / "data" / f"rendered-orbit{lo:g}-{hi:g}-{d.get('wide_seed', 1)}"
-        render_dataset(wide_root, d["wide_sequences"], d["rendered_frames"], d.get("wide_seed", 1), orbit_deg=(lo, hi))
-        wide = sorted(p for p in wide_root.iterdir() if p.is_dir())[: d["wide_sequences"]]
+        seed = d.get("wide_seed", 1)
+        wide_root = prefix() / "data" / f"rendered-orbit{lo:g}-{hi:g}-{seed}"
+        wide = render_dataset(wide_root, d["wide_sequences"], d["rendered_frames"], seed, orbit_deg=(lo, hi))
         for s in tqdm(wide, desc="wide features + landmarks", leave=False):
             train.append(build_unit(s, cache / wide_root.name, name=f"wide-{s.name}"))
     if d.get("castle"):
