@@ -67,6 +67,23 @@ pub fn default_model_path() -> PathBuf {
     PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("models/scone-freak-k20.onnx")
 }
 
+/// The committed model's bytes, compiled into the binary. [`Embedder::load`] uses them when the configured model
+/// is [`default_model_path`] and that file is gone (the checkout that built the binary was moved or removed), so
+/// the built-in default keeps working; any other missing model is an error.
+pub static BUILT_IN_MODEL: &[u8] = include_bytes!(concat!(env!("CARGO_MANIFEST_DIR"), "/models/scone-freak-k20.onnx"));
+
+/// The model file's bytes, or the built-in copy when `path` is `default_path` and does not exist.
+fn model_bytes(path: &Path, default_path: &Path) -> Result<std::borrow::Cow<'static, [u8]>, EmbeddingError> {
+    match std::fs::read(path) {
+        Ok(bytes) => Ok(bytes.into()),
+        Err(e) if e.kind() == std::io::ErrorKind::NotFound && path == default_path => {
+            tracing::info!(path = %path.display(), "default model file not found; using the copy built into the binary");
+            Ok(BUILT_IN_MODEL.into())
+        }
+        Err(e) => Err(EmbeddingError::Model { path: path.to_path_buf(), reason: e.to_string() }),
+    }
+}
+
 static ENVIRONMENT: OnceLock<Result<ort::environment::Environment, String>> = OnceLock::new();
 
 fn environment(lib: &Path) -> Result<&'static ort::environment::Environment, EmbeddingError> {
@@ -174,8 +191,7 @@ impl Embedder {
     /// Loads the runtime and the model, checks the contract and runs one warm-up inference per session.
     pub fn load(config: &EmbedderConfig) -> Result<Self, EmbeddingError> {
         let path = config.model.clone();
-        let bytes =
-            std::fs::read(&path).map_err(|e| EmbeddingError::Model { path: path.clone(), reason: e.to_string() })?;
+        let bytes = model_bytes(&path, &default_model_path())?;
         let model_id = format!("sha256:{:x}", Sha256::digest(&bytes));
         let env = environment(&config.runtime_library)?;
         let model_err = |e: ort::Error| EmbeddingError::Model { path: path.clone(), reason: e.to_string() };
@@ -307,4 +323,31 @@ fn run(session: &mut Session, f: &Features, c: &Constellations, dim: usize) -> R
         return Err(EmbeddingError::Inference(format!("output shape {shape:?}, expected [{n}, {dim}]")));
     }
     Ok(data.to_vec())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn built_in_model_is_the_committed_file() {
+        assert_eq!(std::fs::read(default_model_path()).unwrap(), BUILT_IN_MODEL);
+    }
+
+    #[test]
+    fn a_missing_default_model_falls_back_to_the_built_in_copy_and_nothing_else_does() {
+        let dir = crate::test_dir::temp_dir("model-bytes");
+        let gone = dir.join("scone-freak-k20.onnx");
+        assert_eq!(&*model_bytes(&gone, &gone).unwrap(), BUILT_IN_MODEL);
+        let other = dir.join("other.onnx");
+        match model_bytes(&other, &gone) {
+            Err(EmbeddingError::Model { path, reason }) => {
+                assert_eq!(path, other);
+                assert!(reason.contains("No such file"), "{reason}");
+            }
+            r => panic!("expected a model error, got {:?}", r.map(|b| b.len())),
+        }
+        std::fs::write(&gone, b"not a model").unwrap();
+        assert_eq!(&*model_bytes(&gone, &gone).unwrap(), b"not a model");
+    }
 }
