@@ -27,6 +27,8 @@ def _queries():
 
 
 INTRINSICS, JPEGS = _queries()
+# MatchPair inputs: every pair of query frames (i < j), so baselines from neighbouring frames to the widest mix.
+PAIRS = [(JPEGS[i], JPEGS[j]) for i in range(len(JPEGS)) for j in range(i + 1, len(JPEGS))]
 
 
 def writes():
@@ -48,7 +50,8 @@ def write_wait_time():
 
 
 # Every request: (end time s, response time ms, name, outcome, localized) with outcome "ok", "rejected" (429 /
-# RESOURCE_EXHAUSTED) or an error string; localized is true/false for a Localize answer, else null.
+# RESOURCE_EXHAUSTED) or an error string; localized is true/false for a Localize answer (for MatchPair: whether
+# a relative pose came back), else null.
 _RAW = []
 
 

@@ -3,7 +3,7 @@ stats, CSV and the raw recorder include them like HTTP requests.
 
 Stubs are generated from proto/scone/v1/scone.proto by lib/prepare.py into $SCONE_LOAD_CACHE/grpc (not
 committed). Target: $SCONE_LOAD_GRPC (host:port). Pick the users on the command line (DescribeGrpcUser,
-LocalizeGrpcUser). RESOURCE_EXHAUSTED is recorded under "<name> RESOURCE_EXHAUSTED" (outcome "rejected").
+LocalizeGrpcUser, MatchPairGrpcUser). RESOURCE_EXHAUSTED is recorded under "<name> RESOURCE_EXHAUSTED" (outcome "rejected").
 Each user has its own channel and its own HTTP/2 connection (local subchannel pool), like one device each.
 """
 
@@ -48,11 +48,14 @@ class _GrpcUser(User):
         intr = scone_pb2.Intrinsics(fx=i["fx"], fy=i["fy"], cx=i["cx"], cy=i["cy"], width=i["width"], height=i["height"])
         self.frames = itertools.cycle([scone_pb2.Frame(image=scone_pb2.Image(data=j), intrinsics=intr)
                                        for j in common.JPEGS])
+        self.pairs = itertools.cycle([(scone_pb2.Frame(image=scone_pb2.Image(data=a), intrinsics=intr),
+                                       scone_pb2.Frame(image=scone_pb2.Image(data=b), intrinsics=intr))
+                                      for a, b in common.PAIRS])
 
     def on_stop(self):
         self.channel.close()
 
-    def _call(self, name, method, request, localize=False):
+    def _call(self, name, method, request, localize=False, posed=False):
         context = {}
         exc = None
         length = 0
@@ -62,6 +65,8 @@ class _GrpcUser(User):
             length = resp.ByteSize()
             if localize:
                 context["localized"] = resp.localized
+            elif posed:
+                context["localized"] = resp.HasField("pose")
         except grpc.RpcError as e:
             exc = RuntimeError(f"{e.code().name}: {e.details()}")  # str(e) has a timestamp: one failure row each
             if e.code() == grpc.StatusCode.RESOURCE_EXHAUSTED:
@@ -83,3 +88,10 @@ class LocalizeGrpcUser(_GrpcUser):
     def localize(self):
         self._call("Localize", self.matching.Localize,
                    scone_pb2.LocalizeRequest(map_id=common.MAP, frame=next(self.frames)), localize=True)
+
+
+class MatchPairGrpcUser(_GrpcUser):
+    @task
+    def match_pair(self):
+        a, b = next(self.pairs)
+        self._call("MatchPair", self.matching.MatchPair, scone_pb2.MatchPairRequest(frame1=a, frame2=b), posed=True)

@@ -5,6 +5,8 @@ Pick the users on the command line, e.g. `locust -f locustfile_http.py --headles
 
 - DescribeUser: POST /v1/describe with a 640x480 JPEG (raw body), cycling over the scene's frames.
 - LocalizeUser: POST /v1/maps/$SCONE_LOAD_MAP/localize?fx=..&fy=..&cx=..&cy=.. with the same JPEGs.
+- MatchUser: POST /v1/match, multipart (request JSON with both frames' intrinsics, image1, image2), cycling over
+  every pair of the scene's frames; "localized" in the raw records means a relative pose came back.
 - KeyframeWriter (fixed_count 1): multipart POST /v1/maps/$SCONE_LOAD_WRITE_MAP/keyframes (image, depth, pose)
   at $SCONE_LOAD_WRITE_RATE keyframes/s; each acknowledgement means the write is durable.
 
@@ -22,16 +24,17 @@ import common
 _kf_ids = itertools.count(1)
 
 
-def _check(r, name, localize=False):
+def _check(r, name, localize=False, posed=False):
     if r.status_code == 429:
         r.request_meta["name"] = f"{name} 429"
         r.request_meta["context"] = {"rejected": True}
         r.failure("429 Too Many Requests")
     elif r.status_code != 200:
         r.failure(f"HTTP {r.status_code}: {(r.text or '')[:80]}")
-    elif localize:
+    elif localize or posed:
         try:
-            r.request_meta["context"] = {"localized": bool(r.json().get("localized"))}
+            j = r.json()
+            r.request_meta["context"] = {"localized": bool(j.get("localized")) if localize else j.get("pose") is not None}
         except ValueError:
             r.failure("bad JSON")
         else:
@@ -70,6 +73,27 @@ class LocalizeUser(FastHttpUser):
         with self.client.post(self.path, data=next(self.images), headers={"Content-Type": "image/jpeg"},
                               name="Localize", catch_response=True) as r:
             _check(r, "Localize", localize=True)
+
+
+class MatchUser(FastHttpUser):
+    wait_time = common.wait_time()
+    network_timeout = 60.0
+    connection_timeout = 10.0
+
+    def on_start(self):
+        self.pairs = itertools.cycle(common.PAIRS)
+        i = common.INTRINSICS
+        intr = {"fx": i["fx"], "fy": i["fy"], "cx": i["cx"], "cy": i["cy"]}
+        self.request = json.dumps({"frame1": {"intrinsics": intr}, "frame2": {"intrinsics": intr}}).encode()
+
+    @task
+    def match(self):
+        a, b = next(self.pairs)
+        body, ctype = _multipart([("request", "application/json", self.request), ("image1", "image/jpeg", a),
+                                  ("image2", "image/jpeg", b)])
+        with self.client.post("/v1/match", data=body, headers={"Content-Type": ctype}, name="MatchPair",
+                              catch_response=True) as r:
+            _check(r, "MatchPair", posed=True)
 
 
 class KeyframeWriter(FastHttpUser):

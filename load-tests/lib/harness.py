@@ -31,7 +31,7 @@ ROOT = os.path.dirname(LOAD)
 sys.path.insert(0, HERE)
 import report  # noqa: E402
 
-SCENARIOS = ["describe", "localize", "burst", "mixed", "soak", "settings"]
+SCENARIOS = ["describe", "localize", "match", "burst", "mixed", "soak", "settings"]
 SERVER_CORE = os.environ.get("SCONE_LOAD_SERVER_CPU", "0")
 GEN_CORE = os.environ.get("SCONE_LOAD_GEN_CPU", "1")
 CLK_TCK = os.sysconf("SC_CLK_TCK")
@@ -427,13 +427,23 @@ def strip(r):
 # ---------------------------------------------------------------------------------------------------------
 
 
+SWEEP_USERS = {
+    "describe": ("DescribeUser", "DescribeGrpcUser"),
+    "localize": ("LocalizeUser", "LocalizeGrpcUser"),
+    "match": ("MatchUser", "MatchPairGrpcUser"),
+}
+
+
 def sweep(cfg, op):
-    """Describe or Localize at each concurrency: locust HTTP, locust gRPC, wrk; one fresh server per tool."""
+    """Describe, Localize or MatchPair at each concurrency: locust HTTP, locust gRPC, and wrk (not for
+    MatchPair, whose body is a two-image multipart that wrk/post-jpeg.lua does not build); one fresh server per
+    tool."""
     with_map = op == "localize"
-    http_class, grpc_class = ("LocalizeUser", "LocalizeGrpcUser") if with_map else ("DescribeUser", "DescribeGrpcUser")
+    http_class, grpc_class = SWEEP_USERS[op]
     path = localize_path(intrinsics(cfg)) if with_map else "/v1/describe"
     out = {"op": op, "locust_http": {}, "locust_grpc": {}, "wrk": {}, "durations_s": {"locust": cfg.point_s, "wrk": cfg.wrk_s}}
-    for tool, clients in (("locust_http", cfg.clients), ("locust_grpc", cfg.grpc_clients), ("wrk", cfg.wrk_clients)):
+    tools = (("locust_http", cfg.clients), ("locust_grpc", cfg.grpc_clients), ("wrk", cfg.wrk_clients))
+    for tool, clients in tools if op != "match" else tools[:2]:
         if not clients:
             continue
         with Server(cfg, f"{op}-{tool}", with_map) as srv:
@@ -626,6 +636,8 @@ def main():
                 r = sweep(cfg, "describe")
             elif n == "localize":
                 r = sweep(cfg, "localize")
+            elif n == "match":
+                r = sweep(cfg, "match")
             elif n == "burst":
                 r = burst(cfg)
             elif n == "mixed":

@@ -190,7 +190,8 @@ def markdown(results):
            "server CPU = the server's (100 % = its whole core); other CPU = what every other process on the machine "
            "used meanwhile (a build or test run elsewhere: figures with more than a few % are distorted).", ""]
     for op, title in (("describe", "Describe (640x480 JPEG, 1,500 keypoints)"),
-                      ("localize", "Localize (640x480 JPEG against a map of ~100k observations)")):
+                      ("localize", "Localize (640x480 JPEG against a map of ~100k observations)"),
+                      ("match", "MatchPair (two 640x480 JPEGs: every pair of the scene's frames in turn)")):
         s = sc.get(op)
         if not s:
             continue
@@ -204,6 +205,10 @@ def markdown(results):
                for r in (s.get(k) or {}).values() if "Localize" in r.get("by_name", {})]
         if loc and None not in loc:
             out += ["", f"Queries localised: {100 * min(loc):.0f}-{100 * max(loc):.0f} % of answers."]
+        posed = [r["by_name"]["MatchPair"].get("localized_share") for k in ("locust_http", "locust_grpc")
+                 for r in (s.get(k) or {}).values() if "MatchPair" in r.get("by_name", {})]
+        if posed and None not in posed:
+            out += ["", f"Answers with a relative pose: {100 * min(posed):.0f}-{100 * max(posed):.0f} %."]
         for k, _ in TOOLS:
             out += _stages(s, k + "_metrics")
         out.append("")
