@@ -143,8 +143,28 @@ pub fn export_scene(
     out: &Path,
 ) -> Result<ExportSummary, SceneError> {
     config.validate().map_err(|source| SceneError::Feature { frame: "(settings)".into(), source })?;
-    let tmp = out.with_extension("npz.partial");
-    let file = File::create(&tmp).map_err(|source| SceneError::Io { path: tmp.clone(), source })?;
+    // One partial file per process: two exports of one scene at once (two training runs filling one cache)
+    // must not write into the same file, or the one renamed first would hold both.
+    let tmp = out.with_extension(format!("npz.{}.partial", std::process::id()));
+    let written = write_scene(scene, config, k, limits, out, &tmp);
+    if written.is_err() {
+        let _ = std::fs::remove_file(&tmp);
+    }
+    let summary = written?;
+    std::fs::rename(&tmp, out).map_err(|source| SceneError::Io { path: out.into(), source })?;
+    Ok(summary)
+}
+
+/// [`export_scene`]'s work, into the partial file `tmp`.
+fn write_scene(
+    scene: &Scene,
+    config: &ExtractorConfig,
+    k: usize,
+    limits: &ImageLimits,
+    out: &Path,
+    tmp: &Path,
+) -> Result<ExportSummary, SceneError> {
+    let file = File::create(tmp).map_err(|source| SceneError::Io { path: tmp.into(), source })?;
     let mut npz = NpzWriter::new(BufWriter::new(file));
     let mut frames = Vec::with_capacity(scene.frames.len());
     for (index, frame) in scene.frames.iter().enumerate() {
@@ -180,7 +200,52 @@ pub fn export_scene(
         k,
         frames,
     };
-    finish(npz, &tmp, &meta)?;
-    std::fs::rename(&tmp, out).map_err(|source| SceneError::Io { path: out.into(), source })?;
+    finish(npz, tmp, &meta)?;
     Ok(summary)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn fixture_copy(dir: &Path) -> std::path::PathBuf {
+        let src = Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/fixtures/rendered");
+        let dst = dir.join("scene");
+        std::fs::create_dir_all(dst.join("rgb")).unwrap();
+        for f in ["rgb.txt", "groundtruth.txt", "camera.txt"] {
+            std::fs::copy(src.join(f), dst.join(f)).unwrap();
+        }
+        for e in std::fs::read_dir(src.join("rgb")).unwrap() {
+            let e = e.unwrap();
+            std::fs::copy(e.path(), dst.join("rgb").join(e.file_name())).unwrap();
+        }
+        dst
+    }
+
+    fn leftovers(dir: &Path) -> Vec<String> {
+        std::fs::read_dir(dir)
+            .unwrap()
+            .map(|e| e.unwrap().file_name().to_string_lossy().into_owned())
+            .filter(|n| n.ends_with(".partial"))
+            .collect()
+    }
+
+    #[test]
+    fn a_scene_export_is_renamed_into_place_and_a_failed_one_leaves_nothing() {
+        let dir = crate::test_dir::temp_dir("export");
+        let scene_dir = fixture_copy(&dir);
+        let out = dir.join("scene.features.npz");
+        let (config, limits) = (ExtractorConfig::default(), ImageLimits::default());
+        let summary = export_scene(&Scene::load(&scene_dir).unwrap(), &config, 20, &limits, &out).unwrap();
+        assert_eq!(summary.frames, 10);
+        assert!(out.exists());
+        assert!(leftovers(&dir).is_empty());
+
+        std::fs::write(scene_dir.join("rgb/000003.png"), b"not a png").unwrap();
+        let failed = dir.join("failed.features.npz");
+        let e = export_scene(&Scene::load(&scene_dir).unwrap(), &config, 20, &limits, &failed).unwrap_err();
+        assert!(e.to_string().contains("000003"), "{e}");
+        assert!(!failed.exists());
+        assert!(leftovers(&dir).is_empty(), "{:?}", leftovers(&dir));
+    }
 }
