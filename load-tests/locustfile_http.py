@@ -43,10 +43,14 @@ def _check(r, name, localize=False, posed=False):
         r.success()
 
 
-class DescribeUser(FastHttpUser):
+class _HttpUser(FastHttpUser):
+    abstract = True
     wait_time = common.wait_time()
     network_timeout = 60.0
     connection_timeout = 10.0
+
+
+class DescribeUser(_HttpUser):
 
     def on_start(self):
         self.images = itertools.cycle(common.JPEGS)
@@ -58,10 +62,7 @@ class DescribeUser(FastHttpUser):
             _check(r, "Describe")
 
 
-class LocalizeUser(FastHttpUser):
-    wait_time = common.wait_time()
-    network_timeout = 60.0
-    connection_timeout = 10.0
+class LocalizeUser(_HttpUser):
 
     def on_start(self):
         self.images = itertools.cycle(common.JPEGS)
@@ -75,10 +76,7 @@ class LocalizeUser(FastHttpUser):
             _check(r, "Localize", localize=True)
 
 
-class MatchUser(FastHttpUser):
-    wait_time = common.wait_time()
-    network_timeout = 60.0
-    connection_timeout = 10.0
+class MatchUser(_HttpUser):
 
     def on_start(self):
         self.pairs = itertools.cycle(common.PAIRS)
@@ -96,11 +94,9 @@ class MatchUser(FastHttpUser):
             _check(r, "MatchPair", posed=True)
 
 
-class KeyframeWriter(FastHttpUser):
+class KeyframeWriter(_HttpUser):
     fixed_count = 1
     wait_time = common.write_wait_time()
-    network_timeout = 60.0
-    connection_timeout = 10.0
 
     def on_start(self):
         self.intrinsics, frames = common.writes()
