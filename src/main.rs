@@ -150,6 +150,9 @@ enum EvalCommand {
         /// corner, not competitors (0 = OpenCV's plain test). Default 2, or 0 with --single-scale.
         #[arg(long)]
         same_corner_px: Option<f32>,
+        /// How the scone method picks its matches (scone-plain is always the plain embedding).
+        #[arg(long, value_enum, default_value_t = scone::matching::SconeMatcher::default())]
+        scone_matcher: scone::matching::SconeMatcher,
         /// RANSAC inlier threshold in pixels.
         #[arg(long, default_value_t = 1.0)]
         ransac_px: f64,
@@ -173,6 +176,10 @@ enum EvalCommand {
         /// Match precision without depth: symmetric epipolar distance threshold in pixels.
         #[arg(long, default_value_t = 2.0)]
         epipolar_px: f64,
+        /// Also score apart the pairs whose ground-truth baseline is under this (scene units), by rotation
+        /// alone (0 = off).
+        #[arg(long, default_value_t = 0.0)]
+        short_baseline: f64,
         /// Use OpenCV's single-scale FAST (threshold 20, 2,000 strongest), as the data README's baselines.
         #[arg(long)]
         single_scale: bool,
@@ -208,6 +215,10 @@ struct ReportArgs {
     /// Write the full report (every pair or query) as JSON.
     #[arg(long)]
     json: Option<PathBuf>,
+    /// ONNX Runtime intra-op threads for the SConE embedding (with --opencv-threads 1, the evaluation keeps
+    /// to one core, e.g. beside a training run).
+    #[arg(long, default_value_t = 2)]
+    embed_threads: usize,
 }
 
 impl ReportArgs {
@@ -263,12 +274,12 @@ impl ExtractorArgs {
     }
 }
 
-fn load_embedder(needed: bool, model: Option<PathBuf>) -> anyhow::Result<Option<Embedder>> {
+fn load_embedder(needed: bool, report: &ReportArgs) -> anyhow::Result<Option<Embedder>> {
     if !needed {
         return Ok(None);
     }
-    let mut ec = EmbedderConfig::default();
-    if let Some(m) = model {
+    let mut ec = EmbedderConfig { intra_threads: report.embed_threads.max(1), ..EmbedderConfig::default() };
+    if let Some(m) = report.model.clone() {
         ec.model = m;
     }
     Ok(Some(Embedder::load(&ec)?))
@@ -279,7 +290,8 @@ fn open_store(data_dir: PathBuf, model: Option<PathBuf>) -> anyhow::Result<(MapS
 }
 
 fn open_store_with(config: StoreConfig, model: Option<PathBuf>) -> anyhow::Result<(MapStore, Describer)> {
-    let embedder = std::sync::Arc::new(load_embedder(true, model)?.expect("requested"));
+    let report = ReportArgs { model, json: None, embed_threads: EmbedderConfig::default().intra_threads };
+    let embedder = std::sync::Arc::new(load_embedder(true, &report)?.expect("requested"));
     let info = ModelInfo { model_id: embedder.model_id().to_string(), k: embedder.k(), dim: embedder.dim() };
     let store = MapStore::open(config, info)?;
     let describer = Describer { extractor: ExtractorConfig::default(), limits: ImageLimits::default(), embedder };
@@ -425,6 +437,7 @@ fn main() -> anyhow::Result<()> {
             ratio,
             mutual,
             same_corner_px,
+            scone_matcher,
             ransac_px,
             ransac_iters,
             ransac_confidence,
@@ -432,6 +445,7 @@ fn main() -> anyhow::Result<()> {
             essential,
             depth_px,
             epipolar_px,
+            short_baseline,
             single_scale,
             report: out,
             extractor,
@@ -464,7 +478,8 @@ fn main() -> anyhow::Result<()> {
                 cfg = ExtractorConfig::single_scale(20, 2000);
             }
             let s = Scene::load(&scene)?;
-            let embedder = load_embedder(methods.contains(&Method::Scone), out.model.clone())?;
+            let embedder =
+                load_embedder(methods.iter().any(|m| matches!(m, Method::Scone | Method::SconePlain)), &out)?;
             let pc = PairsConfig {
                 methods,
                 window,
@@ -472,10 +487,12 @@ fn main() -> anyhow::Result<()> {
                 ratio,
                 mutual,
                 same_corner_px,
+                scone_matcher,
                 ransac,
                 extractor: cfg,
                 depth_px,
                 epipolar_px,
+                short_baseline,
             };
             let report = pairs::evaluate(&s, &pc, embedder.as_ref()).map_err(|e| anyhow::anyhow!("{e}"))?;
             print!("{}", pairs::markdown(&report));
@@ -490,7 +507,7 @@ fn main() -> anyhow::Result<()> {
                 );
             }
             let s = Scene::load(&scene)?;
-            let embedder = load_embedder(methods.contains(&Method::Scone), out.model.clone())?;
+            let embedder = load_embedder(methods.contains(&Method::Scone), &out)?;
             let rc =
                 scone::eval::reloc::RelocConfig { methods, stride: map_stride, extractor: cfg, ..Default::default() };
             let report =

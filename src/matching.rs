@@ -122,6 +122,128 @@ pub fn match_descriptors(
     Ok(out)
 }
 
+/// How SConE picks its matches between two frames. Every variant runs on the same keypoints, and the two that
+/// combine SConE with FREAK read the FREAK descriptors those keypoints already carry (no second extraction).
+/// The default, used by MatchPair and `scone eval pairs` alike, was chosen on the selection split under a rule
+/// fixed before scoring (docs/model-experiments.md, session 7: rerank +0.015 mean AUC@10 over plain, union
+/// -0.004).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Default, serde::Serialize, serde::Deserialize, clap::ValueEnum)]
+#[serde(rename_all = "kebab-case")]
+pub enum SconeMatcher {
+    /// The SConE embedding alone: L2 nearest neighbour with the ratio test.
+    Plain,
+    /// SConE's ratio-test matches, plus FREAK's (Hamming, the same test) for the keypoints SConE left
+    /// unmatched. SConE keeps its precision where it answers; FREAK adds the spread-out survivors it has more of.
+    Union,
+    /// FREAK's [`RERANK_CANDIDATES`] nearest descriptors of each keypoint, re-ordered by SConE distance; the
+    /// ratio test runs on the SConE distances of those candidates.
+    #[default]
+    Rerank,
+}
+
+impl SconeMatcher {
+    pub fn name(&self) -> &'static str {
+        match self {
+            SconeMatcher::Plain => "plain",
+            SconeMatcher::Union => "union",
+            SconeMatcher::Rerank => "rerank",
+        }
+    }
+}
+
+/// FREAK candidates per keypoint that [`SconeMatcher::Rerank`] re-orders.
+pub const RERANK_CANDIDATES: i32 = 10;
+
+/// One frame as the SConE matchers see it: `[N, dim]` embeddings, FREAK descriptors (`[N, 64]` u8) and
+/// keypoint positions, all of the same N keypoints.
+pub struct SconeFrame<'a> {
+    pub embeddings: &'a [f32],
+    pub dim: usize,
+    pub freak: &'a Mat,
+    pub points: &'a [(f32, f32)],
+}
+
+/// SConE matches of `a`'s keypoints in `b` by `matcher`.
+pub fn match_scone(
+    matcher: SconeMatcher,
+    a: &SconeFrame,
+    b: &SconeFrame,
+    test: &RatioTest,
+) -> Result<Vec<Match>, FeatureError> {
+    match matcher {
+        SconeMatcher::Plain => match_l2(a.embeddings, b.embeddings, a.dim, test, b.points),
+        SconeMatcher::Union => {
+            let mut out = match_l2(a.embeddings, b.embeddings, a.dim, test, b.points)?;
+            let mut answered = vec![false; a.points.len()];
+            for m in &out {
+                answered[m.query] = true;
+            }
+            let freak = match_descriptors(a.freak, b.freak, NORM_HAMMING, test, b.points)?;
+            out.extend(freak.into_iter().filter(|m| !answered[m.query]));
+            Ok(out)
+        }
+        SconeMatcher::Rerank => rerank(a, b, test),
+    }
+}
+
+fn l2(x: &[f32], y: &[f32]) -> f32 {
+    x.iter().zip(y).map(|(p, q)| (p - q) * (p - q)).sum::<f32>().sqrt()
+}
+
+fn rerank(a: &SconeFrame, b: &SconeFrame, test: &RatioTest) -> Result<Vec<Match>, FeatureError> {
+    if a.freak.rows() < 1 || b.freak.rows() < 2 {
+        return Ok(Vec::new());
+    }
+    let matcher = BFMatcher::new(NORM_HAMMING, false)?;
+    let mut knn = Vector::<Vector<DMatch>>::new();
+    matcher.knn_train_match(a.freak, b.freak, &mut knn, RERANK_CANDIDATES, &Mat::default(), false)?;
+    let dim = a.dim;
+    let r2 = test.same_corner_px * test.same_corner_px;
+    let mut out = Vec::new();
+    let mut cand: Vec<(f32, usize)> = Vec::with_capacity(RERANK_CANDIDATES as usize);
+    for row in knn.iter() {
+        if row.len() < 2 {
+            continue;
+        }
+        let q = row.get(0)?.query_idx as usize;
+        let ea = &a.embeddings[q * dim..(q + 1) * dim];
+        cand.clear();
+        for m in row.iter() {
+            let t = m.train_idx as usize;
+            cand.push((l2(ea, &b.embeddings[t * dim..(t + 1) * dim]), t));
+        }
+        cand.sort_by(|x, y| x.0.total_cmp(&y.0));
+        let (d0, t0) = cand[0];
+        let p0 = b.points[t0];
+        let competitor = if test.same_corner_px > 0.0 {
+            cand.iter()
+                .skip(1)
+                .find(|(_, t)| {
+                    let p = b.points[*t];
+                    (p.0 - p0.0).powi(2) + (p.1 - p0.1).powi(2) > r2
+                })
+                .map(|c| c.0)
+                .unwrap_or(cand[cand.len() - 1].0)
+        } else {
+            cand[1].0
+        };
+        if d0 < test.ratio * competitor {
+            out.push(Match { query: q, train: t0, distance: d0 });
+        }
+    }
+    if test.mutual {
+        // Mutual check on the re-ranked answers: keep a match only if no other query chose the same keypoint
+        // at a smaller distance.
+        let mut best: std::collections::HashMap<usize, f32> = std::collections::HashMap::new();
+        for m in &out {
+            let e = best.entry(m.train).or_insert(f32::INFINITY);
+            *e = e.min(m.distance);
+        }
+        out.retain(|m| best[&m.train] == m.distance);
+    }
+    Ok(out)
+}
+
 /// Embedding rows (`[N, dim]`, row-major) as an OpenCV f32 matrix.
 pub fn embedding_mat(rows: &[f32], dim: usize) -> Result<Mat, FeatureError> {
     if rows.is_empty() {
@@ -197,5 +319,64 @@ mod tests {
         let (a, b, pts) = case(3.0);
         assert!(match_l2(&a, &b, 2, &RatioTest::new(0.8), &pts[..2]).is_err());
         assert!(match_l2(&a, &b, 2, &RatioTest::plain(0.8), &[]).is_ok());
+    }
+
+    /// Two frames of three keypoints far apart: SConE embeddings and FREAK bytes chosen per case.
+    fn frames(ea: Vec<f32>, eb: Vec<f32>, fa: [[u8; 64]; 3], fb: [[u8; 64]; 3]) -> (Vec<f32>, Vec<f32>, Mat, Mat) {
+        let to_mat = |rows: [[u8; 64]; 3]| {
+            let flat: Vec<u8> = rows.iter().flatten().copied().collect();
+            Mat::new_rows_cols_with_data(3, 64, &flat).unwrap().try_clone().unwrap()
+        };
+        (ea, eb, to_mat(fa), to_mat(fb))
+    }
+
+    const PTS: [(f32, f32); 3] = [(10.0, 10.0), (100.0, 10.0), (10.0, 100.0)];
+
+    #[test]
+    fn union_adds_freak_matches_only_for_keypoints_scone_left_unmatched() {
+        // SConE: query 0 clearly matches 0; queries 1 and 2 are ambiguous (equidistant from b1 and b2).
+        let ea = vec![0.0, 0.0, 5.0, 5.0, 5.0, 5.0];
+        let eb = vec![0.0, 0.0, 5.0, 4.0, 5.0, 6.0];
+        // FREAK: query 0 would match 1 (disagreeing with SConE), query 1 clearly matches 1, query 2 is 128 bits
+        // from both b1 and b2.
+        let (z, o) = ([0u8; 64], [0xffu8; 64]);
+        let (mut half, mut three_quarters) = ([0u8; 64], [0u8; 64]);
+        half[..32].fill(0xff);
+        three_quarters[..48].fill(0xff);
+        let (ea, eb, fa, fb) = frames(ea, eb, [o, o, three_quarters], [z, o, half]);
+        let (a, b) = (
+            SconeFrame { embeddings: &ea, dim: 2, freak: &fa, points: &PTS },
+            SconeFrame { embeddings: &eb, dim: 2, freak: &fb, points: &PTS },
+        );
+        let test = RatioTest::new(0.8);
+        let plain = match_scone(SconeMatcher::Plain, &a, &b, &test).unwrap();
+        assert_eq!(plain.iter().map(|m| (m.query, m.train)).collect::<Vec<_>>(), vec![(0, 0)]);
+        let union = match_scone(SconeMatcher::Union, &a, &b, &test).unwrap();
+        // SConE's answer for query 0 stands; FREAK adds query 1; query 2 has no answer from either.
+        let mut got: Vec<_> = union.iter().map(|m| (m.query, m.train)).collect();
+        got.sort_unstable();
+        assert_eq!(got, vec![(0, 0), (1, 1)]);
+    }
+
+    #[test]
+    fn rerank_orders_freak_candidates_by_scone_distance() {
+        // FREAK prefers b0 for query 0 (identical bits), SConE prefers b2 and is sure of it.
+        let (z, o) = ([0u8; 64], [0xffu8; 64]);
+        let mut near = [0u8; 64];
+        near[0] = 0x0f;
+        let ea = vec![0.0, 0.0, 9.0, 9.0, -9.0, 9.0];
+        let eb = vec![3.0, 0.0, 9.0, -9.0, 0.1, 0.0];
+        let (ea, eb, fa, fb) = frames(ea, eb, [z, o, o], [z, o, near]);
+        let (a, b) = (
+            SconeFrame { embeddings: &ea, dim: 2, freak: &fa, points: &PTS },
+            SconeFrame { embeddings: &eb, dim: 2, freak: &fb, points: &PTS },
+        );
+        let m = match_scone(SconeMatcher::Rerank, &a, &b, &RatioTest::new(0.8)).unwrap();
+        let q0: Vec<_> = m.iter().filter(|m| m.query == 0).map(|m| m.train).collect();
+        assert_eq!(q0, vec![2]);
+        // With fewer than two candidates in b there is nothing to rank.
+        let one = Mat::new_rows_cols_with_data(1, 64, &z).unwrap().try_clone().unwrap();
+        let b1 = SconeFrame { embeddings: &eb[..2], dim: 2, freak: &one, points: &PTS[..1] };
+        assert!(match_scone(SconeMatcher::Rerank, &a, &b1, &RatioTest::new(0.8)).unwrap().is_empty());
     }
 }

@@ -22,7 +22,7 @@ use crate::map::builder::{Depth, ExternalObservation, KeyframeInput};
 use crate::map::localize::{LandmarkMatch, Prior};
 use crate::map::model::Pose;
 use crate::map::store::{KeyframeAdded, MapStore, MapSummary};
-use crate::matching::{match_l2, Match, RatioTest, SAME_CORNER_PX};
+use crate::matching::{match_scone, Match, RatioTest, SconeFrame, SconeMatcher, SAME_CORNER_PX};
 use crate::pipeline::{DescribeError, Describer};
 use crate::pose::{relative_pose, validate_camera, AbsolutePose, RansacParams, RelativePose};
 use crate::scene::Camera;
@@ -84,11 +84,13 @@ pub struct Description {
 pub struct PairOptions {
     pub ratio: f32,
     pub mutual: bool,
+    /// How the matches are picked (`matching::SconeMatcher`).
+    pub matcher: SconeMatcher,
 }
 
 impl Default for PairOptions {
     fn default() -> Self {
-        Self { ratio: 0.8, mutual: false }
+        Self { ratio: 0.8, mutual: false, matcher: SconeMatcher::default() }
     }
 }
 
@@ -400,8 +402,13 @@ impl Service {
             }
         }
         let test = RatioTest { ratio: options.ratio, mutual: options.mutual, same_corner_px: SAME_CORNER_PX };
-        let matches =
-            times.time("match", || match_l2(&d1.embeddings, &d2.embeddings, d1.dim, &test, &d2.features.points()))?;
+        let (points1, points2) = (d1.features.points(), d2.features.points());
+        let matches = times.time("match", || {
+            let (freak1, freak2) = (d1.features.descriptor_mat()?, d2.features.descriptor_mat()?);
+            let f1 = SconeFrame { embeddings: &d1.embeddings, dim: d1.dim, freak: &freak1, points: &points1 };
+            let f2 = SconeFrame { embeddings: &d2.embeddings, dim: d2.dim, freak: &freak2, points: &points2 };
+            match_scone(options.matcher, &f1, &f2, &test)
+        })?;
         let p1: Vec<(f32, f32)> = matches.iter().map(|m| d1.features.keypoints[m.query]).map(|k| (k.x, k.y)).collect();
         let p2: Vec<(f32, f32)> = matches.iter().map(|m| d2.features.keypoints[m.train]).map(|k| (k.x, k.y)).collect();
         let pose = times.time("pose", || relative_pose(&p1, &p2, &cam1, &cam2, &self.ransac))?;

@@ -13,14 +13,25 @@ use crate::decode::GreyImage;
 use crate::embedding::Embedder;
 use crate::error::FeatureError;
 use crate::features::{self, ExtractorConfig, Keypoint};
-use crate::matching::{embedding_mat, match_descriptors, Match, RatioTest};
+use crate::matching::{embedding_mat, match_descriptors, match_scone, Match, RatioTest, SconeFrame, SconeMatcher};
+
+/// The rows of a continuous f32 matrix as one slice (empty for an empty matrix).
+fn mat_rows(m: &Mat) -> Result<&[f32], FeatureError> {
+    if m.empty() {
+        return Ok(&[]);
+    }
+    Ok(m.data_typed::<f32>()?)
+}
 
 /// A description method.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Serialize, Deserialize, clap::ValueEnum)]
 #[serde(rename_all = "kebab-case")]
 pub enum Method {
-    /// SConE embeddings of the project's FAST + FREAK keypoints (L2).
+    /// SConE on the project's FAST + FREAK keypoints, matched the way the service matches them (the
+    /// evaluation's `scone_matcher`, by default the service's default).
     Scone,
+    /// The plain SConE embedding (L2 nearest neighbour and ratio test), whatever the matcher.
+    SconePlain,
     /// The same keypoints' FREAK descriptors (Hamming).
     Freak,
     /// FREAK nearest neighbours filtered by GMS (grid-based motion statistics) instead of the ratio test.
@@ -35,6 +46,7 @@ impl Method {
     pub fn name(&self) -> &'static str {
         match self {
             Method::Scone => "SConE",
+            Method::SconePlain => "SConE (plain)",
             Method::Freak => "FREAK",
             Method::FreakGms => "FREAK+GMS",
             Method::Orb => "ORB",
@@ -48,6 +60,8 @@ pub struct Described {
     pub keypoints: Vec<Keypoint>,
     pub descriptors: Mat,
     pub norm: i32,
+    /// SConE only: the keypoints' FREAK descriptors, for the matchers that combine the two.
+    pub freak: Option<Mat>,
     /// Seconds spent detecting and describing (decode excluded).
     pub seconds: f64,
     pub width: u32,
@@ -71,17 +85,19 @@ pub fn describe(
     embedder: Option<&Embedder>,
 ) -> Result<Described, Box<dyn std::error::Error + Send + Sync>> {
     let t0 = Instant::now();
+    let mut freak = None;
     let (keypoints, descriptors, norm) = match method {
         Method::Freak | Method::FreakGms => {
             let f = features::extract(image, extractor)?;
             let d = f.descriptor_mat()?;
             (f.keypoints, d, NORM_HAMMING)
         }
-        Method::Scone => {
+        Method::Scone | Method::SconePlain => {
             let embedder = embedder.ok_or("SConE needs a model (--model)")?;
             let f = features::extract(image, extractor)?;
             let c = constellation::build(&f.keypoints, embedder.k());
             let e = embedder.embed(&f, &c)?;
+            freak = Some(f.descriptor_mat()?);
             (f.keypoints, embedding_mat(&e, embedder.dim())?, NORM_L2)
         }
         Method::Orb => {
@@ -105,6 +121,7 @@ pub fn describe(
         keypoints,
         descriptors,
         norm,
+        freak,
         seconds,
         width: image.width(),
         height: image.height(),
@@ -113,13 +130,25 @@ pub fn describe(
 }
 
 /// Putative matches of `a` to `b`: `test` for every method but FREAK+GMS, which takes every nearest neighbour
-/// and keeps those GMS supports (rotation and scale enabled, threshold factor 6).
+/// and keeps those GMS supports (rotation and scale enabled, threshold factor 6). SConE is matched by
+/// `scone_matcher` (SConE (plain) always by [`SconeMatcher::Plain`]).
 pub fn putative_matches(
     method: Method,
     a: &Described,
     b: &Described,
     test: &RatioTest,
+    scone_matcher: SconeMatcher,
 ) -> Result<Vec<Match>, FeatureError> {
+    if method == Method::Scone && scone_matcher != SconeMatcher::Plain {
+        let (ea, eb) = (mat_rows(&a.descriptors)?, mat_rows(&b.descriptors)?);
+        let dim = a.descriptors.cols().max(0) as usize;
+        let points = |d: &Described| -> Vec<(f32, f32)> { d.keypoints.iter().map(|k| (k.x, k.y)).collect() };
+        let (pa, pb) = (points(a), points(b));
+        let empty = Mat::default();
+        let fa = SconeFrame { embeddings: ea, dim, freak: a.freak.as_ref().unwrap_or(&empty), points: &pa };
+        let fb = SconeFrame { embeddings: eb, dim, freak: b.freak.as_ref().unwrap_or(&empty), points: &pb };
+        return match_scone(scone_matcher, &fa, &fb, test);
+    }
     if method != Method::FreakGms {
         let b_points: Vec<(f32, f32)> = b.keypoints.iter().map(|k| (k.x, k.y)).collect();
         return match_descriptors(&a.descriptors, &b.descriptors, a.norm, test, &b_points);

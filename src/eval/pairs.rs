@@ -25,7 +25,7 @@ use super::{accuracy, auc, median};
 use crate::decode::{decode_depth_png, decode_grey, ImageLimits};
 use crate::embedding::Embedder;
 use crate::features::ExtractorConfig;
-use crate::matching::RatioTest;
+use crate::matching::{RatioTest, SconeMatcher};
 use crate::pose::{
     ransac_iterations_needed, relative_motion, relative_pose, rotation_error_deg, translation_angle_deg, RansacParams,
 };
@@ -45,9 +45,18 @@ pub struct PairsConfig {
     /// reports written before the option existed used.
     #[serde(default)]
     pub same_corner_px: f32,
+    /// How the `scone` method picks its matches (`matching::SconeMatcher`); reports written before the option
+    /// existed used the plain embedding.
+    #[serde(default)]
+    pub scone_matcher: SconeMatcher,
     pub ransac: RansacParams,
     pub depth_px: f64,
     pub epipolar_px: f64,
+    /// Pairs whose ground-truth baseline is shorter than this (scene units) are also reported apart: their
+    /// translation direction is noise (TUM's 30 Hz burst: millimetres), so they are scored by the rotation
+    /// error alone there, and the other pairs by the usual max(rotation, translation). 0 = off.
+    #[serde(default)]
+    pub short_baseline: f64,
     pub extractor: ExtractorConfig,
 }
 
@@ -60,9 +69,11 @@ impl Default for PairsConfig {
             ratio: 0.8,
             mutual: false,
             same_corner_px: crate::matching::SAME_CORNER_PX,
+            scone_matcher: SconeMatcher::default(),
             ransac: RansacParams::default(),
             depth_px: 4.0,
             epipolar_px: 2.0,
+            short_baseline: 0.0,
             extractor: ExtractorConfig::default(),
         }
     }
@@ -76,6 +87,9 @@ pub struct PairRecord {
     pub frame: String,
     /// Rotation angle between the two cameras (ground truth), degrees.
     pub angular_distance_deg: f64,
+    /// Distance between the two camera centres (ground truth), scene units.
+    #[serde(default)]
+    pub baseline: f64,
     pub matches: usize,
     /// Matches checkable against the ground truth, and how many of those are correct.
     pub checked: usize,
@@ -84,6 +98,10 @@ pub struct PairRecord {
     pub errors_deg: Vec<f64>,
     pub rotation_errors_deg: Vec<f64>,
     pub translation_errors_deg: Vec<f64>,
+    /// Per seed: KITTI-style translation error, |s t_est - t_gt| in scene units, with the estimated unit
+    /// direction scaled to the ground-truth baseline (s = |t_gt|: two-view geometry has no scale); NaN = failure.
+    #[serde(default)]
+    pub translation_errors: Vec<f64>,
     pub inliers: Vec<usize>,
     /// Per seed: iterations RANSAC needs at the found inlier ratio (confidence 0.999, 5-point samples).
     pub iterations_needed: Vec<f64>,
@@ -110,6 +128,17 @@ pub struct MethodSummary {
     pub median_iterations_needed: f64,
     pub describe_ms: f64,
     pub match_ms: f64,
+    /// Median KITTI-style translation error of the successful estimates (scene units; see `PairRecord`).
+    #[serde(default)]
+    pub median_translation_error: f64,
+    /// With `short_baseline` set: AUC@10 of the pairs at or above it (max(rotation, translation)), of the
+    /// shorter pairs by rotation alone, and how many pairs are short.
+    #[serde(default)]
+    pub auc10_long_pairs: Option<f64>,
+    #[serde(default)]
+    pub auc10_short_pairs_rotation: Option<f64>,
+    #[serde(default)]
+    pub short_pairs: usize,
 }
 
 #[derive(Debug, Clone, Serialize, Deserialize)]
@@ -230,7 +259,7 @@ pub fn evaluate(scene: &Scene, cfg: &PairsConfig, embedder: Option<&Embedder>) -
             let (a, b) = (&described[&i], &described[&j]);
             let t0 = Instant::now();
             let test = RatioTest { ratio: cfg.ratio, mutual: cfg.mutual, same_corner_px: cfg.same_corner_px };
-            let matches = putative_matches(method, a, b, &test)?;
+            let matches = putative_matches(method, a, b, &test, cfg.scone_matcher)?;
             let match_seconds = t0.elapsed().as_secs_f64();
             let t_w1 = scene.frames[i].pose.expect("filtered");
             let t_w2 = scene.frames[j].pose.expect("filtered");
@@ -250,12 +279,14 @@ pub fn evaluate(scene: &Scene, cfg: &PairsConfig, embedder: Option<&Embedder>) -
                 reference: scene.frames[i].stamp.clone(),
                 frame: scene.frames[j].stamp.clone(),
                 angular_distance_deg: gt.rotation.angle().to_degrees(),
+                baseline: gt.translation.vector.norm(),
                 matches: matches.len(),
                 checked,
                 correct,
                 errors_deg: Vec::new(),
                 rotation_errors_deg: Vec::new(),
                 translation_errors_deg: Vec::new(),
+                translation_errors: Vec::new(),
                 inliers: Vec::new(),
                 iterations_needed: Vec::new(),
                 match_seconds,
@@ -273,6 +304,9 @@ pub fn evaluate(scene: &Scene, cfg: &PairsConfig, embedder: Option<&Embedder>) -
                         let t = translation_angle_deg(&pose.translation, &gt.translation.vector);
                         rec.rotation_errors_deg.push(r);
                         rec.translation_errors_deg.push(t);
+                        let g = gt.translation.vector;
+                        let est = pose.translation.normalize() * g.norm();
+                        rec.translation_errors.push((est - g).norm());
                         rec.errors_deg.push(r.max(t));
                         rec.inliers.push(pose.inlier_count);
                         rec.iterations_needed.push(ransac_iterations_needed(
@@ -284,6 +318,7 @@ pub fn evaluate(scene: &Scene, cfg: &PairsConfig, embedder: Option<&Embedder>) -
                     None => {
                         rec.rotation_errors_deg.push(180.0);
                         rec.translation_errors_deg.push(180.0);
+                        rec.translation_errors.push(f64::NAN);
                         rec.errors_deg.push(180.0);
                         rec.inliers.push(0);
                         rec.iterations_needed.push(f64::INFINITY);
@@ -297,7 +332,13 @@ pub fn evaluate(scene: &Scene, cfg: &PairsConfig, embedder: Option<&Embedder>) -
         .methods
         .iter()
         .map(|&m| {
-            summarise(m, &records, cfg.seeds as usize, describe_seconds.get(&m).map(Vec::as_slice).unwrap_or(&[]))
+            summarise(
+                m,
+                &records,
+                cfg.seeds as usize,
+                describe_seconds.get(&m).map(Vec::as_slice).unwrap_or(&[]),
+                cfg.short_baseline,
+            )
         })
         .collect();
     Ok(PairsReport {
@@ -309,8 +350,31 @@ pub fn evaluate(scene: &Scene, cfg: &PairsConfig, embedder: Option<&Embedder>) -
     })
 }
 
-fn summarise(method: Method, records: &[PairRecord], seeds: usize, describe_seconds: &[f64]) -> MethodSummary {
+fn summarise(
+    method: Method,
+    records: &[PairRecord],
+    seeds: usize,
+    describe_seconds: &[f64],
+    short_baseline: f64,
+) -> MethodSummary {
     let recs: Vec<&PairRecord> = records.iter().filter(|r| r.method == method).collect();
+    // AUC@10 averaged over seeds of the records `keep` selects, each error read by `err`.
+    let auc10_of = |keep: &dyn Fn(&PairRecord) -> bool, err: &dyn Fn(&PairRecord, usize) -> f64| -> Option<f64> {
+        let sel: Vec<&&PairRecord> = recs.iter().filter(|r| keep(r)).collect();
+        if sel.is_empty() {
+            return None;
+        }
+        let per_seed = (0..seeds).map(|s| auc(&sel.iter().map(|r| err(r, s)).collect::<Vec<_>>(), 10.0));
+        Some(per_seed.sum::<f64>() / seeds.max(1) as f64)
+    };
+    let short = |r: &PairRecord| r.baseline < short_baseline;
+    let (auc10_long_pairs, auc10_short_pairs_rotation) = if short_baseline > 0.0 {
+        (auc10_of(&|r| !short(r), &|r, s| r.errors_deg[s]), auc10_of(&|r| short(r), &|r, s| r.rotation_errors_deg[s]))
+    } else {
+        (None, None)
+    };
+    let t_err: Vec<f64> =
+        recs.iter().flat_map(|r| r.translation_errors.iter().copied()).filter(|e| e.is_finite()).collect();
     let per_seed = |f: &dyn Fn(&[f64]) -> f64| {
         (0..seeds).map(|s| f(&recs.iter().map(|r| r.errors_deg[s]).collect::<Vec<_>>())).sum::<f64>()
             / seeds.max(1) as f64
@@ -341,19 +405,24 @@ fn summarise(method: Method, records: &[PairRecord], seeds: usize, describe_seco
         median_iterations_needed: median(&iters),
         describe_ms: 1e3 * describe_seconds.iter().sum::<f64>() / describe_seconds.len().max(1) as f64,
         match_ms: 1e3 * recs.iter().map(|r| r.match_seconds).sum::<f64>() / n,
+        median_translation_error: median(&t_err),
+        auc10_long_pairs,
+        auc10_short_pairs_rotation,
+        short_pairs: if short_baseline > 0.0 { recs.iter().filter(|r| short(r)).count() } else { 0 },
     }
 }
 
 /// The summaries as a markdown table.
 pub fn markdown(report: &PairsReport) -> String {
     let mut s = format!(
-        "{} ({} pairs, window {}, {} seeds, ratio {}, same-corner radius {} px, {:?} {} px, at most {} iterations, confidence {})\n\n",
+        "{} ({} pairs, window {}, {} seeds, ratio {}, same-corner radius {} px, SConE matcher {}, {:?} {} px, at most {} iterations, confidence {})\n\n",
         report.scene,
         report.summaries.first().map(|m| m.pairs).unwrap_or(0),
         report.config.window,
         report.config.seeds,
         report.config.ratio,
         report.config.same_corner_px,
+        report.config.scone_matcher.name(),
         report.config.ransac.essential,
         report.config.ransac.threshold_px,
         report.config.ransac.max_iters,
@@ -380,6 +449,27 @@ pub fn markdown(report: &PairsReport) -> String {
             m.describe_ms,
             m.match_ms
         ));
+    }
+    if report.config.short_baseline > 0.0 {
+        s.push_str(&format!(
+            "\nPairs with a baseline under {} (scene units) scored apart, by rotation alone:\n\n",
+            report.config.short_baseline
+        ));
+        s.push_str("| method | AUC@10, all pairs | AUC@10, longer pairs | short pairs | AUC@10, short pairs (rotation) | med. rot | med. translation error (scaled) |\n");
+        s.push_str("|---|---|---|---|---|---|---|\n");
+        for m in &report.summaries {
+            let opt = |v: Option<f64>| v.map(|x| format!("{x:.3}")).unwrap_or_else(|| "-".into());
+            s.push_str(&format!(
+                "| {} | {:.3} | {} | {} | {} | {:.2} | {:.4} |\n",
+                m.method.name(),
+                m.auc10,
+                opt(m.auc10_long_pairs),
+                m.short_pairs,
+                opt(m.auc10_short_pairs_rotation),
+                m.median_rotation_deg,
+                m.median_translation_error
+            ));
+        }
     }
     s
 }

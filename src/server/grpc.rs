@@ -18,6 +18,7 @@ use crate::features::Keypoint;
 use crate::map::builder::ExternalObservation;
 use crate::map::localize::Prior;
 use crate::map::store::MapSummary;
+use crate::matching::SconeMatcher;
 use crate::scene::Camera;
 use crate::service::{
     pose_from_parts, quaternion_xyzw, ErrorKind, FrameInput, FrameSource, KeyframeRequest, KeypointsInput, PairOptions,
@@ -332,7 +333,15 @@ impl proto::matching_server::Matching for GrpcApi {
         let r = req.into_inner();
         let out = self
             .handle("MatchPair", Access::Read, key.as_deref(), move |a| {
-                let options = PairOptions { ratio: if r.ratio == 0.0 { 0.8 } else { r.ratio }, mutual: r.mutual };
+                let matcher = match proto::PairMatcher::try_from(r.matcher) {
+                    Ok(proto::PairMatcher::Default) => SconeMatcher::default(),
+                    Ok(proto::PairMatcher::Plain) => SconeMatcher::Plain,
+                    Ok(proto::PairMatcher::Union) => SconeMatcher::Union,
+                    Ok(proto::PairMatcher::Rerank) => SconeMatcher::Rerank,
+                    Err(_) => return Err(invalid("matcher", &format!("{} is not a PairMatcher", r.matcher))),
+                };
+                let options =
+                    PairOptions { ratio: if r.ratio == 0.0 { 0.8 } else { r.ratio }, mutual: r.mutual, matcher };
                 let o = a.service.match_pair(frame(r.frame1, "frame1")?, frame(r.frame2, "frame2")?, options)?;
                 a.metrics.stages(&o.times);
                 let inliers = o.pose.as_ref().map(|p| p.inliers.clone()).unwrap_or_default();

@@ -199,6 +199,9 @@ struct MatchJson {
     ratio: Option<f32>,
     #[serde(default)]
     mutual: bool,
+    /// "plain", "union" or "rerank"; absent = the server's default.
+    #[serde(default)]
+    matcher: Option<crate::matching::SconeMatcher>,
 }
 
 #[derive(Debug, Default, Deserialize)]
@@ -488,7 +491,8 @@ async fn match_pair(
         let j: MatchJson = parse_json(&body.json).map_err(|e| e.0)?;
         let f1 = frame(j.frame1, body.image, None, "frame1")?;
         let f2 = frame(j.frame2, body.image2, None, "frame2")?;
-        let options = PairOptions { ratio: j.ratio.unwrap_or(0.8), mutual: j.mutual };
+        let options =
+            PairOptions { ratio: j.ratio.unwrap_or(0.8), mutual: j.mutual, matcher: j.matcher.unwrap_or_default() };
         let o = a.service.match_pair(f1, f2, options)?;
         a.metrics.stages(&o.times);
         let inliers = o.pose.as_ref().map(|p| p.inliers.clone()).unwrap_or_default();

@@ -746,3 +746,60 @@ async fn shutdown_finishes_in_flight_requests_then_flushes() {
     assert_eq!(server.app.service.get_map("s").unwrap().keyframes, 2);
     server.shutdown().await.unwrap();
 }
+
+/// MatchPair's matcher is selectable on both transports (the plain SConE embedding stays available), every
+/// choice recovers the fixture pair's rotation, and an unknown one is the client's error.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn match_pair_matchers_are_selectable_and_unknown_ones_refused() {
+    let data = temp_dir("matchers");
+    let scene = Scene::load(&fixture("rendered")).unwrap();
+    let server = serve(settings(&data)).await;
+    let (_, mut matching) = clients(&server).await;
+    let c = scene.camera;
+    let rel = scone::pose::relative_motion(&scene.frames[0].pose.unwrap(), &scene.frames[1].pose.unwrap());
+    let rotation_error = |p: &proto::RelativePose| {
+        let q = nalgebra::UnitQuaternion::from_quaternion(nalgebra::Quaternion::new(p.qw, p.qx, p.qy, p.qz));
+        q.angle_to(&rel.rotation).to_degrees()
+    };
+    let request = |matcher: i32| proto::MatchPairRequest {
+        frame1: Some(image_frame(&scene.frames[0].rgb, &c)),
+        frame2: Some(image_frame(&scene.frames[1].rgb, &c)),
+        ratio: 0.0,
+        mutual: false,
+        matcher,
+    };
+    let mut counts = Vec::new();
+    for m in
+        [proto::PairMatcher::Default, proto::PairMatcher::Plain, proto::PairMatcher::Union, proto::PairMatcher::Rerank]
+    {
+        let r = matching.match_pair(request(m as i32)).await.unwrap().into_inner();
+        let dr = rotation_error(r.pose.as_ref().expect("a pose"));
+        assert!(dr < 2.0, "{m:?}: relative rotation off by {dr} deg");
+        counts.push(r.matches.len());
+    }
+    // The default is the rerank matcher: the same matches.
+    assert_eq!(counts[0], counts[3]);
+    let err = matching.match_pair(request(99)).await.unwrap_err();
+    assert_eq!(err.code(), Code::InvalidArgument);
+    assert!(err.message().contains("matcher"), "{}", err.message());
+
+    let http = reqwest::Client::new();
+    let base = format!("http://{}", server.http_addr);
+    let post = |matcher: &str| {
+        let request = serde_json::json!({
+            "frame1": {"intrinsics": {"fx": c.fx, "fy": c.fy, "cx": c.cx, "cy": c.cy}},
+            "frame2": {"intrinsics": {"fx": c.fx, "fy": c.fy, "cx": c.cx, "cy": c.cy}},
+            "matcher": matcher,
+        });
+        let form = reqwest::multipart::Form::new()
+            .text("request", request.to_string())
+            .part("image1", reqwest::multipart::Part::bytes(std::fs::read(&scene.frames[0].rgb).unwrap()))
+            .part("image2", reqwest::multipart::Part::bytes(std::fs::read(&scene.frames[1].rgb).unwrap()));
+        http.post(format!("{base}/v1/match")).multipart(form).send()
+    };
+    let plain: serde_json::Value = post("plain").await.unwrap().json().await.unwrap();
+    assert_eq!(plain["matches"].as_array().unwrap().len(), counts[1]);
+    let r = post("nearest").await.unwrap();
+    assert_eq!(r.status(), 400);
+    server.shutdown().await.unwrap();
+}

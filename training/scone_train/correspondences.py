@@ -8,7 +8,7 @@ would favour that descriptor, because its nearest neighbours would be correct by
   the projected depth agrees with the other frame's depth reading (relative `depth_tol`, which rejects
   occluded points), the keypoint sizes agree with the depth ratio within `scale_tol` (one pyramid level is
   1.2), and the link is mutual (the same test from the other side picks the first keypoint).
-* Without depth (Strecha, KITTI): for keypoint a of frame i, the keypoints of frame j within `epi_px` of its
+* Without depth (Strecha, KITTI; and the pairs of a partly depth-covered scene where a frame lacks it): for keypoint a of frame i, the keypoints of frame j within `epi_px` of its
   epipolar line are candidates. Each candidate is triangulated with the known poses; it survives when the
   point lies in front of both cameras, the sizes agree with the depth ratio, and the point lands within
   `third_px` of a keypoint of at least one third frame. a is linked to b only when exactly one candidate
@@ -36,6 +36,7 @@ class GeometryParams:
     epi_px: float = 1.0
     third_px: float = 1.5
     window: int = 0  # link frames at most this far apart in index (0 = all pairs)
+    neighbours: int = 0  # >0: link each frame only to this many others with the nearest optical axes
 
 
 class UnionFind:
@@ -170,6 +171,9 @@ def _epipolar_links(scene: Scene, feats, trees, i: int, j: int, p: GeometryParam
     others = [f for f in range(len(feats)) if f not in (i, j) and scene.T_wc[f] is not None and len(feats[f])]
     if p.window:
         others = [f for f in others if abs(f - i) <= p.window and abs(f - j) <= p.window]
+    if p.neighbours:
+        near_i = set(_axis_neighbours(scene, p.neighbours)[i])
+        others = [f for f in others if f in near_i]
     for f in others:
         todo = np.nonzero(ok & (third_hit < 0))[0]
         if len(todo) == 0:
@@ -195,6 +199,24 @@ def _epipolar_links(scene: Scene, feats, trees, i: int, j: int, p: GeometryParam
     return links
 
 
+def _axis_neighbours(scene: Scene, n: int) -> dict[int, list[int]]:
+    """For each posed frame, the n other posed frames whose optical axes are nearest in angle (cached)."""
+    key = (id(scene), n)
+    if key not in _AXIS_CACHE:
+        posed = [k for k in range(len(scene.T_wc)) if scene.T_wc[k] is not None]
+        axes = np.array([scene.T_wc[k][:3, 2] for k in posed])
+        cos = axes @ axes.T
+        out = {}
+        for r, k in enumerate(posed):
+            order = [posed[c] for c in np.argsort(-cos[r]) if posed[c] != k]
+            out[k] = order[:n]
+        _AXIS_CACHE[key] = out
+    return _AXIS_CACHE[key]
+
+
+_AXIS_CACHE: dict = {}
+
+
 def landmarks(scene: Scene, feats: list[FrameFeatures], params: GeometryParams | None = None) -> list[np.ndarray]:
     """Landmark id per keypoint of every frame (-1 = not part of a consistent track of >= 2 frames)."""
     p = params or GeometryParams()
@@ -203,16 +225,22 @@ def landmarks(scene: Scene, feats: list[FrameFeatures], params: GeometryParams |
     n = len(feats)
     posed = [k for k in range(n) if scene.T_wc[k] is not None]
     pairs = [(i, j) for i in posed for j in posed if i < j and (not p.window or j - i <= p.window)]
-    if scene.has_depth:
-        depths = [scene.load_depth(k) for k in range(n)]
-        for i, j in pairs:
-            if depths[i] is None or depths[j] is None:
-                continue
+    if p.neighbours:
+        near = _axis_neighbours(scene, p.neighbours)
+        pairs = [(i, j) for i, j in pairs if j in near[i] or i in near[j]]
+    # Depth where both frames have it; the epipolar rule for the other pairs of a scene whose depth covers only
+    # some frames (TUM's 30 Hz burst has depth, its 1 Hz frames do not). A scene with depth on every frame
+    # is labelled by depth alone, as before.
+    depths = [scene.load_depth(k) for k in range(n)] if scene.has_depth else [None] * n
+    all_depth = all(depths[k] is not None for k in posed)
+    trees = None
+    for i, j in pairs:
+        if depths[i] is not None and depths[j] is not None:
             for a, b in _depth_links(scene, feats, depths, i, j, p):
                 uf.union(offsets[i] + a, offsets[j] + b)
-    else:
-        trees = [cKDTree(f.keypoints[:, :2]) if len(f) else None for f in feats]
-        for i, j in pairs:
+        elif not all_depth:
+            if trees is None:
+                trees = [cKDTree(f.keypoints[:, :2]) if len(f) else None for f in feats]
             for (fa, a), (fb, b) in _epipolar_links(scene, feats, trees, i, j, p):
                 uf.union(offsets[fa] + a, offsets[fb] + b)
     roots = np.array([uf.find(x) for x in range(offsets[-1])])

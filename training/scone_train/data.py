@@ -30,6 +30,11 @@ def scone_binary() -> Path:
     return target / "release" / "scone"
 
 
+def prefix_dir() -> Path:
+    """The prefix outside the clone where data, caches and runs live ($SCONE_PREFIX)."""
+    return Path(os.environ.get("SCONE_PREFIX", Path.home() / ".cache" / "scone"))
+
+
 def shared_data() -> Path:
     return Path(os.environ.get("SCONE_DATA", REPO.parent / "shared" / "data"))
 

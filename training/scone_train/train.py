@@ -58,7 +58,21 @@ def load_units(cfg: dict, rendered_root: Path | None = None) -> tuple[list[Unit]
         wide = render_dataset(wide_root, d["wide_sequences"], d["rendered_frames"], seed, orbit_deg=(lo, hi))
         for s in tqdm(wide, desc="wide features + landmarks", leave=False):
             train.append(build_unit(s, cache / wide_root.name, name=f"wide-{s.name}"))
-    if d.get("castle"):
+    if d.get("real_split"):
+        # The real training scenes, split by scone_train.splits (written down before training on them).
+        from .splits import SPLIT, frames, scene_dir
+
+        for name, spec in SPLIT.items():
+            src = scene_dir(name)
+            if not src.is_dir():
+                continue
+            stamps = [r.split()[0] for r in (src / "rgb.txt").read_text().splitlines() if r.strip() and r[0] != "#"]
+            geo = C.GeometryParams(**spec.get("geometry", {}))
+            u = build_unit(src, cache / "real", frames(spec["train"], stamps), geo, f"{name}-train")
+            u.real = True
+            train.append(u)
+            select.append(build_unit(src, cache / "real", frames(spec["select"], stamps), geo, f"{name}-sel"))
+    elif d.get("castle"):
         castle = shared_data() / "scenes" / d["castle"]
         if castle.is_dir():
             cut = d["castle_train_frames"]

@@ -23,7 +23,9 @@ from .model import SconeNet
 from .train import build_model, prefix
 
 # Scene, link window (0 = all pairs). KITTI: links within 3 frames, as the issue's FREAK reference figures.
-VALIDATION = [("strecha-fountain-P11", 0), ("kitti-clip2", 3), ("rgbd-slambook-5", 0)]
+# TUM: depth links in its 30 Hz burst, epipolar links (mocap poses) elsewhere; dino48: calibrated, all pairs.
+VALIDATION = [("strecha-fountain-P11", 0), ("kitti-clip2", 3), ("rgbd-slambook-5", 0), ("tum-fr3-long-office", 0),
+              ("middlebury-dino48", 0)]
 
 
 def validation_units() -> list[tuple[Unit, int]]:
@@ -35,12 +37,15 @@ def validation_units() -> list[tuple[Unit, int]]:
     return out
 
 
-def draw_landmark_matches(unit: Unit, scene_dir: Path, out: Path, a: int = 0, b: int = 1) -> Path:
-    """Side-by-side frames a and b with a line per ground-truth landmark seen in both."""
+def draw_landmark_matches(unit: Unit, scene_dir: Path, out: Path, a: int = 0, b: int = 1,
+                          keep: list[int] | None = None) -> Path:
+    """Side-by-side frames a and b of the unit with a line per ground-truth landmark seen in both. `keep`: the
+    unit's frames as indices into the scene's `rgb.txt`, for a unit made of part of a scene."""
     from .data import load_scene
 
     scene = load_scene(scene_dir)
-    ia, ib = cv2.imread(str(scene.rgb[a])), cv2.imread(str(scene.rgb[b]))
+    ra, rb = (keep[a], keep[b]) if keep is not None else (a, b)
+    ia, ib = cv2.imread(str(scene.rgb[ra])), cv2.imread(str(scene.rgb[rb]))
     h = max(ia.shape[0], ib.shape[0])
     canvas = np.zeros((h, ia.shape[1] + ib.shape[1], 3), np.uint8)
     canvas[: ia.shape[0], : ia.shape[1]] = ia

@@ -1,0 +1,71 @@
+"""Scores a candidate on the real selection split with the pair protocol (`scone eval pairs`).
+
+`python -m scone_train.selection --name NAME [--model M.onnx] [--scone-matcher plain|union|rerank] [--seeds 3]`
+
+Writes the selection parts as scene directories (scone_train.splits), runs `scone eval pairs --methods
+scone,freak` on each with its window, and prints one markdown row per part plus the mean; the reports go to
+`$SCONE_PREFIX/runs/selection/NAME/`. The rule that judges the scores is in docs/model-experiments.md.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import subprocess
+from pathlib import Path
+
+import numpy as np
+
+from .data import prefix_dir, scone_binary
+from .splits import write_selection_scenes
+
+
+def score(name: str, model: str | None, matcher: str, seeds: int, methods: str = "scone,freak") -> dict:
+    out = prefix_dir() / "runs" / "selection" / name
+    out.mkdir(parents=True, exist_ok=True)
+    scenes = write_selection_scenes(prefix_dir() / "data" / "selection")
+    rows = {}
+    for part, (d, window) in scenes.items():
+        report = out / f"{part}.json"
+        if not report.exists():
+            cmd = [str(scone_binary()), "eval", "pairs", "--scene", str(d), "--window", str(window), "--seeds", str(seeds),
+                   "--methods", methods, "--scone-matcher", matcher, "--json", str(report),
+                   "--opencv-threads", "1", "--embed-threads", "1"]
+            if model:
+                cmd += ["--model", model]
+            subprocess.run(cmd, check=True, stdout=subprocess.DEVNULL)
+        r = json.loads(report.read_text())
+        rows[part] = {s["method"]: {"auc10": s["auc10"], "precision": s["match_precision"], "matches": s["mean_matches"],
+                                    "pairs": s["pairs"]} for s in r["summaries"]}
+    methods_seen = list(next(iter(rows.values())).keys())
+    mean = {m: {k: float(np.mean([rows[p][m][k] for p in rows])) for k in ("auc10", "precision", "matches")} for m in methods_seen}
+    result = {"name": name, "model": model, "matcher": matcher, "seeds": seeds, "parts": rows, "mean": mean}
+    (out / "summary.json").write_text(json.dumps(result, indent=1))
+    return result
+
+
+def markdown(result: dict) -> str:
+    methods = list(result["mean"].keys())
+    head = "| part | " + " | ".join(f"{m} AUC@10 | {m} precision" for m in methods) + " |"
+    lines = [head, "|---|" + "---|---|" * len(methods)]
+    for part, r in result["parts"].items():
+        lines.append(f"| {part} | " + " | ".join(f"{r[m]['auc10']:.3f} | {r[m]['precision']:.3f}" for m in methods) + " |")
+    lines.append("| **mean** | " + " | ".join(f"**{result['mean'][m]['auc10']:.3f}** | {result['mean'][m]['precision']:.3f}" for m in methods) + " |")
+    return "\n".join(lines)
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--name", required=True)
+    ap.add_argument("--model", default=None)
+    ap.add_argument("--scone-matcher", default="plain")
+    ap.add_argument("--seeds", type=int, default=3)
+    ap.add_argument("--methods", default="scone,freak")
+    args = ap.parse_args()
+    r = score(args.name, args.model, args.scone_matcher, args.seeds, args.methods)
+    print(f"{args.name} (matcher {args.scone_matcher}, model {args.model or 'shipped'})")
+    print(markdown(r))
+
+
+if __name__ == "__main__":
+    main()
