@@ -1,13 +1,15 @@
 """One drawn pair of ground-truth correspondences per real training scene, to look at the labels.
 
 `python -m scone_train.label_figures --out ../docs/figures` (from `training/`); the pair is the training part's
-pair of frames `--gap` apart (in the part's own order) from its first frame.
+pair sharing the most ground-truth landmarks among its first 20 frames, each with its next `--within`.
 """
 
 from __future__ import annotations
 
 import argparse
 from pathlib import Path
+
+import numpy as np
 
 from . import correspondences as C
 from .data import prefix_dir
@@ -19,7 +21,7 @@ from .validate import draw_landmark_matches
 def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("--out", required=True)
-    ap.add_argument("--gap", type=int, default=3)
+    ap.add_argument("--within", type=int, default=12)
     args = ap.parse_args()
     cache = prefix_dir() / "data" / "cache" / "real"
     for name, spec in SPLIT.items():
@@ -27,7 +29,12 @@ def main() -> None:
         stamps = [r.split()[0] for r in (src / "rgb.txt").read_text().splitlines() if r.strip() and r[0] != "#"]
         keep = frames(spec["train"], stamps)
         unit = build_unit(src, cache, keep, C.GeometryParams(**spec.get("geometry", {})), f"{name}-train")
-        print(draw_landmark_matches(unit, src, Path(args.out), 0, args.gap, keep))
+        n = len(unit.ids)
+        best = max(
+            ((len(np.intersect1d(unit.ids[a][unit.ids[a] >= 0], unit.ids[b])), a, b)
+             for a in range(min(20, n)) for b in range(a + 1, min(a + 1 + args.within, n))),
+        )
+        print(draw_landmark_matches(unit, src, Path(args.out), best[1], best[2], keep), best[0], "landmarks")
 
 
 if __name__ == "__main__":
