@@ -32,8 +32,8 @@ pub struct ServerSettings {
     pub max_map_bytes: usize,
     /// Open connections per listener; beyond that new clients wait in the backlog until one closes.
     pub max_connections: usize,
-    /// A new connection must deliver its first request head within this long (HTTP/1.1 keep-alive: a head
-    /// must be complete within this long of its first byte).
+    /// A new connection must deliver its first request head (HTTP/2: its preface) within this long; an
+    /// HTTP/1.1 keep-alive request head must be complete within this long of its first byte.
     pub header_read_timeout_ms: u64,
     /// An HTTP request body must be complete within this long of its head (408 otherwise). gRPC: a call
     /// must be answered within this plus `request_timeout_ms`.

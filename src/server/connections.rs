@@ -8,9 +8,10 @@
 //! - **`max_connections`** per listener: [`Listener::accept`] takes a slot (a semaphore permit) *before*
 //!   accepting, so at the cap new clients wait in the kernel's backlog instead of costing descriptors; a
 //!   slot is freed when its connection closes.
-//! - **`header_read_timeout_ms`**: a new connection must deliver its first request head (for HTTP/2 and
-//!   gRPC: the preface and the first request's headers) within this long; on HTTP/1.1 keep-alive, a request
-//!   head must be complete within this long of its first byte.
+//! - **`header_read_timeout_ms`**: a new connection must deliver its first request head within this long
+//!   (HTTP/2 and gRPC: its connection preface, after which it may wait for its first call like any idle
+//!   connection); on HTTP/1.1 keep-alive, a request head must be complete within this long of its first
+//!   byte.
 //! - **`idle_timeout_ms`**: a connection with no request in flight is closed after this long without a new
 //!   one, and so is one whose writes (responses) made no progress for this long (a client that stopped
 //!   reading).
@@ -62,26 +63,31 @@ impl ConnectionLimits {
     }
 }
 
+/// What a listener speaks.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Protocol {
+    /// HTTP/2 only (gRPC).
+    Http2,
+    /// HTTP/1.1, or HTTP/2 when a connection starts with its preface.
+    Http1OrHttp2,
+}
+
 /// A TCP listener that holds at most `max_connections` open connections.
 pub struct Listener {
     inner: TcpListener,
     slots: Arc<Semaphore>,
     limits: ConnectionLimits,
+    protocol: Protocol,
     transport: &'static str,
 }
 
 impl Listener {
-    pub fn new(inner: TcpListener, limits: ConnectionLimits, transport: &'static str) -> Self {
-        Self { inner, slots: Arc::new(Semaphore::new(limits.max_connections)), limits, transport }
+    pub fn new(inner: TcpListener, limits: ConnectionLimits, protocol: Protocol, transport: &'static str) -> Self {
+        Self { inner, slots: Arc::new(Semaphore::new(limits.max_connections)), limits, protocol, transport }
     }
 
     pub fn local_addr(&self) -> io::Result<SocketAddr> {
         self.inner.local_addr()
-    }
-
-    /// Open connections now (for tests and metrics).
-    pub fn open_connections(&self) -> usize {
-        self.limits.max_connections - self.slots.available_permits()
     }
 
     /// Waits for a free slot, then for a connection (TCP_NODELAY and keepalive set). Accept errors are
@@ -102,7 +108,7 @@ impl Listener {
                             tracing::warn!(transport = self.transport, "TCP keepalive on an accepted connection: {e}");
                         }
                     }
-                    return (Conn::new(stream, slot, self.limits), peer);
+                    return (Conn::new(stream, slot, self.limits, self.protocol), peer);
                 }
                 Err(e) if is_per_connection(&e) => continue,
                 Err(e) => {
@@ -140,13 +146,17 @@ struct ActivityState {
     idle_since: Instant,
     /// First byte of the next HTTP/1.1 request head, while idle.
     head_started: Option<Instant>,
-    seen_bytes: bool,
-    /// HTTP/2 (gRPC, h2c): idle bytes are control frames (pings, window updates), not a request head.
+    received: u64,
+    /// HTTP/2 (gRPC, h2c): idle bytes are control frames (pings, window updates), not a request head, and
+    /// once the preface is in, a connection may wait for its first call like any idle one.
     multiplexed: bool,
 }
 
+/// Length of the HTTP/2 connection preface (`PRI * HTTP/2.0\r\n\r\nSM\r\n\r\n`).
+const H2_PREFACE_LEN: u64 = 24;
+
 impl Activity {
-    fn new(limits: ConnectionLimits) -> Self {
+    fn new(limits: ConnectionLimits, protocol: Protocol) -> Self {
         let now = Instant::now();
         Self {
             header_read: limits.header_read,
@@ -157,8 +167,8 @@ impl Activity {
                 requests: 0,
                 idle_since: now,
                 head_started: None,
-                seen_bytes: false,
-                multiplexed: false,
+                received: 0,
+                multiplexed: protocol == Protocol::Http2,
             }),
             reader: AtomicWaker::new(),
         }
@@ -175,10 +185,10 @@ impl Activity {
 
     fn received(&self, bytes: &[u8]) {
         let mut s = self.state.lock();
-        if !s.seen_bytes {
-            s.seen_bytes = true;
-            s.multiplexed = bytes.starts_with(b"PRI ");
+        if s.received == 0 && bytes.starts_with(b"PRI ") {
+            s.multiplexed = true;
         }
+        s.received += bytes.len() as u64;
         if s.in_flight == 0 && s.requests > 0 && !s.multiplexed && s.head_started.is_none() {
             s.head_started = Some(Instant::now());
         }
@@ -190,7 +200,8 @@ impl Activity {
         if s.in_flight > 0 {
             return None;
         }
-        if s.requests == 0 {
+        let handshaken = s.multiplexed && s.received >= H2_PREFACE_LEN;
+        if s.requests == 0 && !handshaken {
             return Some(self.accepted + self.header_read);
         }
         let idle = s.idle_since + self.idle;
@@ -231,11 +242,11 @@ fn timed_out(what: &str) -> io::Error {
 }
 
 impl Conn {
-    fn new(io: TcpStream, slot: OwnedSemaphorePermit, limits: ConnectionLimits) -> Self {
+    fn new(io: TcpStream, slot: OwnedSemaphorePermit, limits: ConnectionLimits, protocol: Protocol) -> Self {
         let far = Instant::now() + Duration::from_secs(86_400);
         Self {
             io,
-            activity: Arc::new(Activity::new(limits)),
+            activity: Arc::new(Activity::new(limits, protocol)),
             idle: limits.idle,
             read_timer: Box::pin(tokio::time::sleep_until(far)),
             write_timer: Box::pin(tokio::time::sleep_until(far)),
@@ -473,4 +484,48 @@ pub fn body_timed_out(e: &(dyn std::error::Error + 'static)) -> Option<u64> {
         cur = err.source();
     }
     None
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn limits() -> ConnectionLimits {
+        ConnectionLimits {
+            max_connections: 4,
+            header_read: Duration::from_secs(10),
+            idle: Duration::from_secs(60),
+            tcp_keepalive: None,
+        }
+    }
+
+    #[test]
+    fn http1_deadlines_follow_the_request_cycle() {
+        let a = Arc::new(Activity::new(limits(), Protocol::Http1OrHttp2));
+        assert_eq!(a.read_deadline(), Some(a.accepted + Duration::from_secs(10)), "first head from accept");
+        a.received(b"GET / HTTP/1.1\r\n");
+        let guard = a.begin();
+        assert_eq!(a.read_deadline(), None, "nothing while a request is in flight");
+        drop(guard);
+        let idle = a.read_deadline().unwrap();
+        assert!(idle >= a.accepted + Duration::from_secs(60), "then the idle time");
+        a.received(b"GET /hea");
+        let head = a.read_deadline().unwrap();
+        assert!(head < idle && head >= a.accepted + Duration::from_secs(10), "a started head has 10 s");
+    }
+
+    #[test]
+    fn http2_connections_wait_for_calls_like_idle_ones_once_the_preface_is_in() {
+        let a = Arc::new(Activity::new(limits(), Protocol::Http1OrHttp2));
+        a.received(b"PRI * HTTP/2.0\r\n\r\n");
+        assert_eq!(a.read_deadline(), Some(a.accepted + Duration::from_secs(10)), "preface not complete");
+        a.received(b"SM\r\n\r\n");
+        assert_eq!(a.read_deadline(), Some(a.accepted + Duration::from_secs(60)));
+        drop(a.begin());
+        a.received(b"\x00\x00\x08\x06\x00");
+        let d = a.read_deadline().unwrap();
+        assert!(d >= a.accepted + Duration::from_secs(60), "control frames are not a request head");
+        let g = Arc::new(Activity::new(limits(), Protocol::Http2));
+        assert_eq!(g.read_deadline(), Some(g.accepted + Duration::from_secs(10)));
+    }
 }

@@ -622,7 +622,10 @@ impl<S: Send + Sync, T: serde::de::DeserializeOwned + Send> FromRequestParts<S> 
     async fn from_request_parts(parts: &mut Parts, state: &S) -> Result<Self, ApiError> {
         match Path::<T>::from_request_parts(parts, state).await {
             Ok(Path(t)) => Ok(Self(t)),
-            Err(e) => Err(invalid("URL path", e.body_text())),
+            Err(e) => {
+                tracing::debug!("path rejected: {}", e.body_text());
+                Err(invalid("URL path", "cannot be decoded (bad percent-encoding or UTF-8)"))
+            }
         }
     }
 }

@@ -170,8 +170,8 @@ pub async fn start(settings: Settings) -> anyhow::Result<Running> {
     let grpc_addr = grpc_listener.local_addr()?;
     let http_addr = http_listener.local_addr()?;
     let limits = connections::ConnectionLimits::from_settings(&settings.server);
-    let grpc_listener = connections::Listener::new(grpc_listener, limits, "grpc");
-    let http_listener = connections::Listener::new(http_listener, limits, "http");
+    let grpc_listener = connections::Listener::new(grpc_listener, limits, connections::Protocol::Http2, "grpc");
+    let http_listener = connections::Listener::new(http_listener, limits, connections::Protocol::Http1OrHttp2, "http");
     let app = Arc::new(App {
         service,
         pool: CpuPool::new(settings.workers.threads, settings.workers.queue),
