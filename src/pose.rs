@@ -120,9 +120,19 @@ pub fn ransac_iterations_needed(w: f64, sample: i32, confidence: f64) -> f64 {
 }
 
 pub fn validate_camera(cam: &Camera) -> Result<(), PoseError> {
-    let ok = [cam.fx, cam.fy, cam.cx, cam.cy].iter().all(|v| v.is_finite()) && cam.fx > 0.0 && cam.fy > 0.0;
-    if !ok || cam.width == 0 || cam.height == 0 {
-        return Err(PoseError::Intrinsics { reason: format!("{cam:?} needs finite, positive focal lengths and size") });
+    let bad = |reason: String| Err(PoseError::Intrinsics { reason });
+    for (name, v) in [("fx", cam.fx), ("fy", cam.fy)] {
+        if !(v.is_finite() && v > 0.0) {
+            return bad(format!("{name} must be finite and positive (got {v})"));
+        }
+    }
+    for (name, v) in [("cx", cam.cx), ("cy", cam.cy)] {
+        if !v.is_finite() {
+            return bad(format!("{name} must be finite (got {v})"));
+        }
+    }
+    if cam.width == 0 || cam.height == 0 {
+        return bad(format!("width and height must be positive (got {}x{})", cam.width, cam.height));
     }
     Ok(())
 }

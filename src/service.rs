@@ -15,7 +15,7 @@ use nalgebra::UnitQuaternion;
 use opencv::prelude::MatTraitConst;
 use serde::Serialize;
 
-use crate::decode::{decode_depth_png, decode_grey, ImageLimits};
+use crate::decode::{check_limits, decode_depth_png, decode_grey, ImageLimits};
 use crate::error::{EmbeddingError, FeatureError, MapError, PoseError};
 use crate::features::{self, Features, Keypoint, KeypointLimits};
 use crate::map::builder::{Depth, ExternalObservation, KeyframeInput};
@@ -324,6 +324,7 @@ impl Service {
     }
 
     fn features(&self, source: FrameSource, times: &mut StageTimes) -> Result<Features, ServiceError> {
+        self.check_source(&source)?;
         match source {
             FrameSource::Image(bytes) => {
                 let grey = times.time("decode", || decode_grey(&bytes, &self.describer.limits))?;
@@ -363,10 +364,39 @@ impl Service {
         self.describe_source(source)
     }
 
+    /// The frame's intrinsics, checked. Called after [`Service::check_source`], so a frame whose image cannot
+    /// be read is reported as such, not as intrinsics without a size.
     fn camera(frame: &FrameInput, field: &str) -> Result<Camera, ServiceError> {
         let cam = frame.camera.ok_or_else(|| ServiceError::invalid(field, "intrinsics are required"))?;
-        validate_camera(&cam).map_err(|e| ServiceError::invalid(field, e.to_string()))?;
+        validate_camera(&cam).map_err(|e| match e {
+            PoseError::Intrinsics { reason } => ServiceError::invalid(field, reason),
+            other => ServiceError::Pose(other),
+        })?;
         Ok(cam)
+    }
+
+    /// Cheap checks of a frame's source before anything else looks at the frame: an image's size and header
+    /// (format, dimensions; no decoding), a keypoint set's image size against the same image limits.
+    fn check_source(&self, source: &FrameSource) -> Result<(), ServiceError> {
+        let limits = &self.describer.limits;
+        match source {
+            FrameSource::Image(bytes) => {
+                check_limits(bytes, limits)?;
+            }
+            FrameSource::Keypoints(k) => {
+                let checks = [
+                    ("keypoint set width", k.width as u64, limits.max_width as u64),
+                    ("keypoint set height", k.height as u64, limits.max_height as u64),
+                    ("keypoint set pixels", k.width as u64 * k.height as u64, limits.max_pixels),
+                ];
+                for (what, value, max) in checks {
+                    if value > max {
+                        return Err(FeatureError::ImageTooLarge { what, value, max }.into());
+                    }
+                }
+            }
+        }
+        Ok(())
     }
 
     fn check_frame_size(d: &Description, cam: &Camera, field: &str) -> Result<(), ServiceError> {
@@ -387,6 +417,8 @@ impl Service {
         if !(options.ratio > 0.0 && options.ratio <= 1.0) {
             return Err(ServiceError::invalid("ratio", format!("{} is outside (0, 1]", options.ratio)));
         }
+        self.check_source(&a.source)?;
+        self.check_source(&b.source)?;
         let cam1 = Self::camera(&a, "frame1.intrinsics")?;
         let cam2 = Self::camera(&b, "frame2.intrinsics")?;
         let d1 = self.describe_source(a.source)?;
@@ -424,6 +456,7 @@ impl Service {
     ) -> Result<LocalizeOutcome, ServiceError> {
         let store = self.store()?;
         store.get(map)?;
+        self.check_source(&frame.source)?;
         let cam = Self::camera(&frame, "frame.intrinsics")?;
         let d = self.describe_source(frame.source)?;
         Self::check_frame_size(&d, &cam, "frame.intrinsics")?;
@@ -446,6 +479,7 @@ impl Service {
         if !(request.depth_scale.is_finite() && request.depth_scale > 0.0) {
             return Err(ServiceError::invalid("depth_scale", format!("{} must be positive", request.depth_scale)));
         }
+        self.check_source(&request.frame.source)?;
         let cam = Self::camera(&request.frame, "frame.intrinsics")?;
         let depth = match &request.depth_png {
             Some(bytes) => Some(
@@ -507,7 +541,9 @@ impl Service {
         Ok(self.store()?.export(id)?)
     }
 
-    /// Imports a file made by [`Service::export_map`] under a new id.
+    /// Imports a file made by [`Service::export_map`] under a new id. Importing the same content again into
+    /// the map it made succeeds and returns that map (a retry after a lost answer); other content under a
+    /// taken id is ALREADY_EXISTS.
     pub fn import_map(&self, id: &str, bytes: &[u8]) -> Result<MapSummary, ServiceError> {
         match self.store()?.import(id, bytes) {
             Err(MapError::Corrupt { reason, .. }) => Err(ServiceError::invalid("map file", reason)),

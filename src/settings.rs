@@ -30,6 +30,28 @@ pub struct ServerSettings {
     pub max_request_bytes: usize,
     /// Largest map file accepted by ImportMap, bytes.
     pub max_map_bytes: usize,
+    /// Open connections per listener; beyond that new clients wait in the backlog until one closes.
+    pub max_connections: usize,
+    /// A new connection must deliver its first request head (HTTP/2: its preface) within this long; an
+    /// HTTP/1.1 keep-alive request head must be complete within this long of its first byte.
+    pub header_read_timeout_ms: u64,
+    /// An HTTP request body must be complete within this long of its head (408 otherwise). gRPC: a call
+    /// must be answered within this plus `request_timeout_ms`.
+    pub body_read_timeout_ms: u64,
+    /// A connection without a request in flight for this long is closed (also: one whose client stopped
+    /// reading for this long); on gRPC, also the longest gap between the messages of a client stream.
+    pub idle_timeout_ms: u64,
+    /// TCP keepalive idle time on accepted sockets (0: off).
+    pub tcp_keepalive_ms: u64,
+    /// HTTP/2 PING interval on gRPC connections (0: off) and how long to wait for the answer.
+    pub grpc_keepalive_interval_ms: u64,
+    pub grpc_keepalive_timeout_ms: u64,
+    /// Concurrent HTTP/2 streams (calls) per connection.
+    pub max_concurrent_streams: u32,
+    /// Origins (`scheme://host[:port]`) whose browser pages may write (non-GET/HEAD) and get CORS answers;
+    /// `"*"` allows every origin. Empty: the HTTP listener's own origins (`http://127.0.0.1:PORT`,
+    /// `http://localhost:PORT` on loopback). Requests without an `Origin` header are not affected.
+    pub allowed_origins: Vec<String>,
 }
 
 impl Default for ServerSettings {
@@ -41,6 +63,15 @@ impl Default for ServerSettings {
             shutdown_grace_ms: 20_000,
             max_request_bytes: 32 << 20,
             max_map_bytes: 1 << 30,
+            max_connections: 1024,
+            header_read_timeout_ms: 10_000,
+            body_read_timeout_ms: 60_000,
+            idle_timeout_ms: 60_000,
+            tcp_keepalive_ms: 60_000,
+            grpc_keepalive_interval_ms: 30_000,
+            grpc_keepalive_timeout_ms: 10_000,
+            max_concurrent_streams: 100,
+            allowed_origins: Vec::new(),
         }
     }
 }
@@ -181,6 +212,28 @@ impl Settings {
         if self.server.max_request_bytes < 1024 {
             return bad("server.max_request_bytes", "must be at least 1024");
         }
+        if self.server.max_connections == 0 || self.server.max_connections > 1 << 20 {
+            return bad("server.max_connections", "must be in 1..=1048576");
+        }
+        for (field, ms) in [
+            ("server.header_read_timeout_ms", self.server.header_read_timeout_ms),
+            ("server.body_read_timeout_ms", self.server.body_read_timeout_ms),
+            ("server.idle_timeout_ms", self.server.idle_timeout_ms),
+            ("server.grpc_keepalive_timeout_ms", self.server.grpc_keepalive_timeout_ms),
+        ] {
+            if ms == 0 {
+                return bad(field, "must be positive");
+            }
+        }
+        if self.server.max_concurrent_streams == 0 {
+            return bad("server.max_concurrent_streams", "must be positive");
+        }
+        for origin in &self.server.allowed_origins {
+            check_origin(origin).map_err(|reason| SettingsError::Invalid {
+                field: "server.allowed_origins",
+                reason: format!("'{origin}' {reason}"),
+            })?;
+        }
         if self.workers.threads == 0 || self.workers.threads > 256 {
             return bad("workers.threads", "must be in 1..=256");
         }
@@ -252,6 +305,22 @@ impl Settings {
         }
         v
     }
+}
+
+/// An allowed origin is `*` or `scheme://host[:port]` (http or https, nothing after the authority), as
+/// browsers send it in `Origin`.
+fn check_origin(origin: &str) -> Result<(), &'static str> {
+    if origin == "*" {
+        return Ok(());
+    }
+    let rest = origin
+        .strip_prefix("http://")
+        .or_else(|| origin.strip_prefix("https://"))
+        .ok_or("must start with http:// or https://")?;
+    if rest.is_empty() || rest.contains(['/', '?', '#', ' ', '@']) {
+        return Err("must be scheme://host[:port], without a path");
+    }
+    Ok(())
 }
 
 /// What a key may do.
@@ -375,6 +444,33 @@ mod tests {
         s.validate().unwrap();
         let logged = format!("{} {:?}", s.redacted(), s);
         assert!(!logged.contains("secret"), "{logged}");
+    }
+
+    #[test]
+    fn connection_limits_and_origins_are_checked() {
+        for (var, value, field) in [
+            ("SCONE_SERVER__MAX_CONNECTIONS", "0", "server.max_connections"),
+            ("SCONE_SERVER__HEADER_READ_TIMEOUT_MS", "0", "server.header_read_timeout_ms"),
+            ("SCONE_SERVER__IDLE_TIMEOUT_MS", "0", "server.idle_timeout_ms"),
+            ("SCONE_SERVER__ALLOWED_ORIGINS", "[\"example.com\"]", "server.allowed_origins"),
+            ("SCONE_SERVER__ALLOWED_ORIGINS", "[\"https://example.com/app\"]", "server.allowed_origins"),
+        ] {
+            figment::Jail::expect_with(|jail| {
+                jail.set_env(var, value);
+                let e = Settings::load(None, &Overrides::default()).unwrap_err().to_string();
+                assert!(e.contains(field), "{var}={value}: {e}");
+                Ok(())
+            });
+        }
+        figment::Jail::expect_with(|jail| {
+            jail.set_env(
+                "SCONE_SERVER__ALLOWED_ORIGINS",
+                "[\"https://app.example.com\", \"http://localhost:3000\", \"*\"]",
+            );
+            let s = Settings::load(None, &Overrides::default()).map_err(|e| e.to_string())?;
+            assert_eq!(s.server.allowed_origins.len(), 3);
+            Ok(())
+        });
     }
 
     #[test]

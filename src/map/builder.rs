@@ -404,6 +404,11 @@ fn invalid(field: &str, reason: String) -> MapError {
     MapError::InvalidInput { field: field.to_string(), reason }
 }
 
+/// A 3D point as clients write it, `(x, y, z)`.
+fn point_text(p: &[f64; 3]) -> String {
+    format!("({}, {}, {})", p[0], p[1], p[2])
+}
+
 fn distance(a: &[f64; 3], b: &[f64; 3]) -> f64 {
     a.iter().zip(b).map(|(x, y)| (x - y) * (x - y)).sum::<f64>().sqrt()
 }
@@ -442,7 +447,7 @@ fn plan_external(
         if !o.point.iter().all(|v| v.is_finite()) {
             return Err(invalid(
                 &format!("external_landmarks[{i}].point"),
-                format!("{:?} of landmark {} is not finite", o.point, o.landmark_id),
+                format!("{} of landmark {} is not finite", point_text(&o.point), o.landmark_id),
             ));
         }
         match first_of.get(&o.landmark_id) {
@@ -450,11 +455,11 @@ fn plan_external(
                 return Err(invalid(
                     &format!("external_landmarks[{i}].point"),
                     format!(
-                        "landmark {} is also external_landmarks[{j}] with point {:?}, {:.6} away from {:?} (tolerance {tol})",
+                        "landmark {} is also external_landmarks[{j}] with point {}, {:.6} away from {} (tolerance {tol})",
                         o.landmark_id,
-                        external[j].point,
+                        point_text(&external[j].point),
                         distance(&external[j].point, &o.point),
-                        o.point
+                        point_text(&o.point)
                     ),
                 ));
             }
@@ -470,8 +475,11 @@ fn plan_external(
                 return Err(invalid(
                     &format!("external_landmarks[{i}].point"),
                     format!(
-                        "landmark {} is at {held:?} in map '{}', {d:.6} away from {:?} (tolerance {tol})",
-                        o.landmark_id, data.meta.id, o.point
+                        "landmark {} is at {} in map '{}', {d:.6} away from {} (tolerance {tol})",
+                        o.landmark_id,
+                        point_text(&held),
+                        data.meta.id,
+                        point_text(&o.point)
                     ),
                 ));
             }

@@ -136,6 +136,30 @@ pub fn validate_map_id(id: &str) -> Result<(), MapError> {
     }
 }
 
+/// Why a map is held back, as clients are told it (ListMaps, UNAVAILABLE): the stored file by its name and
+/// what is wrong with it, never the server's paths or the internals of a failure (those go to the log).
+fn held_back_reason(e: &MapError) -> String {
+    let file = |path: &Path| {
+        path.file_name().map_or_else(|| "a stored file".to_string(), |n| n.to_string_lossy().into_owned())
+    };
+    match e {
+        MapError::Corrupt { path, reason } => format!("{} is corrupt: {reason}", file(path)),
+        MapError::Io { path, source } => format!("{} cannot be read ({})", file(path), source.kind()),
+        MapError::ModelMismatch { .. }
+        | MapError::Unavailable { .. }
+        | MapError::WriterConflict { .. }
+        | MapError::InvalidInput { .. }
+        | MapError::InvalidMapId { .. } => e.to_string(),
+        MapError::UnknownMap { .. }
+        | MapError::MapExists { .. }
+        | MapError::UnknownKeyframe { .. }
+        | MapError::KeyframeExists { .. }
+        | MapError::Feature(_)
+        | MapError::Embedding(_)
+        | MapError::Pose(_) => "it could not be loaded; the server log has the details".to_string(),
+    }
+}
+
 /// All maps of a backend.
 pub struct MapStore {
     config: StoreConfig,
@@ -181,7 +205,7 @@ impl MapStore {
                 }
                 Err(e) => {
                     tracing::error!(map = %name, error = %e, "map held back");
-                    store.held_back.write().insert(name, e.to_string());
+                    store.held_back.write().insert(name, held_back_reason(&e));
                 }
             }
         }
@@ -386,7 +410,12 @@ impl MapStore {
         encode_snapshot(&s.data)
     }
 
-    /// Imports an exported map under `id` (refused if it exists or was embedded by another model).
+    /// Imports an exported map under `id` (refused if it was embedded by another model).
+    ///
+    /// Idempotent for identical content: when `id` is a loaded map whose data equals the file's (under that
+    /// id), the import already happened (e.g. the server died after the write but before the answer) and the
+    /// map is returned as it is. Any other map under `id`, held-back or stored ones included, is
+    /// [`MapError::MapExists`].
     pub fn import(&self, id: &str, bytes: &[u8]) -> Result<MapSummary, MapError> {
         validate_map_id(id)?;
         let mut data = decode_snapshot(bytes, Path::new("import"))?;
@@ -397,11 +426,18 @@ impl MapStore {
                 model: self.model.model_id.clone(),
             });
         }
+        data.meta.id = id.to_string();
         let _admin = self.admin.lock();
-        if self.maps.read().contains_key(id) || self.backend.exists(id)? {
+        let existing = self.maps.read().get(id).cloned();
+        if let Some(map) = existing {
+            if map.read(|held, _| *held == data) {
+                return Ok(map.summary());
+            }
             return Err(MapError::MapExists { map: id.to_string() });
         }
-        data.meta.id = id.to_string();
+        if self.held_back.read().contains_key(id) || self.backend.exists(id)? {
+            return Err(MapError::MapExists { map: id.to_string() });
+        }
         let log = self.backend.create(id, &data)?;
         let mut index = EmbeddingIndex::new(self.config.index);
         index.sync(&data);

@@ -3,15 +3,14 @@
 use std::future::Future;
 use std::pin::Pin;
 use std::sync::Arc;
-use std::time::Instant;
+use std::time::{Duration, Instant};
 
-use tokio::net::TcpListener;
 use tokio_stream::wrappers::ReceiverStream;
 use tokio_stream::Stream;
 use tonic::metadata::MetadataMap;
-use tonic::transport::server::TcpIncoming;
 use tonic::{Code, Request, Response, Status, Streaming};
 
+use super::connections::{CountRequestsLayer, Listener};
 use super::proto::{self, frame::Source};
 use super::App;
 use crate::features::Keypoint;
@@ -151,6 +150,18 @@ impl GrpcApi {
     }
 }
 
+impl GrpcApi {
+    /// The next message of a client stream, or DEADLINE_EXCEEDED when none came within
+    /// `server.idle_timeout_ms` (a stream left open without messages would hold its connection).
+    async fn next_message<T>(&self, inbound: &mut Streaming<T>) -> Result<Option<T>, Status> {
+        let ms = self.app.settings.server.idle_timeout_ms;
+        match tokio::time::timeout(Duration::from_millis(ms), inbound.message()).await {
+            Ok(r) => r,
+            Err(_) => Err(to_status(&ServiceError::DeadlineExceeded { ms })),
+        }
+    }
+}
+
 type BoxStream<T> = Pin<Box<dyn Stream<Item = Result<T, Status>> + Send + 'static>>;
 
 #[tonic::async_trait]
@@ -204,7 +215,7 @@ impl proto::maps_server::Maps for GrpcApi {
         let api = self.clone();
         tokio::spawn(async move {
             loop {
-                let msg = match inbound.message().await {
+                let msg = match api.next_message(&mut inbound).await {
                     Ok(Some(m)) => m,
                     Ok(None) => break,
                     Err(s) => {
@@ -279,7 +290,7 @@ impl proto::maps_server::Maps for GrpcApi {
         let mut inbound = req.into_inner();
         let mut id = String::new();
         let mut bytes = Vec::new();
-        while let Some(chunk) = inbound.message().await? {
+        while let Some(chunk) = self.next_message(&mut inbound).await? {
             if id.is_empty() {
                 id = chunk.map_id;
             }
@@ -401,10 +412,12 @@ impl proto::matching_server::Matching for GrpcApi {
     }
 }
 
-/// Serves gRPC on `listener` until `shutdown` resolves, then lets in-flight calls finish.
+/// Serves gRPC on `listener` until `shutdown` resolves, then lets in-flight calls finish. Connections are
+/// held to the limits of [`super::connections`]; HTTP/2 pings find dead peers, streams per connection are
+/// capped, and a call must be answered within `body_read_timeout_ms + request_timeout_ms`.
 pub async fn serve<H>(
     app: Arc<App>,
-    listener: TcpListener,
+    listener: Listener,
     health: tonic_health::pb::health_server::HealthServer<H>,
     shutdown: impl Future<Output = ()> + Send + 'static,
 ) -> anyhow::Result<()>
@@ -419,9 +432,24 @@ where
     // v1 and v1alpha: grpcurl and older tools still ask for v1alpha.
     let reflection_v1 = reflection().build_v1()?;
     let reflection_v1alpha = reflection().build_v1alpha()?;
-    let max = app.settings.server.max_request_bytes;
-    let api = GrpcApi { app };
+    let server = &app.settings.server;
+    let max = server.max_request_bytes;
+    let call_timeout = Duration::from_millis(server.body_read_timeout_ms + server.request_timeout_ms);
+    let keepalive =
+        (server.grpc_keepalive_interval_ms > 0).then(|| Duration::from_millis(server.grpc_keepalive_interval_ms));
+    let keepalive_timeout = Duration::from_millis(server.grpc_keepalive_timeout_ms);
+    let max_streams = server.max_concurrent_streams;
+    let api = GrpcApi { app: Arc::clone(&app) };
+    let incoming = futures_util::stream::unfold(listener, |listener| async move {
+        let (conn, _peer) = listener.accept().await;
+        Some((Ok::<_, std::io::Error>(conn), listener))
+    });
     tonic::transport::Server::builder()
+        .timeout(call_timeout)
+        .http2_keepalive_interval(keepalive)
+        .http2_keepalive_timeout(Some(keepalive_timeout))
+        .max_concurrent_streams(max_streams)
+        .layer(CountRequestsLayer)
         .add_service(health)
         .add_service(reflection_v1)
         .add_service(reflection_v1alpha)
@@ -435,9 +463,8 @@ where
                 .max_decoding_message_size(max)
                 .max_encoding_message_size(max),
         )
-        // TCP_NODELAY: a response is several small HTTP/2 frames (headers, data, trailers); with Nagle on, the
-        // last ones wait for the client's delayed ACK (~40 ms on Linux).
-        .serve_with_incoming_shutdown(TcpIncoming::from(listener).with_nodelay(Some(true)), shutdown)
+        // TCP_NODELAY is set by the listener.
+        .serve_with_incoming_shutdown(incoming, shutdown)
         .await?;
     Ok(())
 }

@@ -11,6 +11,7 @@
 //! finish in-flight requests within `server.shutdown_grace_ms`, the pool drains, and every map is flushed.
 
 pub mod auth;
+pub mod connections;
 pub mod grpc;
 pub mod http;
 pub mod metrics;
@@ -168,6 +169,9 @@ pub async fn start(settings: Settings) -> anyhow::Result<Running> {
         .with_context(|| format!("binding HTTP to {}", settings.server.http_addr))?;
     let grpc_addr = grpc_listener.local_addr()?;
     let http_addr = http_listener.local_addr()?;
+    let limits = connections::ConnectionLimits::from_settings(&settings.server);
+    let grpc_listener = connections::Listener::new(grpc_listener, limits, connections::Protocol::Http2, "grpc");
+    let http_listener = connections::Listener::new(http_listener, limits, connections::Protocol::Http1OrHttp2, "http");
     let app = Arc::new(App {
         service,
         pool: CpuPool::new(settings.workers.threads, settings.workers.queue),

@@ -70,9 +70,9 @@ fn acknowledged_keyframes_survive_kill_9_and_the_map_localises() {
     assert!(loc.confidence > 0.5, "confidence {}", loc.confidence);
 }
 
-#[test]
-fn a_corrupt_map_is_held_back_and_the_others_serve() {
-    let dir = temp_dir("heldback");
+/// A data directory with a good map and a map whose snapshot is damaged, opened.
+fn store_with_a_corrupt_map(name: &str) -> (crate::test_dir::TestDir, MapStore) {
+    let dir = temp_dir(name);
     let status = Command::new(env!("CARGO_BIN_EXE_scone"))
         .args(["map", "write-scene", "--map", "good", "--stride", "3"])
         .arg("--data-dir")
@@ -97,6 +97,12 @@ fn a_corrupt_map_is_held_back_and_the_others_serve() {
     snapshot[mid] ^= 0xff;
     std::fs::write(bad.join("snapshot.bin"), snapshot).unwrap();
     let (store, _) = open(&dir);
+    (dir, store)
+}
+
+#[test]
+fn a_corrupt_map_is_held_back_and_the_others_serve() {
+    let (_dir, store) = store_with_a_corrupt_map("heldback");
     let held = store.held_back();
     assert_eq!(held.len(), 1);
     assert_eq!(held[0].0, "bad");
@@ -104,6 +110,19 @@ fn a_corrupt_map_is_held_back_and_the_others_serve() {
     let err = store.summary("bad").unwrap_err().to_string();
     assert!(err.contains("unavailable"), "{err}");
     assert!(store.summary("good").unwrap().keyframes > 0);
+}
+
+/// Issue 16: a held-back map's reason (ListMaps, UNAVAILABLE) carried the server's absolute path of the
+/// damaged file. Clients get the file's name and what is wrong; the path goes to the log only.
+#[test]
+fn regression_held_back_reason_names_no_server_path() {
+    let (dir, store) = store_with_a_corrupt_map("heldback-path");
+    let dir = dir.to_string_lossy().into_owned();
+    let (_, reason) = &store.held_back()[0];
+    assert!(!reason.contains(&dir) && !reason.contains('/'), "{reason}");
+    assert!(reason.contains("snapshot.bin is corrupt"), "{reason}");
+    let err = store.summary("bad").unwrap_err().to_string();
+    assert!(!err.contains(&dir), "{err}");
 }
 
 /// Queries of one map go on while another map is being written: a writer thread adds keyframes to map "b"

@@ -5,6 +5,7 @@ mod colmap;
 mod common;
 mod durability;
 mod embedding;
+mod hostile;
 mod object_store;
 
 mod pipeline;

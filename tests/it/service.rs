@@ -13,10 +13,10 @@ use tonic::{Code, Request};
 
 use crate::common::{fixture, shared_data, temp_dir};
 
-const WRITE_KEY: &str = "write-key-0123456789";
+pub(crate) const WRITE_KEY: &str = "write-key-0123456789";
 const READ_KEY: &str = "read-key-0123456789";
 
-fn settings(data: &Path) -> Settings {
+pub(crate) fn settings(data: &Path) -> Settings {
     let mut s = Settings::default();
     s.server.grpc_addr = "127.0.0.1:0".parse().unwrap();
     s.server.http_addr = "127.0.0.1:0".parse().unwrap();
@@ -24,24 +24,24 @@ fn settings(data: &Path) -> Settings {
     s
 }
 
-async fn serve(s: Settings) -> Running {
+pub(crate) async fn serve(s: Settings) -> Running {
     let r = start(s).await.expect("server starts");
     r.wait_ready(Duration::from_secs(60)).await.expect("maps load");
     r
 }
 
-async fn clients(r: &Running) -> (MapsClient<Channel>, MatchingClient<Channel>) {
+pub(crate) async fn clients(r: &Running) -> (MapsClient<Channel>, MatchingClient<Channel>) {
     let url = format!("http://{}", r.grpc_addr);
     (MapsClient::connect(url.clone()).await.unwrap(), MatchingClient::connect(url).await.unwrap())
 }
 
-fn keyed<T>(msg: T, key: &str) -> Request<T> {
+pub(crate) fn keyed<T>(msg: T, key: &str) -> Request<T> {
     let mut r = Request::new(msg);
     r.metadata_mut().insert("x-api-key", key.parse().unwrap());
     r
 }
 
-fn intrinsics(c: &Camera) -> proto::Intrinsics {
+pub(crate) fn intrinsics(c: &Camera) -> proto::Intrinsics {
     proto::Intrinsics { fx: c.fx, fy: c.fy, cx: c.cx, cy: c.cy, width: c.width, height: c.height }
 }
 
@@ -51,14 +51,14 @@ fn pose_msg(p: &Isometry3<f64>) -> proto::Pose {
     proto::Pose { tx: t.x, ty: t.y, tz: t.z, qx: q.i, qy: q.j, qz: q.k, qw: q.w }
 }
 
-fn image_frame(path: &Path, cam: &Camera) -> proto::Frame {
+pub(crate) fn image_frame(path: &Path, cam: &Camera) -> proto::Frame {
     proto::Frame {
         source: Some(Source::Image(proto::Image { data: std::fs::read(path).unwrap() })),
         intrinsics: Some(intrinsics(cam)),
     }
 }
 
-fn keyframe_requests(map: &str, scene: &Scene, frames: &[usize]) -> Vec<proto::AddKeyframeRequest> {
+pub(crate) fn keyframe_requests(map: &str, scene: &Scene, frames: &[usize]) -> Vec<proto::AddKeyframeRequest> {
     frames
         .iter()
         .map(|&i| {
@@ -85,7 +85,7 @@ fn pose_error(p: &proto::Pose, truth: &Isometry3<f64>) -> (f64, f64) {
     (dt, dr)
 }
 
-async fn add_keyframes(
+pub(crate) async fn add_keyframes(
     maps: &mut MapsClient<Channel>,
     reqs: Vec<proto::AddKeyframeRequest>,
     key: Option<&str>,
@@ -217,7 +217,7 @@ async fn describe_of_an_image_equals_describe_of_its_keypoints() {
     server.shutdown().await.unwrap();
 }
 
-fn multipart_keyframe(scene: &Scene, i: usize) -> reqwest::multipart::Form {
+pub(crate) fn multipart_keyframe(scene: &Scene, i: usize) -> reqwest::multipart::Form {
     let f = &scene.frames[i];
     let p = f.pose.unwrap();
     let q = p.rotation.quaternion();
@@ -587,7 +587,8 @@ async fn every_error_path_gets_its_code_and_a_useful_message_and_changes_nothing
         .send()
         .await
         .unwrap();
-    assert_eq!(r.status(), 400);
+    assert_eq!(r.status(), 415);
+    assert_eq!(r.json::<serde_json::Value>().await.unwrap()["error"]["code"], "UNSUPPORTED_MEDIA_TYPE");
     assert_eq!(version(&mut maps, "m").await, v0, "a refused request changed the map");
     server.shutdown().await.unwrap();
 }

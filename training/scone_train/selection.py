@@ -54,6 +54,33 @@ def markdown(result: dict) -> str:
     return "\n".join(lines)
 
 
+BINS = [(0, 10), (10, 20), (20, 40), (40, 60), (60, 180)]
+
+
+def by_angle(names: list[str], root: Path | None = None) -> str:
+    """Pairs of every selection part pooled and binned by their rotation angle: per bin and candidate, the
+    number of pairs and the share of (pair, seed) runs within 10 degrees, SConE and FREAK."""
+    root = root or prefix_dir() / "runs" / "selection"
+    cols = []
+    for name in names:
+        recs = []
+        for f in sorted((root / name).glob("*.json")):
+            if f.name == "summary.json":
+                continue
+            recs += json.loads(f.read_text())["pairs"]
+        cols.append((name, recs))
+    head = "| angle | pairs | FREAK | " + " | ".join(f"SConE, {n}" for n, _ in cols) + " |"
+    lines = [head, "|---|---|---|" + "---|" * len(cols)]
+    for lo, hi in BINS:
+        def share(recs, method):
+            errs = [e for r in recs if r["method"] == method and lo <= r["angular_distance_deg"] < hi for e in r["errors_deg"]]
+            return (f"{np.mean(np.array(errs) <= 10):.2f}" if errs else "-"), len(errs)
+        freak, _ = share(cols[0][1], "freak")
+        n = len([r for r in cols[0][1] if r["method"] == "freak" and lo <= r["angular_distance_deg"] < hi])
+        lines.append(f"| {lo}-{hi} deg | {n} | {freak} | " + " | ".join(share(recs, "scone")[0] for _, recs in cols) + " |")
+    return "\n".join(lines)
+
+
 def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("--name", required=True)
@@ -61,7 +88,11 @@ def main() -> None:
     ap.add_argument("--scone-matcher", default="plain")
     ap.add_argument("--seeds", type=int, default=3)
     ap.add_argument("--methods", default="scone,freak")
+    ap.add_argument("--by-angle", nargs="+", default=None, help="only print the angle-bin table of these runs")
     args = ap.parse_args()
+    if args.by_angle:
+        print(by_angle(args.by_angle))
+        return
     r = score(args.name, args.model, args.scone_matcher, args.seeds, args.methods)
     print(f"{args.name} (matcher {args.scone_matcher}, model {args.model or 'shipped'})")
     print(markdown(r))
