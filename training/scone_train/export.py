@@ -81,3 +81,27 @@ def check_parity(model: SconeNet, path: Path, n: int = 300, tol: float = 1e-4) -
 
 def sha256(path: Path) -> str:
     return hashlib.sha256(Path(path).read_bytes()).hexdigest()
+
+
+def main() -> None:
+    """`python -m scone_train.export --checkpoint RUN/best.pt --out CANDIDATE.onnx`: a candidate checkpoint as
+    ONNX for scoring (`scone eval pairs --model`), with the parity check; the shipped model goes through
+    scone_train.release instead."""
+    import argparse
+    import json
+
+    from .validate import load_checkpoint
+
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--checkpoint", required=True)
+    ap.add_argument("--out", required=True)
+    a = ap.parse_args()
+    torch.set_num_threads(1)
+    model = load_checkpoint(Path(a.checkpoint))
+    export_onnx(model, Path(a.out))
+    step = torch.load(a.checkpoint, weights_only=False)["step"]
+    print(json.dumps({"step": step, "parity": check_parity(model, Path(a.out)), "sha256": sha256(Path(a.out))}))
+
+
+if __name__ == "__main__":
+    main()

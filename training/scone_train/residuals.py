@@ -140,6 +140,7 @@ def main() -> None:
     ap.add_argument("--pairs", type=int, default=30)
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--out", default=None)
+    ap.add_argument("--gaps", default=None, help="instead: pairs this many frames apart, e.g. 3,10,30,60 (12 each)")
     args = ap.parse_args()
     cv2.setNumThreads(1)
     root = Path(args.root) if args.root else shared_data() / "scenes"
@@ -147,6 +148,14 @@ def main() -> None:
     for name in args.scenes.split(","):
         scene = load_scene(root / name)
         rng = np.random.default_rng(args.seed)
+        if args.gaps:
+            for g in (int(v) for v in args.gaps.split(",")):
+                starts = rng.choice(len(scene.rgb) - g, 12, replace=False)
+                r = measure(scene, [(int(i), int(i) + g) for i in starts])
+                angle = float(np.median([optical_angle(scene.T_wc[i], scene.T_wc[i + g]) for i in starts]))
+                report[f"{name}@{g}"] = {**r, "median_axis_angle_deg": angle}
+                print(name, g, json.dumps({k: v for k, v in r.items() if k != "per_pair"}), f"angle {angle:.1f}", flush=True)
+            continue
         r = measure(scene, sample_pairs(scene, args.pairs, rng))
         r["tolerances"] = tolerances(r)
         report[name] = r
