@@ -14,8 +14,7 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from scone_client import configure_opencv, extract_encoded  # noqa: E402
-from scone_client import tum  # noqa: E402
+from scone_client import configure_opencv, extract_encoded, tum  # noqa: E402
 from scone_client.client import SconeClient, image_frame, keypoint_frame, pb  # noqa: E402
 
 

@@ -9,9 +9,9 @@ import cv2
 import grpc
 import numpy as np
 
-from scone_client.contract import DESCRIPTOR_BYTES, Features
 from scone_client._proto.scone.v1 import scone_pb2 as pb
 from scone_client._proto.scone.v1 import scone_pb2_grpc as pb_grpc
+from scone_client.contract import DESCRIPTOR_BYTES, Features
 
 __all__ = ["Camera", "SconeClient", "features_from_describe", "image_frame", "keypoint_frame", "keypoint_set", "pb"]
 
@@ -28,9 +28,7 @@ class Camera:
     height: int
 
     def to_proto(self) -> pb.Intrinsics:
-        return pb.Intrinsics(
-            fx=self.fx, fy=self.fy, cx=self.cx, cy=self.cy, width=self.width, height=self.height
-        )
+        return pb.Intrinsics(fx=self.fx, fy=self.fy, cx=self.cx, cy=self.cy, width=self.width, height=self.height)
 
 
 def keypoint_set(features: Features, model_id: str = "") -> pb.KeypointSet:

@@ -11,10 +11,9 @@ import sys
 import cv2
 import numpy as np
 import pytest
-
 from conftest import FIXTURES, REPO
-from scone_client import contract, extract, extract_encoded
-from scone_client import tum
+
+from scone_client import contract, extract, extract_encoded, tum
 from scone_client.agreement import compare
 from scone_client.client import features_from_describe, image_frame, keypoint_frame, pb
 
@@ -85,12 +84,14 @@ def test_the_agreement_check_detects_a_wrong_rule(client, monkeypatch, wrong_rul
     if wrong_rule == "decoded straight to grey":
         grey = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_GRAYSCALE)
     elif wrong_rule == "floor for W_l":
+
         def floor_size(w, h, level, scale_factor=1.2):
             s = contract.powi(scale_factor, level)
             return math.floor(w / s), math.floor(h / s)
 
         monkeypatch.setattr(contract, "level_size", floor_size)
     else:
+
         def double_mapping(level_xy, w, h, lw, lh):
             xy = level_xy.astype(np.float64)
             return np.column_stack([(xy[:, 0] + 0.5) * w / lw - 0.5, (xy[:, 1] + 0.5) * h / lh - 0.5]).astype(
@@ -106,11 +107,23 @@ def test_the_agreement_check_detects_a_wrong_rule(client, monkeypatch, wrong_rul
 def test_level_geometry_matches_the_contract_table():
     assert contract.level_quotas() == [516, 358, 249, 173, 120, 83]
     assert [contract.level_size(640, 480, lvl) for lvl in range(6)] == [
-        (640, 480), (533, 400), (444, 333), (370, 278), (309, 231), (257, 193)
+        (640, 480),
+        (533, 400),
+        (444, 333),
+        (370, 278),
+        (309, 231),
+        (257, 193),
     ]
     assert contract.round_half_away(2.5) == 3 and contract.round_half_away(-2.5) == -3
     sizes = [float(contract.keypoint_size(lvl)) for lvl in range(6)]
     assert sizes == [float(np.float32(7 * np.float32(contract.powi(1.2, lvl)))) for lvl in range(6)]
+
+
+def test_grey_formula_equals_cvtcolor_on_every_colour():
+    """The contract's integer grey formula (for ports without OpenCV's cvtColor) is exactly BGR2GRAY."""
+    a = np.arange(1 << 24, dtype=np.uint32)
+    bgr = np.stack([(a >> 16) & 255, (a >> 8) & 255, a & 255], axis=-1).astype(np.uint8).reshape(4096, 4096, 3)
+    np.testing.assert_array_equal(contract.grey_from_rgb(bgr[..., ::-1]), cv2.cvtColor(bgr, cv2.COLOR_BGR2GRAY))
 
 
 # -- Localisation and matching from client keypoints -----------------------------------------------------
@@ -197,8 +210,9 @@ def test_committed_stubs_match_the_proto(tmp_path):
     subprocess.run([str(package / "generate-stubs"), sys.executable], check=True, env=env)
     generated = sorted(p.relative_to(tmp_path) for p in tmp_path.rglob("*") if p.is_file())
     committed = sorted(
-        p.relative_to(package) for p in (package / "scone_client" / "_proto").rglob("*") if p.is_file()
-        and "__pycache__" not in p.parts
+        p.relative_to(package)
+        for p in (package / "scone_client" / "_proto").rglob("*")
+        if p.is_file() and "__pycache__" not in p.parts
     )
     assert generated == committed
     for rel in generated:
@@ -207,9 +221,19 @@ def test_committed_stubs_match_the_proto(tmp_path):
 
 def test_example_script_runs(server):
     out = subprocess.run(
-        [sys.executable, str(REPO / "clients/python/examples/localize.py"), "--server", server[0],
-         "--scene", str(FIXTURES / "rendered"), "--map", "example"],
-        check=True, capture_output=True, text=True, timeout=300,
+        [
+            sys.executable,
+            str(REPO / "clients/python/examples/localize.py"),
+            "--server",
+            server[0],
+            "--scene",
+            str(FIXTURES / "rendered"),
+            "--map",
+            "example",
+        ],
+        check=True,
+        capture_output=True,
+        text=True,
+        timeout=300,
     ).stdout
     assert "localised" in out, out
-
