@@ -18,6 +18,10 @@
 //!
 //! Descriptors: 512 bits packed into 64 bytes, bit `i` of the descriptor in byte `i / 8`, bit `i % 8`
 //! (least significant first), as OpenCV stores them; `numpy.unpackbits(..., bitorder="little")` unpacks them.
+//!
+//! Every rounding, precision and order of this module is written out in the client contract of
+//! `proto/scone/v1/scone.proto` (above `message KeypointSet`); `clients/python` reproduces it bit for bit.
+//! A change here that alters any keypoint or descriptor must change that text and its revision.
 
 use opencv::core::{KeyPoint, Mat, Size, Vector};
 use opencv::features2d::{FastFeatureDetector, FastFeatureDetector_DetectorType};

@@ -1,0 +1,149 @@
+"""gRPC calls of the scone service with frames built from images or from the client contract's keypoints."""
+
+from __future__ import annotations
+
+from collections.abc import Iterable, Iterator
+from dataclasses import dataclass
+
+import cv2
+import grpc
+import numpy as np
+
+from scone_client._proto.scone.v1 import scone_pb2 as pb
+from scone_client._proto.scone.v1 import scone_pb2_grpc as pb_grpc
+from scone_client.contract import DESCRIPTOR_BYTES, Features
+
+__all__ = ["Camera", "SconeClient", "features_from_describe", "image_frame", "keypoint_frame", "keypoint_set", "pb"]
+
+
+@dataclass(frozen=True)
+class Camera:
+    """Pinhole intrinsics without distortion, pixels ((0, 0) is the centre of the top-left pixel)."""
+
+    fx: float
+    fy: float
+    cx: float
+    cy: float
+    width: int
+    height: int
+
+    def to_proto(self) -> pb.Intrinsics:
+        return pb.Intrinsics(fx=self.fx, fy=self.fy, cx=self.cx, cy=self.cy, width=self.width, height=self.height)
+
+
+def keypoint_set(features: Features, model_id: str = "") -> pb.KeypointSet:
+    """A KeypointSet message from extracted features (descriptors as 64 bytes per keypoint, in order)."""
+    desc = np.ascontiguousarray(features.descriptors, np.uint8)
+    if desc.shape != (len(features), DESCRIPTOR_BYTES):
+        raise ValueError(f"descriptors are {desc.shape}, expected ({len(features)}, {DESCRIPTOR_BYTES})")
+    keypoints = [
+        pb.Keypoint(x=float(x), y=float(y), size=float(s), angle=float(a), response=float(r), octave=int(o))
+        for (x, y), s, a, r, o in zip(
+            features.xy, features.size, features.angle, features.response, features.octave, strict=True
+        )
+    ]
+    return pb.KeypointSet(
+        keypoints=keypoints,
+        descriptors=desc.tobytes(),
+        width=features.width,
+        height=features.height,
+        model_id=model_id,
+    )
+
+
+def keypoint_frame(features: Features, camera: Camera | None = None, model_id: str = "") -> pb.Frame:
+    """A Frame carrying the client's keypoints instead of an image."""
+    frame = pb.Frame(keypoints=keypoint_set(features, model_id))
+    if camera is not None:
+        frame.intrinsics.CopyFrom(camera.to_proto())
+    return frame
+
+
+def image_frame(data: bytes, camera: Camera | None = None) -> pb.Frame:
+    """A Frame carrying an encoded PNG or JPEG (the server extracts the keypoints)."""
+    frame = pb.Frame(image=pb.Image(data=data))
+    if camera is not None:
+        frame.intrinsics.CopyFrom(camera.to_proto())
+    return frame
+
+
+class SconeClient:
+    """Both services of scone.v1 on one channel. ``api_key`` is sent as ``authorization: Bearer <key>``."""
+
+    def __init__(self, target: str, *, api_key: str | None = None, timeout: float = 30.0) -> None:
+        self.channel = grpc.insecure_channel(target)
+        self.maps = pb_grpc.MapsStub(self.channel)
+        self.matching = pb_grpc.MatchingStub(self.channel)
+        self.timeout = timeout
+        self._metadata = (("authorization", f"Bearer {api_key}"),) if api_key else ()
+
+    def close(self) -> None:
+        self.channel.close()
+
+    def __enter__(self) -> SconeClient:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    def _call(self, method, request):
+        return method(request, timeout=self.timeout, metadata=self._metadata)
+
+    # -- Matching ---------------------------------------------------------------------------------------
+
+    def describe(self, frame: pb.Frame) -> pb.DescribeResponse:
+        return self._call(self.matching.Describe, pb.DescribeRequest(frame=frame))
+
+    def localize(self, map_id: str, frame: pb.Frame, prior: pb.PosePrior | None = None) -> pb.LocalizeResponse:
+        request = pb.LocalizeRequest(map_id=map_id, frame=frame)
+        if prior is not None:
+            request.prior.CopyFrom(prior)
+        return self._call(self.matching.Localize, request)
+
+    def match_pair(
+        self,
+        frame1: pb.Frame,
+        frame2: pb.Frame,
+        *,
+        ratio: float = 0.0,
+        mutual: bool = False,
+        matcher: int = pb.PAIR_MATCHER_DEFAULT,
+    ) -> pb.MatchPairResponse:
+        """Matches two frames; ``ratio`` 0 means the server's default (0.8)."""
+        request = pb.MatchPairRequest(frame1=frame1, frame2=frame2, ratio=ratio, mutual=mutual, matcher=matcher)
+        return self._call(self.matching.MatchPair, request)
+
+    # -- Maps -------------------------------------------------------------------------------------------
+
+    def create_map(self, map_id: str) -> pb.MapInfo:
+        return self._call(self.maps.CreateMap, pb.CreateMapRequest(map_id=map_id))
+
+    def get_map(self, map_id: str) -> pb.MapInfo:
+        return self._call(self.maps.GetMap, pb.GetMapRequest(map_id=map_id))
+
+    def add_keyframes(self, requests: Iterable[pb.AddKeyframeRequest]) -> Iterator[pb.KeyframeAck]:
+        """Streams keyframes; yields one acknowledgement per keyframe once it is durable."""
+        return self.maps.AddKeyframes(iter(requests), timeout=self.timeout, metadata=self._metadata)
+
+    def model_id(self) -> str:
+        """The server's model id (from Describe of a blank image), for KeypointSet.model_id."""
+        ok, png = cv2.imencode(".png", np.zeros((32, 32), np.uint8))
+        if not ok:
+            raise RuntimeError("could not encode a blank PNG")
+        return self.describe(image_frame(png.tobytes())).model_id
+
+
+def features_from_describe(response: pb.DescribeResponse, width: int, height: int) -> Features:
+    """The keypoints and FREAK descriptors of a Describe response as Features (to compare with a client's)."""
+    kps = response.keypoints
+    n = len(kps)
+    return Features(
+        width=width,
+        height=height,
+        xy=np.array([(k.x, k.y) for k in kps], np.float32).reshape(n, 2),
+        size=np.array([k.size for k in kps], np.float32),
+        angle=np.array([k.angle for k in kps], np.float32),
+        response=np.array([k.response for k in kps], np.float32),
+        octave=np.array([k.octave for k in kps], np.int32),
+        descriptors=np.frombuffer(response.descriptors, np.uint8).reshape(n, DESCRIPTOR_BYTES).copy(),
+    )

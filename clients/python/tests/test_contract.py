@@ -1,0 +1,219 @@
+"""The reference client against the real server: the client contract reproduces the server's extraction, and
+frames of client keypoints localise and match like the images they come from."""
+
+from __future__ import annotations
+
+import math
+import os
+import subprocess
+import sys
+
+import cv2
+import numpy as np
+import pytest
+from conftest import FIXTURES, REPO
+
+from scone_client import contract, extract, extract_encoded, tum
+from scone_client.agreement import compare, deviation, grey_for
+from scone_client.client import features_from_describe, image_frame, keypoint_frame, pb
+
+#: The contract's acceptance figure: server keypoints with a client keypoint within 1 px and identical bytes.
+MIN_AGREEMENT = 0.999
+#: Localize from client keypoints vs from the image: the same support and a pose within 1 mm and 0.01 degree.
+POSE_TOLERANCE_M = 1e-3
+POSE_TOLERANCE_DEG = 0.01
+
+
+def _blurred_png() -> bytes:
+    """A heavily blurred frame: too few corners on the coarse levels to fill the budget."""
+    img = cv2.imread(str(FIXTURES / "coffee-640x480.jpg"), cv2.IMREAD_UNCHANGED)
+    ok, png = cv2.imencode(".png", cv2.GaussianBlur(img, (0, 0), 1.0))
+    assert ok
+    return png.tobytes()
+
+
+IMAGES = {
+    "coffee-640x480.jpg": lambda: (FIXTURES / "coffee-640x480.jpg").read_bytes(),
+    "astronaut.jpg": lambda: (FIXTURES / "astronaut.jpg").read_bytes(),
+    "rendered-000000.png": lambda: (FIXTURES / "rendered/rgb/000000.png").read_bytes(),
+    "rendered-000007.png": lambda: (FIXTURES / "rendered/rgb/000007.png").read_bytes(),
+    "coffee-blurred.png": _blurred_png,
+}
+
+
+def _server_features(client, data: bytes):
+    grey = contract.decode_grey(data)
+    response = client.describe(image_frame(data))
+    return features_from_describe(response, grey.shape[1], grey.shape[0]), grey
+
+
+@pytest.mark.parametrize("name", sorted(IMAGES))
+def test_client_extraction_reproduces_the_servers(client, name):
+    data = IMAGES[name]()
+    server, grey = _server_features(client, data)
+    assert len(server) > 200, f"{name}: only {len(server)} keypoints from the server"
+    agreement = compare(server, extract(grey))
+    print(f"{name}: {agreement}")
+    assert agreement.fraction >= MIN_AGREEMENT, f"{name}: {agreement}"
+
+
+def test_a_blurred_frame_leaves_the_unused_quota_unspent(client):
+    """Unused quota moves to the coarsest level only, which cannot use it either: fewer than 1,500 keypoints."""
+    server, grey = _server_features(client, _blurred_png())
+    ours = extract(grey)
+    assert len(ours) == len(server) < 1500
+
+
+def test_golden_features_are_reproduced():
+    """The committed golden features (made by the server's extractor) equal the client's, bit for bit."""
+    golden = np.load(FIXTURES / "golden" / "astronaut.features.npz")
+    ours = extract_encoded((FIXTURES / "astronaut.jpg").read_bytes())
+    fields = np.column_stack([ours.xy, ours.size, ours.angle, ours.response, ours.octave.astype(np.float32)])
+    np.testing.assert_array_equal(fields, golden["f0000_keypoints"])
+    np.testing.assert_array_equal(ours.descriptors, golden["f0000_descriptors"])
+
+
+@pytest.mark.parametrize("wrong_rule", ["decoded straight to grey", "floor for W_l", "coordinates in double"])
+def test_the_agreement_check_detects_a_wrong_rule(client, wrong_rule):
+    """The acceptance figure is sensitive: each of these rules of the contract, done the other way, fails it."""
+    data = IMAGES["coffee-640x480.jpg"]()
+    server, _ = _server_features(client, data)
+    with deviation(wrong_rule):
+        agreement = compare(server, extract(grey_for(wrong_rule, data)))
+    print(f"{wrong_rule}: {agreement}")
+    assert agreement.fraction < MIN_AGREEMENT, f"{wrong_rule} went unnoticed: {agreement}"
+
+
+def test_level_geometry_matches_the_contract_table():
+    assert contract.level_quotas() == [516, 358, 249, 173, 120, 83]
+    assert [contract.level_size(640, 480, lvl) for lvl in range(6)] == [
+        (640, 480),
+        (533, 400),
+        (444, 333),
+        (370, 278),
+        (309, 231),
+        (257, 193),
+    ]
+    assert contract.round_half_away(2.5) == 3 and contract.round_half_away(-2.5) == -3
+    sizes = [float(contract.keypoint_size(lvl)) for lvl in range(6)]
+    assert sizes == [float(np.float32(7 * np.float32(contract.powi(1.2, lvl)))) for lvl in range(6)]
+
+
+def test_grey_formula_equals_cvtcolor_on_every_colour():
+    """The contract's integer grey formula (for ports without OpenCV's cvtColor) is exactly BGR2GRAY."""
+    a = np.arange(1 << 24, dtype=np.uint32)
+    bgr = np.stack([(a >> 16) & 255, (a >> 8) & 255, a & 255], axis=-1).astype(np.uint8).reshape(4096, 4096, 3)
+    np.testing.assert_array_equal(contract.grey_from_rgb(bgr[..., ::-1]), cv2.cvtColor(bgr, cv2.COLOR_BGR2GRAY))
+
+
+# -- Localisation and matching from client keypoints -----------------------------------------------------
+
+
+def _pose_error(a: pb.Pose, b: pb.Pose) -> tuple[float, float]:
+    dt = math.dist((a.tx, a.ty, a.tz), (b.tx, b.ty, b.tz))
+    dot = abs(a.qx * b.qx + a.qy * b.qy + a.qz * b.qz + a.qw * b.qw)
+    return dt, math.degrees(2 * math.acos(min(1.0, dot)))
+
+
+def _gt(frame: tum.Frame) -> pb.Pose:
+    tx, ty, tz, qx, qy, qz, qw = frame.pose
+    return pb.Pose(tx=tx, ty=ty, tz=tz, qx=qx, qy=qy, qz=qz, qw=qw)
+
+
+@pytest.fixture(scope="module")
+def rendered_map(client):
+    """A map of the rendered fixture's even frames (image frames with depth), built through the API."""
+    scene = tum.load(FIXTURES / "rendered")
+    client.create_map("client-contract")
+    keyframes = [i for i in range(0, len(scene.frames), 2)]
+    requests = [
+        pb.AddKeyframeRequest(
+            map_id="client-contract",
+            keyframe_id=i,
+            frame=image_frame(scene.frames[i].rgb.read_bytes(), scene.camera),
+            pose=_gt(scene.frames[i]),
+            depth_png=scene.frames[i].depth.read_bytes(),
+        )
+        for i in keyframes
+    ]
+    acks = list(client.add_keyframes(requests))
+    assert [a.keyframe_id for a in acks] == keyframes
+    return scene
+
+
+def test_localize_from_client_keypoints_equals_localize_from_the_image(client, rendered_map):
+    scene = rendered_map
+    model_id = client.model_id()
+    for i in range(1, len(scene.frames), 2):
+        frame = scene.frames[i]
+        data = frame.rgb.read_bytes()
+        by_image = client.localize("client-contract", image_frame(data, scene.camera))
+        ours = extract_encoded(data)
+        by_keypoints = client.localize("client-contract", keypoint_frame(ours, scene.camera, model_id))
+        assert by_image.localized, f"frame {i}: the image route did not localise: {by_image}"
+        dt_gt, dr_gt = _pose_error(by_image.pose, _gt(frame))
+        assert dt_gt < 0.05 and dr_gt < 1.0, f"frame {i}: image route off by {dt_gt} m, {dr_gt} deg"
+        assert by_keypoints.localized, f"frame {i}: client keypoints did not localise: {by_keypoints}"
+        dt, dr = _pose_error(by_keypoints.pose, by_image.pose)
+        print(
+            f"frame {i}: image {by_image.inliers}/{by_image.matches} inliers, keypoints "
+            f"{by_keypoints.inliers}/{by_keypoints.matches}; poses differ by {dt * 1000:.4f} mm, {dr:.5f} deg"
+        )
+        assert dt <= POSE_TOLERANCE_M and dr <= POSE_TOLERANCE_DEG, f"frame {i}: {dt} m, {dr} deg apart"
+        assert abs(by_keypoints.inliers - by_image.inliers) <= max(2, by_image.inliers // 100), f"frame {i}"
+
+
+def test_match_pair_from_client_keypoints_equals_match_pair_from_images(client):
+    scene = tum.load(FIXTURES / "rendered")
+    a, b = scene.frames[2].rgb.read_bytes(), scene.frames[4].rgb.read_bytes()
+    by_image = client.match_pair(image_frame(a, scene.camera), image_frame(b, scene.camera))
+    by_keypoints = client.match_pair(
+        keypoint_frame(extract_encoded(a), scene.camera), keypoint_frame(extract_encoded(b), scene.camera)
+    )
+    assert by_image.inliers > 30, by_image.inliers
+    assert by_keypoints.HasField("pose")
+    assert abs(by_keypoints.inliers - by_image.inliers) <= max(2, by_image.inliers // 100)
+    qa, qb = by_image.pose, by_keypoints.pose
+    dot = abs(qa.qx * qb.qx + qa.qy * qb.qy + qa.qz * qb.qz + qa.qw * qb.qw)
+    t_dot = qa.tx * qb.tx + qa.ty * qb.ty + qa.tz * qb.tz
+    assert math.degrees(2 * math.acos(min(1.0, dot))) <= 0.05
+    assert math.degrees(math.acos(max(-1.0, min(1.0, t_dot)))) <= 0.1
+
+
+# -- Stubs ------------------------------------------------------------------------------------------------
+
+
+def test_committed_stubs_match_the_proto(tmp_path):
+    """The committed stubs are what clients/python/generate-stubs makes from today's proto."""
+    package = REPO / "clients" / "python"
+    env = dict(os.environ, STUBS_OUT=str(tmp_path))
+    subprocess.run([str(package / "generate-stubs"), sys.executable], check=True, env=env)
+    generated = sorted(p.relative_to(tmp_path) for p in tmp_path.rglob("*") if p.is_file())
+    committed = sorted(
+        p.relative_to(package)
+        for p in (package / "scone_client" / "_proto").rglob("*")
+        if p.is_file() and "__pycache__" not in p.parts
+    )
+    assert generated == committed
+    for rel in generated:
+        assert (tmp_path / rel).read_bytes() == (package / rel).read_bytes(), f"{rel} is stale: run generate-stubs"
+
+
+def test_example_script_runs(server):
+    out = subprocess.run(
+        [
+            sys.executable,
+            str(REPO / "clients/python/examples/localize.py"),
+            "--server",
+            server[0],
+            "--scene",
+            str(FIXTURES / "rendered"),
+            "--map",
+            "example",
+        ],
+        check=True,
+        capture_output=True,
+        text=True,
+        timeout=300,
+    ).stdout
+    assert "localised" in out, out
