@@ -62,6 +62,26 @@ def summary(results: dict) -> str:
     return "\n".join(lines)
 
 
+NAMES = {"scone": "SConE (rerank, shipped)", "scone-plain": "SConE (plain)", "freak": "FREAK", "freak-gms": "FREAK+GMS",
+         "orb": "ORB", "sift": "SIFT"}
+
+
+def scene_tables(results: dict) -> str:
+    """One compact table per scene (the figures BENCHMARKS.md keeps)."""
+    out = []
+    for name, r in results.items():
+        c = r["config"]
+        pairs = r["summaries"][0]["pairs"]
+        out.append(f"{name} ({pairs} pairs, window {c['window']}, {c['seeds']} seeds):\n")
+        out.append("| method | AUC@5 | AUC@10 | AUC@20 | fail | matches | match precision | RANSAC iters needed (median) |")
+        out.append("|---|---|---|---|---|---|---|---|")
+        for m in r["summaries"]:
+            out.append(f"| {NAMES[m['method']]} | {m['auc5']:.3f} | {m['auc10']:.3f} | {m['auc20']:.3f} | {100 * m['failures']:.0f} % | "
+                       f"{m['mean_matches']:.0f} | {m['match_precision']:.3f} | {m['median_iterations_needed']:.0f} |")
+        out.append("")
+    return "\n".join(out)
+
+
 def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("--out", required=True)
@@ -71,7 +91,7 @@ def main() -> None:
     args = ap.parse_args()
     out = Path(args.out)
     results = run(out, args.seeds, args.model, args.methods)
-    text = "AUC@10 (match precision) per validation scene\n\n" + summary(results) + "\n"
+    text = "AUC@10 (match precision) per validation scene\n\n" + summary(results) + "\n\n" + scene_tables(results) + "\n"
     (out / "summary.md").write_text(text)
     print(text)
 
