@@ -102,8 +102,9 @@ def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("--checkpoint", required=True)
     ap.add_argument("--out", default=None)
+    ap.add_argument("--threads", type=int, default=2)
     a = ap.parse_args()
-    torch.set_num_threads(2)
+    torch.set_num_threads(a.threads)
     res = validate(load_checkpoint(Path(a.checkpoint)), Path(a.out) if a.out else None)
     print(json.dumps(res, indent=2))
 

@@ -82,16 +82,77 @@ def scene_tables(results: dict) -> str:
     return "\n".join(out)
 
 
+BINS = [(0, 10), (10, 20), (20, 40), (40, 60), (60, 180)]
+
+
+def by_angle(results: dict) -> str:
+    """Every scene's pairs pooled and binned by their rotation angle: pairs per bin and, per method, the share of
+    (pair, seed) runs within 10 degrees and the mean correct matches per pair."""
+    methods = [s["method"] for s in next(iter(results.values()))["summaries"]]
+    recs = [r for rep in results.values() for r in rep["pairs"]]
+    lines = ["| angle | pairs | " + " | ".join(NAMES[m] for m in methods) + " |", "|---|---|" + "---|" * len(methods)]
+    for lo, hi in BINS:
+        cells, n = [], 0
+        for m in methods:
+            sel = [r for r in recs if r["method"] == m and lo <= r["angular_distance_deg"] < hi]
+            n = len(sel)
+            errs = np.array([e for r in sel for e in r["errors_deg"]])
+            cells.append(f"{(errs <= 10).mean():.2f} / {np.mean([r['correct'] for r in sel]):.0f}" if n else "-")
+        lines.append(f"| {lo}-{hi}° | {n} | " + " | ".join(cells) + " |")
+    return "\n".join(lines)
+
+
+def time_auc(results: dict, timing: Path, figure: Path | None = None) -> str:
+    """(time per pair, mean AUC@10) per method: the time from quiet single-core runs in `timing` (reports of
+    `scone eval pairs --seeds 1` on one or more scenes, averaged), the accuracy from the validation results."""
+    reports = [json.loads(f.read_text()) for f in sorted(timing.glob("*.json"))]
+    methods = [s["method"] for s in next(iter(results.values()))["summaries"]]
+    rows = []
+    for m in methods:
+        ms = np.mean([2 * s["describe_ms"] + s["match_ms"] for r in reports for s in r["summaries"] if s["method"] == m])
+        auc = np.mean([next(s["auc10"] for s in r["summaries"] if s["method"] == m) for r in results.values()])
+        rows.append((m, float(ms), float(auc)))
+    lines = ["| method | ms per pair (2 x describe + match) | mean AUC@10, validation | faster and more accurate than SConE? |",
+             "|---|---|---|---|"]
+    ref = next(r for r in rows if r[0] == "scone")
+    for m, ms, auc in rows:
+        dom = "-" if m == "scone" else ("yes" if ms < ref[1] and auc > ref[2] else "no")
+        lines.append(f"| {NAMES[m]} | {ms:.1f} | {auc:.3f} | {dom} |")
+    if figure is not None:
+        import matplotlib
+
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as plt
+
+        fig, ax = plt.subplots(figsize=(6, 4))
+        for m, ms, auc in rows:
+            ax.scatter(ms, auc, s=60)
+            ax.annotate(NAMES[m], (ms, auc), textcoords="offset points", xytext=(5, 5))
+        ax.set_xscale("log")
+        ax.set_xlabel("time per pair, one core: 2 x (extract + describe) + match (ms, log)")
+        ax.set_ylabel("mean AUC@10, five validation scenes")
+        ax.set_title("accuracy against cost (Fig. 7)")
+        fig.tight_layout()
+        fig.savefig(figure, dpi=100)
+        plt.close(fig)
+    return "\n".join(lines)
+
+
 def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("--out", required=True)
     ap.add_argument("--seeds", type=int, default=3)
     ap.add_argument("--model", default=None)
     ap.add_argument("--methods", default=METHODS)
+    ap.add_argument("--timing", default=None, help="directory of quiet single-core timing reports")
+    ap.add_argument("--figure", default=None, help="with --timing: write the time/accuracy plot here")
     args = ap.parse_args()
     out = Path(args.out)
     results = run(out, args.seeds, args.model, args.methods)
-    text = "AUC@10 (match precision) per validation scene\n\n" + summary(results) + "\n\n" + scene_tables(results) + "\n"
+    if args.timing:
+        print(time_auc(results, Path(args.timing), Path(args.figure) if args.figure else None))
+        return
+    text = "AUC@10 (match precision) per validation scene\n\n" + summary(results) + "\n\n" + scene_tables(results) + "\n\nBy angle (share within 10 deg / correct matches per pair):\n\n" + by_angle(results) + "\n"
     (out / "summary.md").write_text(text)
     print(text)
 
