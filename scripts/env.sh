@@ -1,3 +1,4 @@
+# shellcheck shell=bash
 # Sourced by the project's scripts: where the built dependencies live and how cargo finds them.
 # Everything heavy (OpenCV build, ONNX Runtime library, Python virtualenvs) sits in a prefix outside
 # the clone, so a fresh clone reuses it. Override with SCONE_PREFIX.
