@@ -643,7 +643,8 @@ impl tonic::codec::Decoder for RawBytes {
 /// any body is read: HTTP requests that declare 8 MiB and send only the first 64 KiB get their 429 (with
 /// Retry-After, in the JSON envelope) although the rest never comes, gRPC calls whose 4 MiB message is not
 /// even protobuf get RESOURCE_EXHAUSTED (decoding them would have been INTERNAL), and no byte of the flood
-/// is counted as read. Once the slow job is done it has its answer, and requests are served again.
+/// is counted as read; a refused request with a small body keeps its keep-alive connection. Once the slow
+/// job is done it has its answer, and requests are served again.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn regression_storm_is_refused_before_bodies_are_read() {
     let data = temp_dir("storm");
@@ -721,6 +722,22 @@ async fn regression_storm_is_refused_before_bodies_are_read() {
     assert_eq!(body_bytes_read(&server, "http").await, http_before, "HTTP body bytes were read during the flood");
     assert_eq!(body_bytes_read(&server, "grpc").await, grpc_before, "gRPC message bytes were read during the flood");
     assert!(server.app.pool.stats().rejected.load(std::sync::atomic::Ordering::Relaxed) >= 25);
+
+    // A refused HTTP/1.1 request with a small body keeps its connection: the body is discarded after the
+    // answer and the next request on the same connection is served.
+    let mut c = TcpStream::connect(server.http_addr).await.unwrap();
+    let small = 100 << 10;
+    let head =
+        format!("POST /v1/describe HTTP/1.1\r\nhost: x\r\ncontent-type: image/jpeg\r\ncontent-length: {small}\r\n\r\n");
+    c.write_all(head.as_bytes()).await.unwrap();
+    c.write_all(&vec![0xd8; small]).await.unwrap();
+    let deadline = Instant::now() + Duration::from_secs(10);
+    let answer = http_answer(&mut c, deadline).await.expect("an answer");
+    assert!(answer.starts_with("HTTP/1.1 429"), "{answer}");
+    assert!(!answer.to_ascii_lowercase().contains("connection: close"), "{answer}");
+    c.write_all(b"GET /healthz HTTP/1.1\r\nhost: x\r\n\r\n").await.unwrap();
+    let answer = http_answer(&mut c, deadline).await.expect("the connection was kept");
+    assert!(answer.starts_with("HTTP/1.1 200"), "{answer}");
 
     // The slow job gets its answer; then the pool takes requests again, on both transports.
     release.send(()).unwrap();
