@@ -420,7 +420,8 @@ impl proto::matching_server::Matching for GrpcApi {
 }
 
 /// Refuses calls of the `scone.v1` services with RESOURCE_EXHAUSTED (and `retry-after`) when the CPU pool
-/// has no free slot, before their message is read; counts the bytes of the messages it lets through.
+/// has no free slot, before their message is read (after [`App::hold_refusal`]); counts the bytes of the
+/// messages it lets through.
 #[derive(Clone)]
 pub struct AdmissionLayer {
     app: Arc<App>,
@@ -468,15 +469,18 @@ where
     fn call(&mut self, req: axum::http::Request<tonic::body::Body>) -> Self::Future {
         let path = req.uri().path();
         if path.starts_with(POOL_SERVICES) {
-            let (app, t) = (&self.layer.app, Instant::now());
+            let (app, t) = (Arc::clone(&self.layer.app), Instant::now());
             if let Err(e) = app.check_room() {
-                let method = path.rsplit('/').next().unwrap_or(path);
-                let code = format!("{:?}", Code::ResourceExhausted);
-                app.metrics.request("grpc", method, &code, t.elapsed().as_secs_f64());
-                app.log_error(method, &e);
+                let method = path.rsplit('/').next().unwrap_or(path).to_string();
+                app.log_error(&method, &e);
                 // The request, and with it the unread message, is dropped here.
-                let refusal = to_status(&e).into_http();
-                return Box::pin(std::future::ready(Ok(refusal)));
+                drop(req);
+                return Box::pin(async move {
+                    app.hold_refusal().await;
+                    let code = format!("{:?}", Code::ResourceExhausted);
+                    app.metrics.request("grpc", &method, &code, t.elapsed().as_secs_f64());
+                    Ok(to_status(&e).into_http())
+                });
             }
         }
         let bytes = self.layer.body_bytes.clone();

@@ -913,12 +913,13 @@ async fn openapi() -> impl IntoResponse {
 const DRAIN_LIMIT: u64 = 1 << 20;
 
 /// Refuses a request for the CPU pool before its body is read when the pool has no free slot
-/// ([`App::check_room`]): 429 with `Retry-After`, in the JSON envelope.
+/// ([`App::check_room`]): 429 with `Retry-After`, in the JSON envelope, after [`App::hold_refusal`].
 async fn admission(State(app): State<Arc<App>>, req: Request, next: Next) -> Response {
     match app.check_room() {
         Ok(()) => next.run(req).await,
         Err(e) => {
             app.log_error("admission", &e);
+            app.hold_refusal().await;
             refuse_unread(req, ApiError::Service(e).into_response())
         }
     }

@@ -75,6 +75,7 @@ impl App {
         match self.pool.run(deadline, move || f(&app)).await {
             Ok(r) => r,
             Err(PoolError::Full(_)) => {
+                self.hold_refusal().await;
                 Err(ServiceError::Overloaded { queued: self.pool.stats().queued.load(Ordering::Relaxed) })
             }
             Err(PoolError::Expired) => Err(ServiceError::DeadlineExceeded { ms: timeout }),
@@ -89,6 +90,15 @@ impl App {
         self.pool
             .check_room()
             .map_err(|_| ServiceError::Overloaded { queued: self.pool.stats().queued.load(Ordering::Relaxed) })
+    }
+
+    /// Waits `workers.refusal_hold_ms` before a refusal for a full pool is sent: a client that retries at
+    /// once is held to one attempt per hold, so refusals cannot take the core from the pool.
+    pub async fn hold_refusal(&self) {
+        let ms = self.settings.workers.refusal_hold_ms;
+        if ms > 0 {
+            tokio::time::sleep(Duration::from_millis(ms)).await;
+        }
     }
 
     /// Ready to serve maps: loaded, not shutting down.
