@@ -537,8 +537,11 @@ def storm(cfg):
             for phase, users in phases:
                 label = f"storm-{tool}-{phase}"
                 if tool == "wrk":
-                    r = wrk(cfg, srv, path, users, cfg.storm_s, label,
-                            env={"SCONE_WRK_MAX_REQUESTS": str(cfg.storm_max_requests)})
+                    # One wrk thread drives every connection: its cap is the clients' caps together. wrk
+                    # reports the configured duration even when the cap stopped it early, so that is flagged.
+                    cap = cfg.storm_max_requests * users
+                    r = wrk(cfg, srv, path, users, cfg.storm_s, label, env={"SCONE_WRK_MAX_REQUESTS": str(cap)})
+                    r["stopped_by_cap"] = r["wrk"]["requests"] >= cap
                 else:
                     lf, cls = (("locustfile_http.py", "LocalizeUser") if tool == "http"
                                else ("locustfile_grpc.py", "LocalizeGrpcUser"))

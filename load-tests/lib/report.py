@@ -270,7 +270,7 @@ def markdown(results):
             x = r["storm"]
             if "wrk" in x:
                 w = x["wrk"]
-                refused = f"{w['non2xx'] / w['duration_s']:.0f}"
+                refused = f"{w['non2xx'] / w['duration_s']:.0f}" + (" (stopped by the cap: not comparable)" if x.get("stopped_by_cap") else "")
                 lat = f"{_ms(w['p50_ms'])} / {_ms(w['p99_ms'])} (all responses)"
                 errors = w["socket_errors"]
             else:
