@@ -6,6 +6,7 @@ Environment (set by load-tests/run):
   SCONE_LOAD_WRITE_MAP  map the keyframe writer fills (default "writes")
   SCONE_LOAD_RATE    requests/s per user (locust constant_throughput); unset or 0: back-to-back (closed loop)
   SCONE_LOAD_WRITE_RATE  keyframes/s of the writer (default 2)
+  SCONE_LOAD_MAX_REQUESTS  requests per user after which it stops (Localize users; unset or 0: no limit)
   SCONE_LOAD_RAW     JSON file receiving every request (end time, ms, name, outcome, localized) when locust
                      quits, for exact percentiles (locust's CSV rounds times above 100 ms to 10 ms)
 """
@@ -15,6 +16,7 @@ import os
 import time
 
 from locust import constant, constant_throughput, events
+from locust.exception import StopUser
 
 CACHE = os.environ.get("SCONE_LOAD_CACHE", os.path.expanduser("~/.cache/scone/load-tests"))
 MAP = os.environ.get("SCONE_LOAD_MAP", "big")
@@ -43,6 +45,19 @@ def writes():
 def wait_time():
     rate = float(os.environ.get("SCONE_LOAD_RATE", "0") or 0)
     return constant_throughput(rate) if rate > 0 else constant(0)
+
+
+class RequestBudget:
+    """At most $SCONE_LOAD_MAX_REQUESTS requests of one user (a storm stays bounded in count, not only in time)."""
+
+    def __init__(self):
+        self.left = int(os.environ.get("SCONE_LOAD_MAX_REQUESTS", "0") or 0) or None
+
+    def spend(self):
+        if self.left is not None:
+            if self.left <= 0:
+                raise StopUser()
+            self.left -= 1
 
 
 def write_wait_time():

@@ -84,8 +84,15 @@ class DescribeGrpcUser(_GrpcUser):
 
 
 class LocalizeGrpcUser(_GrpcUser):
+    """RESOURCE_EXHAUSTED is followed by the next call at once; $SCONE_LOAD_MAX_REQUESTS bounds a user's calls."""
+
+    def on_start(self):
+        super().on_start()
+        self.budget = common.RequestBudget()
+
     @task
     def localize(self):
+        self.budget.spend()
         self._call("Localize", self.matching.Localize,
                    scone_pb2.LocalizeRequest(map_id=common.MAP, frame=next(self.frames)), localize=True)
 

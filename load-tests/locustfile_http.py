@@ -4,7 +4,8 @@ Pick the users on the command line, e.g. `locust -f locustfile_http.py --headles
 --users 4 --spawn-rate 4 --run-time 60s DescribeUser`. The run script sets the environment (see common.py).
 
 - DescribeUser: POST /v1/describe with a 640x480 JPEG (raw body), cycling over the scene's frames.
-- LocalizeUser: POST /v1/maps/$SCONE_LOAD_MAP/localize?fx=..&fy=..&cx=..&cy=.. with the same JPEGs.
+- LocalizeUser: POST /v1/maps/$SCONE_LOAD_MAP/localize?fx=..&fy=..&cx=..&cy=.. with the same JPEGs; a 429 is
+  followed by the next request at once (no back-off), and $SCONE_LOAD_MAX_REQUESTS bounds a user's requests.
 - MatchUser: POST /v1/match, multipart (request JSON with both frames' intrinsics, image1, image2), cycling over
   every pair of the scene's frames; "localized" in the raw records means a relative pose came back.
 - KeyframeWriter (fixed_count 1): multipart POST /v1/maps/$SCONE_LOAD_WRITE_MAP/keyframes (image, depth, pose)
@@ -68,9 +69,11 @@ class LocalizeUser(_HttpUser):
         self.images = itertools.cycle(common.JPEGS)
         i = common.INTRINSICS
         self.path = f"/v1/maps/{common.MAP}/localize?fx={i['fx']}&fy={i['fy']}&cx={i['cx']}&cy={i['cy']}"
+        self.budget = common.RequestBudget()
 
     @task
     def localize(self):
+        self.budget.spend()
         with self.client.post(self.path, data=next(self.images), headers={"Content-Type": "image/jpeg"},
                               name="Localize", catch_response=True) as r:
             _check(r, "Localize", localize=True)

@@ -118,11 +118,15 @@ pub struct WorkerSettings {
     pub threads: usize,
     /// Requests that may wait for a thread; beyond that, RESOURCE_EXHAUSTED / 429.
     pub queue: usize,
+    /// How long a refusal for a full pool is held before it is sent (0: at once). A client that ignores
+    /// `Retry-After` and retries at once is slowed to one attempt per this long, so a storm of them cannot
+    /// take the core from the pool; the hold costs a timer, no CPU.
+    pub refusal_hold_ms: u64,
 }
 
 impl Default for WorkerSettings {
     fn default() -> Self {
-        Self { threads: 2, queue: 8 }
+        Self { threads: 2, queue: 8, refusal_hold_ms: 100 }
     }
 }
 
@@ -236,6 +240,9 @@ impl Settings {
         }
         if self.workers.threads == 0 || self.workers.threads > 256 {
             return bad("workers.threads", "must be in 1..=256");
+        }
+        if self.workers.refusal_hold_ms > 1_000 {
+            return bad("workers.refusal_hold_ms", "must be at most 1000 (Retry-After is 1 s)");
         }
         if self.model.sessions == 0 || self.model.intra_threads == 0 {
             return bad("model", "sessions and intra_threads must be positive");

@@ -5,6 +5,15 @@
 //! number of waiting slots; a job that finds no slot is refused at once ([`PoolError::Full`], which the
 //! transports answer with RESOURCE_EXHAUSTED / 429), and a job whose deadline passed while it waited is
 //! dropped without running ([`PoolError::Expired`]), so a burst cannot leave a backlog of work nobody awaits.
+//!
+//! Admission: a job takes one of `threads + queue` slots, held until it has run (or was skipped). The
+//! transports ask [`CpuPool::check_room`] before they read or decode a request body, so a client that keeps
+//! sending while every slot is taken is refused for the price of a request head, not of its body: without
+//! that, a storm of clients that do not back off spent the server's core on receiving and refusing bodies.
+//! The check reserves nothing. A body can take as long as the client likes to arrive, and a slot held
+//! meanwhile would idle the CPU and refuse everybody else (ten slow uploads would shut the service); so the
+//! slot is taken when the job is submitted, and the few requests that pass the check in the instant before a
+//! slot is taken are refused then, after their body.
 
 use std::sync::atomic::{AtomicUsize, Ordering};
 use std::sync::mpsc::{sync_channel, Receiver, SyncSender, TrySendError};
@@ -34,6 +43,7 @@ pub enum PoolError {
 pub struct PoolStats {
     pub queued: AtomicUsize,
     pub running: AtomicUsize,
+    /// Refusals because every slot was taken, at submission or at [`CpuPool::check_room`] (since start).
     pub rejected: AtomicUsize,
     pub expired: AtomicUsize,
 }
@@ -43,16 +53,32 @@ pub struct CpuPool {
     sender: Mutex<Option<SyncSender<Job>>>,
     threads: Mutex<Vec<JoinHandle<()>>>,
     queue: usize,
+    /// `threads + queue`: jobs that may be in the pool, running or waiting.
+    capacity: usize,
+    /// Slots taken by jobs submitted and not yet finished.
+    taken: Arc<AtomicUsize>,
     stats: Arc<PoolStats>,
+}
+
+/// One of the pool's slots, given back when the job that holds it is done or dropped.
+struct Slot(Arc<AtomicUsize>);
+
+impl Drop for Slot {
+    fn drop(&mut self) {
+        self.0.fetch_sub(1, Ordering::AcqRel);
+    }
 }
 
 impl CpuPool {
     /// `threads` workers; at most `queue` jobs wait for one.
     pub fn new(threads: usize, queue: usize) -> Self {
-        let (tx, rx) = sync_channel::<Job>(queue);
+        let threads = threads.max(1);
+        let capacity = threads + queue;
+        // Every job in the channel holds a slot, so it never holds more than `capacity`.
+        let (tx, rx) = sync_channel::<Job>(capacity);
         let rx = Arc::new(Mutex::new(rx));
         let stats = Arc::new(PoolStats::default());
-        let handles = (0..threads.max(1))
+        let handles = (0..threads)
             .map(|i| {
                 let rx: Arc<Mutex<Receiver<Job>>> = Arc::clone(&rx);
                 std::thread::Builder::new()
@@ -67,20 +93,49 @@ impl CpuPool {
                     .expect("spawning a worker thread")
             })
             .collect();
-        Self { sender: Mutex::new(Some(tx)), threads: Mutex::new(handles), queue, stats }
+        Self {
+            sender: Mutex::new(Some(tx)),
+            threads: Mutex::new(handles),
+            queue,
+            capacity,
+            taken: Arc::new(AtomicUsize::new(0)),
+            stats,
+        }
     }
 
     pub fn stats(&self) -> &PoolStats {
         &self.stats
     }
 
-    /// Runs `f` on the pool and waits for it without blocking the async runtime. Refuses at once when the
-    /// queue is full; gives up waiting at `deadline` (a job not yet started then is skipped).
+    /// Refuses ([`PoolError::Full`], counted as a rejection) when every slot is taken, so that a caller
+    /// can refuse before it receives the job's input. Reserves nothing: [`CpuPool::run`] decides again.
+    pub fn check_room(&self) -> Result<(), PoolError> {
+        if self.taken.load(Ordering::Acquire) < self.capacity {
+            Ok(())
+        } else {
+            self.stats.rejected.fetch_add(1, Ordering::Relaxed);
+            Err(PoolError::Full(self.queue))
+        }
+    }
+
+    fn take_slot(&self) -> Option<Slot> {
+        self.taken
+            .fetch_update(Ordering::AcqRel, Ordering::Acquire, |n| (n < self.capacity).then_some(n + 1))
+            .ok()
+            .map(|_| Slot(Arc::clone(&self.taken)))
+    }
+
+    /// Runs `f` on the pool and waits for it without blocking the async runtime. Refuses at once when every
+    /// slot is taken; gives up waiting at `deadline` (a job not yet started then is skipped).
     pub async fn run<R, F>(&self, deadline: Instant, f: F) -> Result<R, PoolError>
     where
         R: Send + 'static,
         F: FnOnce() -> R + Send + 'static,
     {
+        let Some(slot) = self.take_slot() else {
+            self.stats.rejected.fetch_add(1, Ordering::Relaxed);
+            return Err(PoolError::Full(self.queue));
+        };
         let (tx, rx) = tokio::sync::oneshot::channel();
         let stats = Arc::clone(&self.stats);
         let job: Job = Box::new(move || {
@@ -92,6 +147,8 @@ impl CpuPool {
             stats.running.fetch_add(1, Ordering::Relaxed);
             let r = std::panic::catch_unwind(std::panic::AssertUnwindSafe(f));
             stats.running.fetch_sub(1, Ordering::Relaxed);
+            // Free before answering: whoever sees the answer may submit at once.
+            drop(slot);
             let _ = tx.send(r.map_err(|_| PoolError::Panicked));
         });
         {
@@ -100,6 +157,7 @@ impl CpuPool {
             self.stats.queued.fetch_add(1, Ordering::Relaxed);
             if let Err(e) = sender.try_send(job) {
                 self.stats.queued.fetch_sub(1, Ordering::Relaxed);
+                // The job (and its slot) is dropped with the error.
                 return Err(match e {
                     TrySendError::Full(_) => {
                         self.stats.rejected.fetch_add(1, Ordering::Relaxed);
@@ -171,6 +229,42 @@ mod tests {
             assert_eq!(first.await.unwrap(), Ok(true));
             assert_eq!(second.await.unwrap(), Ok(2));
         });
+    }
+
+    #[test]
+    fn check_room_refuses_exactly_when_every_slot_is_taken() {
+        for queue in [0, 2] {
+            let pool = Arc::new(CpuPool::new(1, queue));
+            let (gate_tx, gate_rx) = std::sync::mpsc::channel::<()>();
+            let gate_rx = Arc::new(Mutex::new(gate_rx));
+            rt().block_on(async {
+                let deadline = Instant::now() + Duration::from_secs(10);
+                assert_eq!(pool.check_room(), Ok(()));
+                let mut held = Vec::new();
+                for i in 0..1 + queue {
+                    let (g, p) = (Arc::clone(&gate_rx), Arc::clone(&pool));
+                    held.push(tokio::spawn(async move { p.run(deadline, move || g.lock().recv().is_ok()).await }));
+                    while pool.taken.load(Ordering::Acquire) <= i {
+                        tokio::task::yield_now().await;
+                    }
+                    if i < queue {
+                        assert_eq!(pool.check_room(), Ok(()), "queue {queue}: {} of {} slots taken", i + 1, 1 + queue);
+                    }
+                }
+                assert_eq!(pool.check_room(), Err(PoolError::Full(queue)));
+                assert_eq!(pool.run(deadline, || 0).await, Err(PoolError::Full(queue)));
+                assert_eq!(pool.stats().rejected.load(Ordering::Relaxed), 2);
+                for _ in 0..1 + queue {
+                    gate_tx.send(()).unwrap();
+                }
+                for h in held {
+                    assert_eq!(h.await.unwrap(), Ok(true));
+                }
+                // Every slot is given back once its job is done.
+                assert_eq!(pool.check_room(), Ok(()));
+                assert_eq!(pool.run(deadline, || 7).await, Ok(7));
+            });
+        }
     }
 
     #[test]

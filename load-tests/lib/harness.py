@@ -31,7 +31,7 @@ ROOT = os.path.dirname(LOAD)
 sys.path.insert(0, HERE)
 import report  # noqa: E402
 
-SCENARIOS = ["describe", "localize", "match", "burst", "mixed", "soak", "settings"]
+SCENARIOS = ["describe", "localize", "match", "burst", "storm", "mixed", "soak", "settings"]
 SERVER_CORE = os.environ.get("SCONE_LOAD_SERVER_CPU", "0")
 GEN_CORE = os.environ.get("SCONE_LOAD_GEN_CPU", "1")
 CLK_TCK = os.sysconf("SC_CLK_TCK")
@@ -68,6 +68,10 @@ class Config:
         self.burst_users = env_num("SCONE_LOAD_BURST_USERS", 48, int)
         self.burst_s = env_num("SCONE_LOAD_BURST_DURATION", 10 if q else 30, int)
         self.burst_rounds = env_num("SCONE_LOAD_BURST_ROUNDS", 1 if q else 3, int)
+        self.storm_users = env_num("SCONE_LOAD_STORM_USERS", 32, int)
+        self.storm_base_users = env_num("SCONE_LOAD_STORM_BASE_USERS", 2, int)
+        self.storm_s = env_num("SCONE_LOAD_STORM_DURATION", 10 if q else 30, int)
+        self.storm_max_requests = env_num("SCONE_LOAD_STORM_MAX_REQUESTS", 100000, int)  # per client
         self.mixed_s = env_num("SCONE_LOAD_MIXED_DURATION", 12 if q else 60, int)
         self.mixed_readers = env_num("SCONE_LOAD_MIXED_READERS", 2, int)
         self.write_rate = env_num("SCONE_LOAD_WRITE_RATE", 2.0)
@@ -375,16 +379,18 @@ def _locust(cfg, server, locustfile, classes, users, run_s, label, env, sample_s
     return r
 
 
-def wrk(cfg, server, path, conns, run_s, label):
-    return measured(cfg, server, label, lambda: _wrk(cfg, server, path, conns, run_s, label))
+def wrk(cfg, server, path, conns, run_s, label, env=None):
+    return measured(cfg, server, label, lambda: _wrk(cfg, server, path, conns, run_s, label, env))
 
 
-def _wrk(cfg, server, path, conns, run_s, label):
+def _wrk(cfg, server, path, conns, run_s, label, env=None):
     files = json.load(open(os.path.join(cfg.cache, "queries", "manifest.json")))["files"]
     cmd = ["wrk", "-t1", f"-c{conns}", f"-d{run_s}s", "--timeout", "60s", "-s",
            os.path.join(LOAD, "wrk", "post-jpeg.lua"), server.url + path]
     log(f"{label}: wrk -t1 -c{conns} {run_s} s {path.split('?')[0]}")
-    r = run_generator(cfg, server, cmd, {"SCONE_WRK_FILES": ":".join(files)}, run_s + 60, label)
+    e = {"SCONE_WRK_FILES": ":".join(files)}
+    e.update(env or {})
+    r = run_generator(cfg, server, cmd, e, run_s + 60, label)
     m = re.search(r"SCONE-WRK-JSON (\{.*\})", r["output"])
     if r["rc"] != 0 or not m:
         raise SystemExit(f"{label}: wrk failed (rc {r['rc']}): {r['output'][-2000:]}")
@@ -503,6 +509,55 @@ def burst(cfg):
             log(f"burst-{tool}: alive after: {r['alive_after']}; RSS before and after each round "
                 f"{[round(x / 1024, 1) for x in rss]} MiB")
             time.sleep(2)
+    return out
+
+
+def answered_rps(r):
+    """Answered (2xx / OK) Localize requests per second of a locust or wrk run."""
+    if "wrk" in r:
+        w = r["wrk"]
+        return (w["requests"] - w["non2xx"] - w["socket_errors"]) / w["duration_s"]
+    return r["by_name"].get("Localize", {}).get("rps", 0.0)
+
+
+def storm(cfg):
+    """Clients that do not back off (issue 16, item 3): cfg.storm_users closed-loop clients that send their next
+    Localize at once after a 429 / RESOURCE_EXHAUSTED, against the unloaded rate (cfg.storm_base_users clients)
+    measured on the same server just before, and again just after (drift check). Per tool a fresh server with
+    the default pool (2 workers, 8 waiting slots). Bounded in time (cfg.storm_s per phase) and in count
+    (cfg.storm_max_requests per client)."""
+    out = {"users": cfg.storm_users, "base_users": cfg.storm_base_users, "duration_s": cfg.storm_s,
+           "max_requests_per_client": cfg.storm_max_requests}
+    path = localize_path(intrinsics(cfg))
+    phases = (("base", cfg.storm_base_users), ("storm", cfg.storm_users), ("after", cfg.storm_base_users))
+    for tool in ("http", "grpc", "wrk"):
+        with Server(cfg, f"storm-{tool}", True) as srv:
+            warm_up(srv, True)
+            runs = {}
+            for phase, users in phases:
+                label = f"storm-{tool}-{phase}"
+                if tool == "wrk":
+                    # One wrk thread drives every connection: its cap is the clients' caps together. wrk
+                    # reports the configured duration even when the cap stopped it early, so that is flagged.
+                    cap = cfg.storm_max_requests * users
+                    r = wrk(cfg, srv, path, users, cfg.storm_s, label, env={"SCONE_WRK_MAX_REQUESTS": str(cap)})
+                    r["stopped_by_cap"] = r["wrk"]["requests"] >= cap
+                else:
+                    lf, cls = (("locustfile_http.py", "LocalizeUser") if tool == "http"
+                               else ("locustfile_grpc.py", "LocalizeGrpcUser"))
+                    r = locust(cfg, srv, lf, [cls], users, cfg.storm_s, label,
+                               env={"SCONE_LOAD_MAX_REQUESTS": str(cfg.storm_max_requests)})
+                runs[phase] = strip(r)
+                log(f"{label}: answered {answered_rps(r):.2f} req/s; " +
+                    (str(r["wrk"]) if tool == "wrk" else report.one_line(r)))
+                time.sleep(3)  # let refused and interrupted requests drain
+            runs["ratio"] = round(answered_rps(runs["storm"]) / max(answered_rps(runs["base"]), 1e-9), 3)
+            runs["ratio_after"] = round(answered_rps(runs["storm"]) / max(answered_rps(runs["after"]), 1e-9), 3)
+            runs["alive_after"] = srv.alive()
+            runs["metrics"] = srv.metrics()
+            out[tool] = runs
+            log(f"storm-{tool}: answered under storm / unloaded = {runs['ratio']} (against the run after: "
+                f"{runs['ratio_after']})")
     return out
 
 
@@ -640,6 +695,8 @@ def main():
                 r = sweep(cfg, "match")
             elif n == "burst":
                 r = burst(cfg)
+            elif n == "storm":
+                r = storm(cfg)
             elif n == "mixed":
                 r = mixed(cfg)
             elif n == "soak":

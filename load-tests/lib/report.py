@@ -1,5 +1,6 @@
 """Figures from raw request records and /metrics, and the markdown summary of results.json."""
 
+import os
 import re
 
 SUFFIXES = (" 429", " RESOURCE_EXHAUSTED")
@@ -168,8 +169,9 @@ def _header(s):
     d = s.get("durations_s")
     per_level = f"locust {d['locust']} s and wrk {d['wrk']} s per level, " if d else ""
     cmd = f" Command: `{s['command']}`." if s.get("command") else ""
-    return (f"_{s.get('finished', '?')}, {'QUICK smoke run, ' if s.get('quick') else ''}{per_level}binary built "
-            f"{m.get('binary_mtime', '?')}, git {m.get('git', '?')}, took {s.get('elapsed_s', '?')} s.{cmd}_")
+    binary = os.path.basename(m.get("binary", "?"))
+    return (f"_{s.get('finished', '?')}, {'QUICK smoke run, ' if s.get('quick') else ''}{per_level}binary {binary} built "
+            f"{m.get('binary_mtime', '?')}, git {m.get('git', '?')} (of the load tests), took {s.get('elapsed_s', '?')} s.{cmd}_")
 
 
 def markdown(results):
@@ -242,6 +244,42 @@ def markdown(results):
             f"{t} {v}" for t, v in (("HTTP", (b.get("http") or {}).get("by_name", {}).get("Localize", {}).get("attempts_per_s")),
                                     ("gRPC", (b.get("grpc") or {}).get("by_name", {}).get("Localize", {}).get("attempts_per_s")),
                                     ("wrk", round(b["wrk"]["wrk"]["rps"], 1) if b.get("wrk") else None)) if v is not None) + "."]
+        out.append("")
+    stm = sc.get("storm")
+    if stm:
+        out += ["## Storm: clients that do not back off", "", _header(stm), "",
+                f"{stm['users']} closed-loop clients send Localize and, on 429 / RESOURCE_EXHAUSTED, the next request at "
+                f"once, for {stm['duration_s']} s (at most {stm['max_requests_per_client']} requests each), against "
+                f"{stm['base_users']} clients just before and just after on the same server (default pool: 2 workers, 8 "
+                "waiting slots). Ratio = answered req/s under the storm / answered req/s of the run before.", "",
+                f"| tool | {stm['base_users']} clients: req/s | {stm['users']} clients: answered req/s | ratio | refused/s | "
+                "refused p50 / p99 ms | other errors | after: req/s | generator CPU (storm) | server CPU (storm) | other CPU |",
+                "|---|---|---|---|---|---|---|---|---|---|---|"]
+        for t, label in (("http", "locust HTTP (429)"), ("grpc", "locust gRPC (RESOURCE_EXHAUSTED)"), ("wrk", "wrk HTTP (429)")):
+            r = stm.get(t)
+            if not r:
+                continue
+            rates = []
+            for phase in ("base", "storm", "after"):
+                x = r[phase]
+                if "wrk" in x:
+                    w = x["wrk"]
+                    rates.append((w["requests"] - w["non2xx"] - w["socket_errors"]) / w["duration_s"])
+                else:
+                    rates.append(x["by_name"].get("Localize", {}).get("rps", 0.0))
+            x = r["storm"]
+            if "wrk" in x:
+                w = x["wrk"]
+                refused = f"{w['non2xx'] / w['duration_s']:.0f}" + (" (stopped by the cap: not comparable)" if x.get("stopped_by_cap") else "")
+                lat = f"{_ms(w['p50_ms'])} / {_ms(w['p99_ms'])} (all responses)"
+                errors = w["socket_errors"]
+            else:
+                o = x["by_name"].get("Localize", {})
+                refused = f"{o.get('rejected', 0) / max(o.get('span_s', 1), 1e-9):.0f}"
+                lat = f"{_ms(o.get('rejected_p50_ms'))} / {_ms(o.get('rejected_p99_ms'))}"
+                errors = o.get("errors", 0)
+            out.append(f"| {label} | {rates[0]:.2f} | {rates[1]:.2f} | {r['ratio']:.2f} | {refused} | {lat} | {errors} | "
+                       f"{rates[2]:.2f} | {x['gen_cpu_pct']:.0f} % | {x['server_cpu_pct']:.0f} % | {_other(x)} |")
         out.append("")
     mx = sc.get("mixed")
     if mx:

@@ -1,6 +1,7 @@
 -- wrk: POST JPEG bodies (raw image/jpeg), cycling over the files listed in $SCONE_WRK_FILES (":"-separated),
 -- to the path of the URL given to wrk (e.g. /v1/describe or /v1/maps/big/localize?fx=..). One line of JSON
 -- with the figures is printed at the end, after "SCONE-WRK-JSON ", for load-tests/lib/harness.py.
+-- $SCONE_WRK_MAX_REQUESTS, when set, stops each wrk thread after that many responses.
 --
 --   SCONE_WRK_FILES=a.jpg:b.jpg wrk -t1 -c4 -d30s --timeout 60s -s post-jpeg.lua http://127.0.0.1:18151/v1/describe
 
@@ -16,6 +17,17 @@ local i = 0
 request = function()
   i = i % #bodies + 1
   return wrk.format("POST", nil, { ["Content-Type"] = "image/jpeg" }, bodies[i])
+end
+
+local max_requests = tonumber(os.getenv("SCONE_WRK_MAX_REQUESTS") or "")
+if max_requests then
+  local answered = 0
+  response = function()
+    answered = answered + 1
+    if answered >= max_requests then
+      wrk.thread:stop()
+    end
+  end
 end
 
 done = function(summary, latency, requests)

@@ -1,8 +1,14 @@
 //! gRPC transport (tonic): `scone.v1.Maps`, `scone.v1.Matching`, `grpc.health.v1` and server reflection.
+//!
+//! Every `scone.v1` method runs on the CPU pool, and when the pool has no free slot a call is answered
+//! RESOURCE_EXHAUSTED before its message is read or decoded ([`AdmissionLayer`]), so a storm of clients
+//! that do not back off costs a request head each (HTTP/2 resets the stream, which stops the client sending
+//! the rest of the message).
 
 use std::future::Future;
 use std::pin::Pin;
 use std::sync::Arc;
+use std::task::{Context, Poll};
 use std::time::{Duration, Instant};
 
 use tokio_stream::wrappers::ReceiverStream;
@@ -11,6 +17,7 @@ use tonic::metadata::MetadataMap;
 use tonic::{Code, Request, Response, Status, Streaming};
 
 use super::connections::{CountRequestsLayer, Listener};
+use super::metrics::CountedBody;
 use super::proto::{self, frame::Source};
 use super::App;
 use crate::features::Keypoint;
@@ -412,6 +419,76 @@ impl proto::matching_server::Matching for GrpcApi {
     }
 }
 
+/// Refuses calls of the `scone.v1` services with RESOURCE_EXHAUSTED (and `retry-after`) when the CPU pool
+/// has no free slot, before their message is read (after [`App::hold_refusal`]); counts the bytes of the
+/// messages it lets through.
+#[derive(Clone)]
+pub struct AdmissionLayer {
+    app: Arc<App>,
+    body_bytes: prometheus_client::metrics::counter::Counter,
+}
+
+impl AdmissionLayer {
+    pub fn new(app: Arc<App>) -> Self {
+        let body_bytes = app.metrics.body_bytes("grpc");
+        Self { app, body_bytes }
+    }
+}
+
+impl<S> tower::Layer<S> for AdmissionLayer {
+    type Service = Admission<S>;
+
+    fn layer(&self, inner: S) -> Admission<S> {
+        Admission { inner, layer: self.clone() }
+    }
+}
+
+/// See [`AdmissionLayer`].
+#[derive(Clone)]
+pub struct Admission<S> {
+    inner: S,
+    layer: AdmissionLayer,
+}
+
+const POOL_SERVICES: &str = "/scone.v1.";
+
+impl<S> tower::Service<axum::http::Request<tonic::body::Body>> for Admission<S>
+where
+    S: tower::Service<axum::http::Request<tonic::body::Body>, Response = axum::http::Response<tonic::body::Body>>,
+    S::Future: Send + 'static,
+    S::Error: Send + 'static,
+{
+    type Response = axum::http::Response<tonic::body::Body>;
+    type Error = S::Error;
+    type Future = Pin<Box<dyn Future<Output = Result<Self::Response, S::Error>> + Send + 'static>>;
+
+    fn poll_ready(&mut self, cx: &mut Context<'_>) -> Poll<Result<(), S::Error>> {
+        self.inner.poll_ready(cx)
+    }
+
+    fn call(&mut self, req: axum::http::Request<tonic::body::Body>) -> Self::Future {
+        let path = req.uri().path();
+        if path.starts_with(POOL_SERVICES) {
+            let (app, t) = (Arc::clone(&self.layer.app), Instant::now());
+            if let Err(e) = app.check_room() {
+                let method = path.rsplit('/').next().unwrap_or(path).to_string();
+                app.log_error(&method, &e);
+                // The request, and with it the unread message, is dropped here.
+                drop(req);
+                return Box::pin(async move {
+                    app.hold_refusal().await;
+                    let code = format!("{:?}", Code::ResourceExhausted);
+                    app.metrics.request("grpc", &method, &code, t.elapsed().as_secs_f64());
+                    Ok(to_status(&e).into_http())
+                });
+            }
+        }
+        let bytes = self.layer.body_bytes.clone();
+        let req = req.map(|b| tonic::body::Body::new(CountedBody::new(b, bytes)));
+        Box::pin(self.inner.call(req))
+    }
+}
+
 /// Serves gRPC on `listener` until `shutdown` resolves, then lets in-flight calls finish. Connections are
 /// held to the limits of [`super::connections`]; HTTP/2 pings find dead peers, streams per connection are
 /// capped, and a call must be answered within `body_read_timeout_ms + request_timeout_ms`.
@@ -450,6 +527,7 @@ where
         .http2_keepalive_timeout(Some(keepalive_timeout))
         .max_concurrent_streams(max_streams)
         .layer(CountRequestsLayer)
+        .layer(AdmissionLayer::new(Arc::clone(&app)))
         .add_service(health)
         .add_service(reflection_v1)
         .add_service(reflection_v1alpha)

@@ -27,6 +27,7 @@ use tokio::sync::watch;
 use tower::ServiceExt;
 
 use super::connections::{DeadlineBody, GuardedBody, Listener};
+use super::metrics::CountedBody;
 use super::App;
 use crate::decode::read_header;
 use crate::features::Keypoint;
@@ -907,6 +908,47 @@ async fn openapi() -> impl IntoResponse {
     ([(header::CONTENT_TYPE, "application/json")], OPENAPI)
 }
 
+/// A refused HTTP/1.1 request whose unread body is at most this long is read and discarded after the answer,
+/// so its connection carries the client's next request; a longer one closes the connection.
+const DRAIN_LIMIT: u64 = 1 << 20;
+
+/// Refuses a request for the CPU pool before its body is read when the pool has no free slot
+/// ([`App::check_room`]): 429 with `Retry-After`, in the JSON envelope, after [`App::hold_refusal`].
+async fn admission(State(app): State<Arc<App>>, req: Request, next: Next) -> Response {
+    match app.check_room() {
+        Ok(()) => next.run(req).await,
+        Err(e) => {
+            app.log_error("admission", &e);
+            app.hold_refusal().await;
+            refuse_unread(req, ApiError::Service(e).into_response())
+        }
+    }
+}
+
+/// `resp` for a request whose body was not read. HTTP/2 resets the request's stream when its body is
+/// dropped, which stops the client sending it. HTTP/1.1 cannot stop a body in flight: a remainder of at most
+/// [`DRAIN_LIMIT`] is discarded as it arrives (held to the body deadline like any body), a longer or
+/// unknown one ends the connection after the answer.
+fn refuse_unread(req: Request, mut resp: Response) -> Response {
+    let h1 = req.version() < axum::http::Version::HTTP_2;
+    let body = req.into_body();
+    if !h1 || http_body::Body::is_end_stream(&body) {
+        return resp;
+    }
+    match http_body::Body::size_hint(&body).upper() {
+        Some(n) if n <= DRAIN_LIMIT => {
+            tokio::spawn(async move {
+                let mut body = body;
+                while let Some(Ok(_)) = http_body_util::BodyExt::frame(&mut body).await {}
+            });
+        }
+        _ => {
+            resp.headers_mut().insert(header::CONNECTION, HeaderValue::from_static("close"));
+        }
+    }
+    resp
+}
+
 async fn observe(State(app): State<Arc<App>>, req: Request, next: Next) -> Response {
     let route = req.extensions().get::<MatchedPath>().map(|m| m.as_str().to_string()).unwrap_or_default();
     let t = Instant::now();
@@ -1041,6 +1083,8 @@ pub fn router(app: Arc<App>, origins: OriginPolicy) -> Router {
         .route("/v1/maps/{map_id}/localize", post(localize))
         .route("/v1/maps/{map_id}/export", get(export_map))
         .route("/v1/maps/{map_id}/import", post(import_map).layer(DefaultBodyLimit::max(map_limit)))
+        // Routes so far run on the CPU pool.
+        .route_layer(middleware::from_fn_with_state(Arc::clone(&app), admission))
         .route("/healthz", get(healthz))
         .route("/readyz", get(readyz))
         .route("/metrics", get(metrics))
@@ -1069,6 +1113,7 @@ pub async fn serve(
     let keepalive_timeout = Duration::from_millis(server.grpc_keepalive_timeout_ms);
     let max_streams = server.max_concurrent_streams;
     let router = router(Arc::clone(&app), origins);
+    let body_bytes = app.metrics.body_bytes("http");
     // Every connection task holds a receiver; `closed()` resolves once the last one ended.
     let (stop_tx, stop_rx) = watch::channel(false);
     let mut shutdown = std::pin::pin!(shutdown);
@@ -1079,9 +1124,14 @@ pub async fn serve(
         };
         let activity = conn.activity();
         let router = router.clone();
+        let body_bytes = body_bytes.clone();
         let service = hyper::service::service_fn(move |req: axum::http::Request<hyper::body::Incoming>| {
             let guard = activity.begin();
-            let req = req.map(|b| axum::body::Body::new(DeadlineBody::new(axum::body::Body::new(b), body_timeout)));
+            let counted = body_bytes.clone();
+            let req = req.map(|b| {
+                let timed = DeadlineBody::new(axum::body::Body::new(b), body_timeout);
+                axum::body::Body::new(CountedBody::new(timed, counted))
+            });
             let call = router.clone().oneshot(req);
             async move {
                 let resp = call.await?;

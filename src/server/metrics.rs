@@ -1,7 +1,12 @@
 //! Prometheus metrics: requests and latency per transport, route and status; time per pipeline stage;
-//! maps, keyframes and observations held; the CPU pool's queue. Counts of maps are read at scrape time.
+//! maps, keyframes and observations held; the CPU pool's queue; request body bytes read. Counts of maps are
+//! read at scrape time.
 
+use std::pin::Pin;
 use std::sync::atomic::Ordering;
+use std::task::{Context, Poll};
+
+use axum::body::Bytes;
 
 use parking_lot::Mutex;
 use prometheus_client::encoding::text::encode;
@@ -29,6 +34,11 @@ struct RouteLabels {
 }
 
 #[derive(Clone, Debug, Hash, PartialEq, Eq, EncodeLabelSet)]
+struct TransportLabels {
+    transport: String,
+}
+
+#[derive(Clone, Debug, Hash, PartialEq, Eq, EncodeLabelSet)]
 struct StageLabels {
     stage: String,
 }
@@ -44,6 +54,7 @@ pub struct Metrics {
     requests: Family<RequestLabels, Counter>,
     latency: Family<RouteLabels, Histogram, fn() -> Histogram>,
     stages: Family<StageLabels, Histogram, fn() -> Histogram>,
+    body_bytes: Family<TransportLabels, Counter>,
     maps: Gauge,
     held_back: Gauge,
     keyframes: Gauge,
@@ -69,6 +80,12 @@ impl Metrics {
         registry.register("request_duration_seconds", "Request latency by transport and route", latency.clone());
         let stages = Family::<StageLabels, Histogram, fn() -> Histogram>::new_with_constructor(latency_histogram);
         registry.register("stage_duration_seconds", "Time per pipeline stage", stages.clone());
+        let body_bytes = Family::<TransportLabels, Counter>::default();
+        registry.register(
+            "request_body_bytes",
+            "Request body bytes read, by transport (refused requests' bodies are not read)",
+            body_bytes.clone(),
+        );
         let gauge = |registry: &mut Registry, name: &str, help: &str| {
             let g = Gauge::default();
             registry.register(name, help, g.clone());
@@ -88,6 +105,7 @@ impl Metrics {
             requests,
             latency,
             stages,
+            body_bytes,
             maps,
             held_back,
             keyframes,
@@ -113,6 +131,11 @@ impl Metrics {
             .observe(seconds);
     }
 
+    /// The counter of body bytes read on `transport`, for [`CountedBody`].
+    pub fn body_bytes(&self, transport: &str) -> Counter {
+        self.body_bytes.get_or_create(&TransportLabels { transport: transport.to_string() }).clone()
+    }
+
     /// Stage timings of one request.
     pub fn stages(&self, times: &StageTimes) {
         for (stage, s) in &times.0 {
@@ -135,5 +158,43 @@ impl Metrics {
             out.clear();
         }
         out
+    }
+}
+
+/// A request body that adds the bytes read from it to a counter.
+pub struct CountedBody<B> {
+    inner: B,
+    bytes: Counter,
+}
+
+impl<B> CountedBody<B> {
+    pub fn new(inner: B, bytes: Counter) -> Self {
+        Self { inner, bytes }
+    }
+}
+
+impl<B: http_body::Body<Data = Bytes> + Unpin> http_body::Body for CountedBody<B> {
+    type Data = Bytes;
+    type Error = B::Error;
+
+    fn poll_frame(
+        mut self: Pin<&mut Self>,
+        cx: &mut Context<'_>,
+    ) -> Poll<Option<Result<http_body::Frame<Self::Data>, Self::Error>>> {
+        let polled = Pin::new(&mut self.inner).poll_frame(cx);
+        if let Poll::Ready(Some(Ok(frame))) = &polled {
+            if let Some(data) = frame.data_ref() {
+                self.bytes.inc_by(data.len() as u64);
+            }
+        }
+        polled
+    }
+
+    fn is_end_stream(&self) -> bool {
+        self.inner.is_end_stream()
+    }
+
+    fn size_hint(&self) -> http_body::SizeHint {
+        self.inner.size_hint()
     }
 }

@@ -1,9 +1,11 @@
 //! The transports: gRPC ([`grpc`], tonic) and HTTP/JSON ([`http`], axum) over one [`Service`].
 //!
-//! Path of a request: the transport authenticates it ([`auth`]), converts the wire format to the service's
-//! domain types, and hands a closure to [`App::call`], which runs it on the bounded CPU pool
-//! ([`crate::workers::CpuPool`]) under the request deadline; the result or the [`ServiceError`] is converted
-//! back, each transport with exactly one error mapping.
+//! Path of a request: the transport first refuses it when the CPU pool has no free slot
+//! ([`App::check_room`], before the body is read or decoded, so overload costs a request head), then
+//! authenticates it ([`auth`]), converts the wire format to the service's domain types, and hands a closure
+//! to [`App::call`], which runs it on the bounded CPU pool ([`crate::workers::CpuPool`]) under the request
+//! deadline; the result or the [`ServiceError`] is converted back, each transport with exactly one error
+//! mapping.
 //!
 //! Life cycle ([`start`]): settings are validated and the model is loaded (a model that breaks the contract
 //! stops the start here), both listeners bind, health reports NOT_SERVING while the maps load on a blocking
@@ -73,11 +75,29 @@ impl App {
         match self.pool.run(deadline, move || f(&app)).await {
             Ok(r) => r,
             Err(PoolError::Full(_)) => {
+                self.hold_refusal().await;
                 Err(ServiceError::Overloaded { queued: self.pool.stats().queued.load(Ordering::Relaxed) })
             }
             Err(PoolError::Expired) => Err(ServiceError::DeadlineExceeded { ms: timeout }),
             Err(PoolError::Closed) => Err(ServiceError::ShuttingDown),
             Err(PoolError::Panicked) => Err(ServiceError::Internal(format!("{operation} panicked"))),
+        }
+    }
+
+    /// Refuses with [`ServiceError::Overloaded`] when every slot of the CPU pool is taken. The transports
+    /// call this before they read a body that the pool would refuse anyway; it reserves nothing.
+    pub fn check_room(&self) -> Result<(), ServiceError> {
+        self.pool
+            .check_room()
+            .map_err(|_| ServiceError::Overloaded { queued: self.pool.stats().queued.load(Ordering::Relaxed) })
+    }
+
+    /// Waits `workers.refusal_hold_ms` before a refusal for a full pool is sent: a client that retries at
+    /// once is held to one attempt per hold, so refusals cannot take the core from the pool.
+    pub async fn hold_refusal(&self) {
+        let ms = self.settings.workers.refusal_hold_ms;
+        if ms > 0 {
+            tokio::time::sleep(Duration::from_millis(ms)).await;
         }
     }
 
