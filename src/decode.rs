@@ -26,6 +26,24 @@ pub struct ImageLimits {
     pub max_pixels: u64,
 }
 
+impl ImageLimits {
+    /// Width, height and width x height against the limits; `names` say what each is in the error (an
+    /// image's header, or a client's keypoint set).
+    pub fn check_dimensions(&self, width: u32, height: u32, names: [&'static str; 3]) -> Result<(), FeatureError> {
+        let checks = [
+            (names[0], width as u64, self.max_width as u64),
+            (names[1], height as u64, self.max_height as u64),
+            (names[2], width as u64 * height as u64, self.max_pixels),
+        ];
+        for (what, value, max) in checks {
+            if value > max {
+                return Err(FeatureError::ImageTooLarge { what, value, max });
+            }
+        }
+        Ok(())
+    }
+}
+
 impl Default for ImageLimits {
     fn default() -> Self {
         Self { max_bytes: 16 << 20, max_width: 4096, max_height: 4096, max_pixels: 12_000_000 }
@@ -149,16 +167,7 @@ pub fn check_limits(bytes: &[u8], limits: &ImageLimits) -> Result<ImageHeader, F
     if header.width == 0 || header.height == 0 {
         return Err(FeatureError::CorruptImage { reason: "zero width or height in header".into() });
     }
-    let checks = [
-        ("width", header.width as u64, limits.max_width as u64),
-        ("height", header.height as u64, limits.max_height as u64),
-        ("pixels", header.width as u64 * header.height as u64, limits.max_pixels),
-    ];
-    for (what, value, max) in checks {
-        if value > max {
-            return Err(FeatureError::ImageTooLarge { what, value, max });
-        }
-    }
+    limits.check_dimensions(header.width, header.height, ["width", "height", "pixels"])?;
     Ok(header)
 }
 

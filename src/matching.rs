@@ -55,6 +55,25 @@ impl RatioTest {
     }
 }
 
+/// The ratio test's competitor among `cands` (distance, keypoint of `b`), nearest first, at least two: the
+/// second candidate, or with `same_corner_px > 0` the nearest whose keypoint lies beyond that radius of the
+/// nearest one's; when all are the same corner, the last one's distance stands in.
+fn competitor(cands: &[(f32, usize)], b_points: &[(f32, f32)], same_corner_px: f32) -> f32 {
+    if same_corner_px <= 0.0 {
+        return cands[1].0;
+    }
+    let r2 = same_corner_px * same_corner_px;
+    let p0 = b_points[cands[0].1];
+    cands
+        .iter()
+        .skip(1)
+        .find(|(_, t)| {
+            let p = b_points[*t];
+            (p.0 - p0.0).powi(2) + (p.1 - p0.1).powi(2) > r2
+        })
+        .map_or(cands[cands.len() - 1].0, |c| c.0)
+}
+
 /// Nearest neighbours of `a`'s rows in `b` with OpenCV's brute-force matcher, ratio test and optional mutual
 /// check. `b_points` are the pixel positions of `b`'s rows; they are read only when `test.same_corner_px > 0`.
 pub fn match_descriptors(
@@ -78,7 +97,6 @@ pub fn match_descriptors(
     let mut knn = Vector::<Vector<DMatch>>::new();
     let k = if same_corner { SAME_CORNER_CANDIDATES } else { 2 };
     matcher.knn_train_match(a, b, &mut knn, k, &Mat::default(), false)?;
-    let r2 = test.same_corner_px * test.same_corner_px;
     let reverse: Option<Vec<i32>> = if test.mutual {
         let mut best = Vector::<DMatch>::new();
         matcher.train_match(b, a, &mut best, &Mat::default())?;
@@ -91,25 +109,15 @@ pub fn match_descriptors(
         None
     };
     let mut out = Vec::new();
+    let mut cands: Vec<(f32, usize)> = Vec::with_capacity(k as usize);
     for pair in knn.iter() {
         if pair.len() < 2 {
             continue;
         }
         let m0 = pair.get(0)?;
-        let competitor = if same_corner {
-            let p0 = b_points[m0.train_idx as usize];
-            let beyond = pair.iter().skip(1).find(|m| {
-                let p = b_points[m.train_idx as usize];
-                (p.0 - p0.0).powi(2) + (p.1 - p0.1).powi(2) > r2
-            });
-            match beyond {
-                Some(m) => m.distance,
-                None => pair.get(pair.len() - 1)?.distance,
-            }
-        } else {
-            pair.get(1)?.distance
-        };
-        if m0.distance >= test.ratio * competitor {
+        cands.clear();
+        cands.extend(pair.iter().map(|m| (m.distance, m.train_idx as usize)));
+        if m0.distance >= test.ratio * competitor(&cands, b_points, test.same_corner_px) {
             continue;
         }
         if let Some(rev) = &reverse {
@@ -198,7 +206,6 @@ fn rerank(a: &SconeFrame, b: &SconeFrame, test: &RatioTest) -> Result<Vec<Match>
     let mut knn = Vector::<Vector<DMatch>>::new();
     matcher.knn_train_match(a.freak, b.freak, &mut knn, RERANK_CANDIDATES, &Mat::default(), false)?;
     let dim = a.dim;
-    let r2 = test.same_corner_px * test.same_corner_px;
     let mut out = Vec::new();
     let mut cand: Vec<(f32, usize)> = Vec::with_capacity(RERANK_CANDIDATES as usize);
     for row in knn.iter() {
@@ -214,20 +221,7 @@ fn rerank(a: &SconeFrame, b: &SconeFrame, test: &RatioTest) -> Result<Vec<Match>
         }
         cand.sort_by(|x, y| x.0.total_cmp(&y.0));
         let (d0, t0) = cand[0];
-        let p0 = b.points[t0];
-        let competitor = if test.same_corner_px > 0.0 {
-            cand.iter()
-                .skip(1)
-                .find(|(_, t)| {
-                    let p = b.points[*t];
-                    (p.0 - p0.0).powi(2) + (p.1 - p0.1).powi(2) > r2
-                })
-                .map(|c| c.0)
-                .unwrap_or(cand[cand.len() - 1].0)
-        } else {
-            cand[1].0
-        };
-        if d0 < test.ratio * competitor {
+        if d0 < test.ratio * competitor(&cand, b.points, test.same_corner_px) {
             out.push(Match { query: q, train: t0, distance: d0 });
         }
     }

@@ -384,16 +384,11 @@ impl Service {
                 check_limits(bytes, limits)?;
             }
             FrameSource::Keypoints(k) => {
-                let checks = [
-                    ("keypoint set width", k.width as u64, limits.max_width as u64),
-                    ("keypoint set height", k.height as u64, limits.max_height as u64),
-                    ("keypoint set pixels", k.width as u64 * k.height as u64, limits.max_pixels),
-                ];
-                for (what, value, max) in checks {
-                    if value > max {
-                        return Err(FeatureError::ImageTooLarge { what, value, max }.into());
-                    }
-                }
+                limits.check_dimensions(
+                    k.width,
+                    k.height,
+                    ["keypoint set width", "keypoint set height", "keypoint set pixels"],
+                )?;
             }
         }
         Ok(())

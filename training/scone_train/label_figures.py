@@ -14,7 +14,7 @@ import numpy as np
 from . import correspondences as C
 from .data import prefix_dir
 from .dataset import build_unit
-from .splits import SPLIT, frames, scene_dir
+from .splits import SPLIT, part
 from .validate import draw_landmark_matches
 
 
@@ -25,9 +25,7 @@ def main() -> None:
     args = ap.parse_args()
     cache = prefix_dir() / "data" / "cache" / "real"
     for name, spec in SPLIT.items():
-        src = scene_dir(name)
-        stamps = [r.split()[0] for r in (src / "rgb.txt").read_text().splitlines() if r.strip() and r[0] != "#"]
-        keep = frames(spec["train"], stamps)
+        src, keep = part(name, "train")
         unit = build_unit(src, cache, keep, C.GeometryParams(**spec.get("geometry", {})), f"{name}-train")
         n = len(unit.ids)
         best = max(

@@ -27,6 +27,7 @@ from scipy.optimize import least_squares
 from scipy.spatial.transform import Rotation
 
 from . import residuals as R
+from .correspondences import _fundamental
 from .data import load_scene, shared_data
 
 
@@ -39,14 +40,6 @@ def _offset(p: np.ndarray) -> np.ndarray:
 
 def _K(p: np.ndarray) -> np.ndarray:
     return np.array([[p[0], 0, p[1]], [0, p[0], p[2]], [0, 0, 1.0]])
-
-
-def _fund(K, Ti, Tj):
-    T = np.linalg.inv(Tj) @ Ti
-    t = T[:3, 3]
-    tx = np.array([[0, -t[2], t[1]], [t[2], 0, -t[0]], [-t[1], t[0], 0]])
-    Ki = np.linalg.inv(K)
-    return Ki.T @ tx @ T[:3, :3] @ Ki
 
 
 def correspondences(scene, pairs, sift) -> list:
@@ -76,7 +69,7 @@ def residual_vector(p, scene, corr):
     Tdc = _offset(p)
     res = []
     for i, j, pa, pb in corr:
-        F = _fund(K, scene.T_wc[i] @ Tdc, scene.T_wc[j] @ Tdc)
+        F = _fundamental(K, scene.T_wc[i] @ Tdc, scene.T_wc[j] @ Tdc)
         res.append(R.epipolar_distance(F, pa, pb))
     return np.concatenate(res)
 

@@ -68,6 +68,13 @@ def frames(spec: str, stamps: list[str]) -> list[int]:
     return sorted(set(out))
 
 
+def part(name: str, which: str) -> tuple[Path, list[int]]:
+    """A scene's source directory and the `rgb.txt` indices of its "train" or "select" part."""
+    src = scene_dir(name)
+    stamps = [r.split()[0] for r in (src / "rgb.txt").read_text().splitlines() if r.strip() and r[0] != "#"]
+    return src, frames(SPLIT[name][which], stamps)
+
+
 def write_selection_scenes(out: Path) -> dict[str, tuple[Path, int]]:
     """Each scene's selection part as a scene directory under `out`: name -> (directory, eval window)."""
     made = {}

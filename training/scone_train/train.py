@@ -60,18 +60,17 @@ def load_units(cfg: dict, rendered_root: Path | None = None) -> tuple[list[Unit]
             train.append(build_unit(s, cache / wide_root.name, name=f"wide-{s.name}"))
     if d.get("real_split"):
         # The real training scenes, split by scone_train.splits (written down before training on them).
-        from .splits import SPLIT, frames, scene_dir
+        from .splits import SPLIT, part, scene_dir
 
         for name, spec in SPLIT.items():
-            src = scene_dir(name)
-            if not src.is_dir():
+            if not scene_dir(name).is_dir():
                 continue
-            stamps = [r.split()[0] for r in (src / "rgb.txt").read_text().splitlines() if r.strip() and r[0] != "#"]
             geo = C.GeometryParams(**spec.get("geometry", {}))
-            u = build_unit(src, cache / "real", frames(spec["train"], stamps), geo, f"{name}-train")
+            src, keep = part(name, "train")
+            u = build_unit(src, cache / "real", keep, geo, f"{name}-train")
             u.real = True
             train.append(u)
-            select.append(build_unit(src, cache / "real", frames(spec["select"], stamps), geo, f"{name}-sel"))
+            select.append(build_unit(src, cache / "real", part(name, "select")[1], geo, f"{name}-sel"))
     elif d.get("castle"):
         castle = shared_data() / "scenes" / d["castle"]
         if castle.is_dir():
