@@ -417,7 +417,7 @@ mod tests {
     fn the_map_backend_is_local_by_default_and_s3_from_the_environment() {
         figment::Jail::expect_with(|_| {
             let s = Settings::load(None, &Overrides::default()).map_err(|e| e.to_string())?;
-            assert_eq!(s.store.backend, crate::map::backend::BackendConfig::Local {});
+            assert_eq!(s.store.backend, crate::map::store::BackendConfig::Local {});
             Ok(())
         });
         figment::Jail::expect_with(|jail| {
@@ -427,7 +427,7 @@ mod tests {
             jail.set_env("SCONE_STORE__BACKEND__ENDPOINT", "http://minio.storage:9000");
             jail.set_env("SCONE_STORE__BACKEND__ALLOW_HTTP", "true");
             let s = Settings::load(None, &Overrides::default()).map_err(|e| e.to_string())?;
-            let crate::map::backend::BackendConfig::S3(s3) = &s.store.backend else { panic!("{:?}", s.store) };
+            let crate::map::store::BackendConfig::S3(s3) = &s.store.backend else { panic!("{:?}", s.store) };
             assert_eq!((s3.bucket.as_str(), s3.prefix.as_str(), s3.allow_http), ("scone-maps", "prod", true));
             assert_eq!(s.redacted()["store"]["backend"]["kind"], "s3");
             Ok(())

@@ -266,7 +266,7 @@ impl EmbeddingIndex {
             data_crc: crc("index.hnsw.data")?,
         };
         let json = serde_json::to_vec(&manifest).expect("manifest serialises");
-        crate::map::storage::write_atomic(&manifest_path, &json)
+        crate::map::format::write_atomic(&manifest_path, &json)
     }
 
     /// Loads a dump from `dir` when it matches `data` (model, size, checksums); then syncs the rest.

@@ -1,22 +1,30 @@
-//! Maps: keyframes, landmarks and their SConE observations, stored durably (snapshot + write-ahead log) with
-//! a nearest-neighbour index per map.
+//! Maps: keyframes, landmarks and their SConE observations, stored durably with a nearest-neighbour index per
+//! map.
 //!
-//! - [`model`]: keyframes, landmarks, observations, and the records that change them;
-//! - [`storage`]: snapshot + checksummed write-ahead log of one map;
-//! - [`backend`]: where maps are stored, behind one trait: the local directory or [`object_storage`];
-//! - [`object_storage`]: maps in an S3-API bucket (immutable objects, a manifest replaced conditionally);
+//! Who imports whom, top to bottom (nothing imports back up): [`store`] -> [`journal`] (the storage traits)
+//! -> [`local`] / [`s3`] (the two backends) -> [`format`] (their shared bytes) -> [`model`]; beside them
+//! [`index`], [`localize`] and [`builder`], which the store calls and which import only the model (and the
+//! index its dump's atomic write from [`format`]).
+//!
+//! - [`store`]: the registry of maps that commands (and the service) write and query through; it opens the
+//!   backend that `[store.backend]` names ([`store::BackendConfig`]);
+//! - [`journal`]: what the store needs from storage, as traits: the collection of maps, one map's writer;
+//! - [`local`]: maps in a local directory (snapshot + fsync'd write-ahead log);
+//! - [`s3`]: maps in an S3-API bucket (immutable objects, a manifest replaced conditionally);
+//! - [`format`]: the byte formats both backends share (snapshot, log records, segments) and their versions;
+//! - [`model`]: keyframes, landmarks, observations, the records that change them, map ids;
 //! - [`index`]: exact / HNSW nearest-neighbour search over observation embeddings;
 //! - [`builder`]: which landmarks a posed keyframe observes or creates (depth or triangulation);
-//! - [`localize`]: 2D-3D matching and PnP against a map;
-//! - [`store`]: the registry of maps that commands (and the service) write and query through.
+//! - [`localize`]: 2D-3D matching and PnP against a map.
 
-pub mod backend;
 pub mod builder;
+pub mod format;
 pub mod index;
+pub mod journal;
+pub mod local;
 pub mod localize;
 pub mod model;
-pub mod object_storage;
-pub mod storage;
+pub mod s3;
 pub mod store;
 #[cfg(test)]
 mod tests;

@@ -13,8 +13,20 @@ use std::collections::BTreeMap;
 use nalgebra::{Isometry3, Quaternion, Translation3, UnitQuaternion};
 use serde::{Deserialize, Serialize};
 
+use crate::error::MapError;
 use crate::features::{Keypoint, DESCRIPTOR_BYTES};
 use crate::scene::Camera;
+
+/// Map ids: 1-64 characters from `[A-Za-z0-9_-]`.
+pub fn validate_map_id(id: &str) -> Result<(), MapError> {
+    let ok =
+        !id.is_empty() && id.len() <= 64 && id.bytes().all(|b| b.is_ascii_alphanumeric() || b == b'_' || b == b'-');
+    if ok {
+        Ok(())
+    } else {
+        Err(MapError::InvalidMapId { map: id.chars().take(80).collect() })
+    }
+}
 
 /// A camera-to-world pose as translation + unit quaternion (x, y, z, w).
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]

@@ -10,7 +10,7 @@
 //! and reported as unavailable, and the others serve.
 //!
 //! Storage goes through a [`MapBackend`] chosen by `store.backend`: the local directory (default) or object
-//! storage ([`crate::map::object_storage`]). Its calls block (fsync, HTTP round trips), like the rest of
+//! storage ([`crate::map::s3`]). Its calls block (fsync, HTTP round trips), like the rest of
 //! this module: call it from blocking threads only.
 
 use std::collections::HashMap;
@@ -22,12 +22,14 @@ use serde::{Deserialize, Serialize};
 
 use crate::error::MapError;
 use crate::features::Features;
-use crate::map::backend::{open_backend, BackendConfig, MapBackend, MapJournal};
 use crate::map::builder::{plan, BuildParams, ExternalCounts, KeyframeInput};
+use crate::map::format::{decode_snapshot, encode_snapshot, write_atomic};
 use crate::map::index::{EmbeddingIndex, IndexParams};
+use crate::map::journal::{LoadReport, MapBackend, MapJournal};
+use crate::map::local::LocalBackend;
 use crate::map::localize::{localize, Localization, LocalizeParams, Prior};
-use crate::map::model::{MapData, MapMeta, Record};
-use crate::map::storage::{decode_snapshot, encode_snapshot, write_atomic, LoadReport};
+use crate::map::model::{validate_map_id, MapData, MapMeta, Record};
+use crate::map::s3::{ObjectStorageBackend, S3Config, S3Credentials};
 use crate::scene::Camera;
 
 /// Settings of the map store.
@@ -122,17 +124,6 @@ impl Map {
     pub fn read<R>(&self, f: impl FnOnce(&MapData, &EmbeddingIndex) -> R) -> R {
         let s = self.state.read();
         f(&s.data, &s.index)
-    }
-}
-
-/// Map ids: 1-64 characters from `[A-Za-z0-9_-]`.
-pub fn validate_map_id(id: &str) -> Result<(), MapError> {
-    let ok =
-        !id.is_empty() && id.len() <= 64 && id.bytes().all(|b| b.is_ascii_alphanumeric() || b == b'_' || b == b'-');
-    if ok {
-        Ok(())
-    } else {
-        Err(MapError::InvalidMapId { map: id.chars().take(80).collect() })
     }
 }
 
@@ -498,5 +489,98 @@ impl MapStore {
     /// Writes an export file atomically.
     pub fn export_to_file(&self, id: &str, path: &Path) -> Result<(), MapError> {
         write_atomic(path, &self.export(id)?)
+    }
+}
+
+/// Which backend stores the maps (`[store.backend]`).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(tag = "kind", rename_all = "lowercase", deny_unknown_fields)]
+pub enum BackendConfig {
+    /// `store.data_dir/maps/<id>/`: snapshot + fsync'd write-ahead log, index dump beside them. (A struct
+    /// variant, so that S3 keys under `kind = "local"`, e.g. a forgotten `kind = "s3"`, are refused.)
+    Local {},
+    /// An S3-API bucket. Credentials come from the standard AWS environment variables
+    /// (`AWS_ACCESS_KEY_ID`, `AWS_SECRET_ACCESS_KEY`, `AWS_SESSION_TOKEN`, ...), never from this file.
+    S3(S3Config),
+}
+
+impl Default for BackendConfig {
+    fn default() -> Self {
+        Self::Local {}
+    }
+}
+
+impl BackendConfig {
+    /// Checks that need no I/O.
+    pub fn validate(&self) -> Result<(), String> {
+        match self {
+            BackendConfig::Local {} => Ok(()),
+            BackendConfig::S3(s3) => {
+                if s3.bucket.trim().is_empty() {
+                    return Err("bucket must not be empty".into());
+                }
+                if object_store::path::Path::parse(&s3.prefix).is_err() {
+                    return Err(format!("prefix '{}' is not a valid object key prefix", s3.prefix));
+                }
+                if let Some(e) = &s3.endpoint {
+                    if e.starts_with("http://") && !s3.allow_http {
+                        return Err(format!("endpoint {e} is plain HTTP: set allow_http = true to permit it"));
+                    }
+                    if !e.starts_with("http://") && !e.starts_with("https://") {
+                        return Err(format!("endpoint {e} must start with http:// or https://"));
+                    }
+                }
+                Ok(())
+            }
+        }
+    }
+}
+
+/// The backend `config` describes; `data_dir` roots the local layout and the default cache.
+pub fn open_backend(
+    config: &BackendConfig,
+    data_dir: &Path,
+    compact_every: usize,
+) -> Result<Arc<dyn MapBackend>, MapError> {
+    match config {
+        BackendConfig::Local {} => Ok(Arc::new(LocalBackend::new(data_dir, compact_every)?)),
+        BackendConfig::S3(s3) => {
+            config.validate().map_err(|reason| MapError::InvalidInput { field: "store.backend".into(), reason })?;
+            let cache = s3.cache_dir.clone().unwrap_or_else(|| data_dir.join("cache"));
+            Ok(Arc::new(ObjectStorageBackend::s3(s3, &cache, compact_every, S3Credentials::FromEnv)?))
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn the_backend_setting_defaults_to_local_and_reads_s3_tables() {
+        let c: BackendConfig = serde_json::from_str(r#"{"kind":"local"}"#).unwrap();
+        assert_eq!(c, BackendConfig::Local {});
+        let c: BackendConfig = serde_json::from_str(
+            r#"{"kind":"s3","bucket":"maps","endpoint":"http://127.0.0.1:9000","allow_http":true}"#,
+        )
+        .unwrap();
+        let BackendConfig::S3(s3) = &c else { panic!("{c:?}") };
+        assert_eq!((s3.bucket.as_str(), s3.prefix.as_str(), s3.region.as_deref()), ("maps", "", None));
+        c.validate().unwrap();
+        let e = serde_json::from_str::<BackendConfig>(r#"{"kind":"s3","bucket":"m","secret_key":"x"}"#)
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("secret_key"), "{e}");
+        let e = serde_json::from_str::<BackendConfig>(r#"{"kind":"local","bucket":"m"}"#).unwrap_err().to_string();
+        assert!(e.contains("bucket"), "{e}");
+        let plain = BackendConfig::S3(S3Config {
+            bucket: "m".into(),
+            prefix: String::new(),
+            region: None,
+            endpoint: Some("http://minio:9000".into()),
+            allow_http: false,
+            cache_dir: None,
+        });
+        assert!(plain.validate().unwrap_err().contains("allow_http"));
     }
 }

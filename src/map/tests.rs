@@ -3,9 +3,10 @@
 use std::path::PathBuf;
 
 use crate::features::{Keypoint, DESCRIPTOR_BYTES};
+use crate::map::format::{decode_snapshot, encode_snapshot};
 use crate::map::index::{exact_search, EmbeddingIndex, IndexParams};
+use crate::map::local::MapLog;
 use crate::map::model::{Keyframe, MapData, MapMeta, NewObservation, Pose, Record};
-use crate::map::storage::{decode_snapshot, encode_snapshot, MapLog};
 use crate::scene::Camera;
 
 use crate::test_dir::{temp_dir, TestDir};
@@ -257,7 +258,7 @@ mod external {
     use super::*;
     use crate::features::Features;
     use crate::map::builder::{plan, BuildParams, Depth, ExternalObservation, KeyframeInput};
-    use crate::map::storage::{encode_record, frame_snapshot, MapDataV1, FORMAT_VERSION};
+    use crate::map::format::{encode_record, frame_snapshot, MapDataV1, FORMAT_VERSION};
 
     const DIM: usize = 8;
 

@@ -17,10 +17,12 @@ use object_store::{ObjectStore, ObjectStoreExt};
 use scone::decode::{decode_depth_png, ImageLimits};
 use scone::embedding::{Embedder, EmbedderConfig};
 use scone::features::ExtractorConfig;
-use scone::map::backend::{BackendConfig, MapBackend, S3Config};
 use scone::map::builder::{Depth, KeyframeInput};
+use scone::map::journal::MapBackend;
 use scone::map::model::{MapData, Record};
-use scone::map::object_storage::{ObjectStorageBackend, S3Credentials};
+use scone::map::s3::S3Config;
+use scone::map::s3::{ObjectStorageBackend, S3Credentials};
+use scone::map::store::BackendConfig;
 use scone::map::store::{MapStore, ModelInfo, StoreConfig};
 use scone::pipeline::{Described, Describer};
 use scone::pose::rotation_error_deg;
@@ -318,7 +320,7 @@ fn an_orphan_segment_is_ignored_and_a_corrupt_segment_holds_back_only_its_map() 
     let rt = runtime();
     // A crash between the segment PUT and the manifest PUT: a valid next record that no manifest names.
     let orphan = ObjectPath::from("it/maps/good/segments/00000000000000000003-00000000deadbeef.rec");
-    let bytes = scone::map::storage::encode_segment(3, &Record::RemoveKeyframe { id: 0 }).unwrap();
+    let bytes = scone::map::format::encode_segment(3, &Record::RemoveKeyframe { id: 0 }).unwrap();
     rt.block_on(raw.put(&orphan, bytes.into())).unwrap();
     // One flipped byte in a segment of the other map.
     let segment = keys(&raw, "it/maps/bad/segments").into_iter().next().unwrap();

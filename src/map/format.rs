@@ -1,20 +1,11 @@
-//! Durable storage of one map: a snapshot file plus an append-only write-ahead log, in the map's directory.
+//! The bytes of stored maps, shared by both backends ([`crate::map::local`], [`crate::map::s3`]):
 //!
-//! * `snapshot.bin`: magic `SCONEMAP`, format version (u32), payload length (u64), CRC-32 of the payload,
-//!   then the whole [`MapData`] (bincode). Written atomically: temporary file, fsync, rename, fsync of the
-//!   directory. The same format is the map's export file.
-//! * `log.bin`: magic `SCONELOG`, format version, then records `[len u32][crc u32][version u64][payload]`
-//!   (CRC over version and payload). A write is acknowledged only after its record is appended and
-//!   `fdatasync` returned, so an acknowledged write survives `kill -9` and power loss (as far as the disk
-//!   honours fsync).
-//!
-//! Loading replays the log records newer than the snapshot. A torn last record (the normal result of a crash
-//! in the middle of an append, never acknowledged) is cut off and the map loads. A bad record followed by
-//! more data is corruption: the map is reported and held back; the caller keeps serving the others.
-//! After `compact_every` records the map is snapshotted and the log restarted.
-//!
-//! The snapshot format and the record framing are shared with the object-storage backend
-//! ([`crate::map::object_storage`]), whose segments are one framed record each behind the magic `SCONESEG`.
+//! * snapshot (`snapshot.bin`, an S3 snapshot object, and the map's export file): magic `SCONEMAP`, format
+//!   version (u32), payload length (u64), CRC-32 of the payload, then the whole [`MapData`] (bincode).
+//!   Written atomically on disk by [`write_atomic`]: temporary file, fsync, rename, fsync of the directory.
+//! * log (`log.bin`): magic `SCONELOG`, format version, then records `[len u32][crc u32][version u64][payload]`
+//!   (CRC over version and payload), read back one frame at a time by [`read_frame`].
+//! * segment (an S3 object): one framed record behind the magic `SCONESEG` and the format version.
 //!
 //! Format versions. Every file (snapshot, log, segment; the object-storage manifest too) carries the version
 //! it was written in. This build writes [`FORMAT_VERSION`] 2 and reads 1 and 2:
@@ -30,9 +21,9 @@
 //! says 1. A build that reads only format 1 refuses the upgraded files with a version message instead of
 //! misreading them.
 
-use std::fs::{File, OpenOptions};
-use std::io::{Read, Seek, SeekFrom, Write};
-use std::path::{Path, PathBuf};
+use std::fs::File;
+use std::io::Write;
+use std::path::Path;
 
 use std::collections::BTreeMap;
 
@@ -46,17 +37,17 @@ pub const FORMAT_VERSION: u32 = 2;
 /// The oldest format this build reads.
 pub const OLDEST_FORMAT_VERSION: u32 = 1;
 const SNAPSHOT_MAGIC: &[u8; 8] = b"SCONEMAP";
-const LOG_MAGIC: &[u8; 8] = b"SCONELOG";
+pub(crate) const LOG_MAGIC: &[u8; 8] = b"SCONELOG";
 const SEGMENT_MAGIC: &[u8; 8] = b"SCONESEG";
-const LOG_HEADER: u64 = 12;
+pub(crate) const LOG_HEADER: u64 = 12;
 /// Largest record accepted when reading (a guard against a corrupt length field).
 const MAX_RECORD: u32 = 1 << 30;
 
-fn io_err(path: &Path) -> impl FnOnce(std::io::Error) -> MapError + '_ {
+pub(crate) fn io_err(path: &Path) -> impl FnOnce(std::io::Error) -> MapError + '_ {
     move |source| MapError::Io { path: path.to_path_buf(), source }
 }
 
-fn corrupt(path: &Path, reason: impl Into<String>) -> MapError {
+pub(crate) fn corrupt(path: &Path, reason: impl Into<String>) -> MapError {
     MapError::Corrupt { path: path.to_path_buf(), reason: reason.into() }
 }
 
@@ -65,7 +56,7 @@ pub fn readable_version(version: u32) -> bool {
     (OLDEST_FORMAT_VERSION..=FORMAT_VERSION).contains(&version)
 }
 
-fn unreadable(path: &Path, what: &str, version: u32) -> MapError {
+pub(crate) fn unreadable(path: &Path, what: &str, version: u32) -> MapError {
     corrupt(
         path,
         format!("{what} format version {version}, this build reads {OLDEST_FORMAT_VERSION} to {FORMAT_VERSION}"),
@@ -236,149 +227,5 @@ pub fn decode_segment(bytes: &[u8], path: &Path) -> Result<(u64, Record), MapErr
         Frame::Record { end, .. } => Err(corrupt(path, format!("{} bytes after the record", bytes.len() - end))),
         Frame::Torn => Err(corrupt(path, "the record is cut short")),
         Frame::BadChecksum { .. } => Err(corrupt(path, "checksum mismatch")),
-    }
-}
-
-/// What loading found.
-#[derive(Debug, Clone, Default, PartialEq)]
-pub struct LoadReport {
-    pub replayed: usize,
-    /// Bytes cut off the end of the log (a torn, unacknowledged record).
-    pub truncated_bytes: u64,
-}
-
-/// The open log of one map.
-#[derive(Debug)]
-pub struct MapLog {
-    dir: PathBuf,
-    file: File,
-    records: usize,
-    compact_every: usize,
-}
-
-impl MapLog {
-    fn log_path(dir: &Path) -> PathBuf {
-        dir.join("log.bin")
-    }
-
-    fn snapshot_path(dir: &Path) -> PathBuf {
-        dir.join("snapshot.bin")
-    }
-
-    fn fresh_log(dir: &Path) -> Result<File, MapError> {
-        let path = Self::log_path(dir);
-        let tmp = path.with_extension("tmp");
-        {
-            let mut f = File::create(&tmp).map_err(io_err(&tmp))?;
-            f.write_all(LOG_MAGIC).map_err(io_err(&tmp))?;
-            f.write_all(&FORMAT_VERSION.to_le_bytes()).map_err(io_err(&tmp))?;
-            f.sync_all().map_err(io_err(&tmp))?;
-        }
-        std::fs::rename(&tmp, &path).map_err(io_err(&path))?;
-        sync_dir(dir)?;
-        let mut f = OpenOptions::new().read(true).append(true).open(&path).map_err(io_err(&path))?;
-        f.seek(SeekFrom::End(0)).map_err(io_err(&path))?;
-        Ok(f)
-    }
-
-    /// Creates the directory, a snapshot of `data` and an empty log.
-    pub fn create(dir: &Path, data: &MapData, compact_every: usize) -> Result<Self, MapError> {
-        std::fs::create_dir_all(dir).map_err(io_err(dir))?;
-        write_atomic(&Self::snapshot_path(dir), &encode_snapshot(data)?)?;
-        let file = Self::fresh_log(dir)?;
-        if let Some(parent) = dir.parent() {
-            sync_dir(parent)?;
-        }
-        Ok(Self { dir: dir.to_path_buf(), file, records: 0, compact_every })
-    }
-
-    /// Loads snapshot + log, cutting a torn tail.
-    pub fn open(dir: &Path, compact_every: usize) -> Result<(MapData, Self, LoadReport), MapError> {
-        let snap_path = Self::snapshot_path(dir);
-        let bytes = std::fs::read(&snap_path).map_err(io_err(&snap_path))?;
-        let mut data = decode_snapshot(&bytes, &snap_path)?;
-        let log_path = Self::log_path(dir);
-        let mut report = LoadReport::default();
-        if !log_path.exists() {
-            let file = Self::fresh_log(dir)?;
-            return Ok((data, Self { dir: dir.to_path_buf(), file, records: 0, compact_every }, report));
-        }
-        let mut file = OpenOptions::new().read(true).append(true).open(&log_path).map_err(io_err(&log_path))?;
-        let mut buf = Vec::new();
-        file.read_to_end(&mut buf).map_err(io_err(&log_path))?;
-        if buf.len() < LOG_HEADER as usize || &buf[..8] != LOG_MAGIC {
-            return Err(corrupt(&log_path, "not a scone log (bad magic)"));
-        }
-        let version = u32::from_le_bytes(buf[8..12].try_into().expect("4 bytes"));
-        if !readable_version(version) {
-            return Err(unreadable(&log_path, "log", version));
-        }
-        let mut pos = LOG_HEADER as usize;
-        let mut records = 0;
-        while pos < buf.len() {
-            let (seq, record, end) = match read_frame(&buf, pos, &log_path)? {
-                Frame::Torn => break,
-                Frame::BadChecksum { end } if end == buf.len() => break, // the last record is torn
-                Frame::BadChecksum { .. } => {
-                    return Err(corrupt(
-                        &log_path,
-                        format!("checksum mismatch in the record at byte {pos}, more records follow"),
-                    ))
-                }
-                Frame::Record { seq, record, end } => (seq, record, end),
-            };
-            if seq > data.version {
-                if seq != data.version + 1 {
-                    return Err(corrupt(&log_path, format!("record {seq} follows version {}", data.version)));
-                }
-                data.check(&record).map_err(|reason| corrupt(&log_path, format!("record {seq}: {reason}")))?;
-                data.apply(&record);
-                report.replayed += 1;
-            }
-            records += 1;
-            pos = end;
-        }
-        if pos < buf.len() {
-            report.truncated_bytes = (buf.len() - pos) as u64;
-            file.set_len(pos as u64).map_err(io_err(&log_path))?;
-            file.sync_all().map_err(io_err(&log_path))?;
-            tracing::warn!(log = %log_path.display(), bytes = report.truncated_bytes, "cut a torn record off the log");
-        }
-        file.seek(SeekFrom::End(0)).map_err(io_err(&log_path))?;
-        let mut log = Self { dir: dir.to_path_buf(), file, records, compact_every };
-        if version < FORMAT_VERSION {
-            // New kinds of record must not go into a file whose header promises the old format.
-            log.compact(&data)?;
-            tracing::info!(map = %dir.display(), from = version, to = FORMAT_VERSION, "upgraded the map's files");
-        }
-        Ok((data, log, report))
-    }
-
-    /// Appends the record that takes `data` to version `seq` and waits until it is on disk.
-    pub fn append(&mut self, seq: u64, record: &Record) -> Result<(), MapError> {
-        let path = Self::log_path(&self.dir);
-        let frame = encode_record(seq, record)?;
-        self.file.write_all(&frame).map_err(io_err(&path))?;
-        self.file.sync_data().map_err(io_err(&path))?;
-        self.records += 1;
-        Ok(())
-    }
-
-    /// Whether the log has grown enough to be folded into a snapshot.
-    pub fn wants_compaction(&self) -> bool {
-        self.compact_every > 0 && self.records >= self.compact_every
-    }
-
-    /// Snapshots `data` and restarts the log. Safe at any crash point: records not newer than the snapshot
-    /// are skipped at load.
-    pub fn compact(&mut self, data: &MapData) -> Result<(), MapError> {
-        write_atomic(&Self::snapshot_path(&self.dir), &encode_snapshot(data)?)?;
-        self.file = Self::fresh_log(&self.dir)?;
-        self.records = 0;
-        Ok(())
-    }
-
-    pub fn dir(&self) -> &Path {
-        &self.dir
     }
 }

@@ -70,13 +70,12 @@ use object_store::{ObjectStore, ObjectStoreExt, PutMode, PutOptions, PutPayload,
 use serde::{Deserialize, Serialize};
 
 use crate::error::MapError;
-use crate::map::backend::{MapBackend, MapJournal, S3Config};
-use crate::map::model::{MapData, Record};
-use crate::map::storage::{
-    decode_segment, decode_snapshot, encode_segment, encode_snapshot, readable_version, write_atomic, LoadReport,
-    FORMAT_VERSION, OLDEST_FORMAT_VERSION,
+use crate::map::format::{
+    decode_segment, decode_snapshot, encode_segment, encode_snapshot, readable_version, write_atomic, FORMAT_VERSION,
+    OLDEST_FORMAT_VERSION,
 };
-use crate::map::store::validate_map_id;
+use crate::map::journal::{LoadReport, MapBackend, MapJournal};
+use crate::map::model::{validate_map_id, MapData, Record};
 
 /// Largest manifest accepted when reading (a guard against a hostile or broken object).
 const MAX_MANIFEST_BYTES: u64 = 16 << 20;
@@ -84,6 +83,28 @@ const MAX_MANIFEST_BYTES: u64 = 16 << 20;
 const PARALLEL_GETS: usize = 16;
 const MANIFEST: &str = "manifest.json";
 const CACHE_MARKER: &str = "map.json";
+
+/// Settings of the S3 backend.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct S3Config {
+    pub bucket: String,
+    /// Key prefix inside the bucket; maps live under `<prefix>/maps/<id>/`.
+    #[serde(default)]
+    pub prefix: String,
+    /// Region; when absent, `AWS_REGION` / `AWS_DEFAULT_REGION`, else `us-east-1`.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub region: Option<String>,
+    /// Endpoint URL of an S3-compatible service (path-style requests); AWS when absent.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub endpoint: Option<String>,
+    /// Permit a plain-HTTP endpoint (tests, a service inside the cluster network).
+    #[serde(default)]
+    pub allow_http: bool,
+    /// Local cache of index dumps, one sub-directory per map; `store.data_dir/cache` when absent.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub cache_dir: Option<PathBuf>,
+}
 
 /// Where the S3 credentials come from.
 #[derive(Clone)]

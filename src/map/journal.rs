@@ -1,0 +1,65 @@
+//! What the [`MapStore`](crate::map::store::MapStore) needs from storage, as two traits, so it does not care
+//! where maps live:
+//!
+//! * [`MapBackend`]: the collection of maps (list, exists, create, open, delete);
+//! * [`MapJournal`]: the single writer of one open map (append a record durably, compact), plus the local
+//!   directory that holds the map's HNSW index dump.
+//!
+//! Two implementations, chosen by [`BackendConfig`](crate::map::store::BackendConfig) (`[store.backend]`):
+//!
+//! * [`crate::map::local`] (`kind = "local"`, the default): `data_dir/maps/<id>/`, a snapshot plus an
+//!   fsync'd write-ahead log, with the index dump beside them;
+//! * [`crate::map::s3`] (`kind = "s3"`): immutable objects plus a manifest replaced by conditional writes in
+//!   an S3-API bucket, the index dump in a local cache directory.
+//!
+//! Both are synchronous: the store calls them on blocking threads (the CPU pool, `spawn_blocking`), never on
+//! async worker threads.
+
+use std::path::Path;
+
+use crate::error::MapError;
+use crate::map::model::{MapData, Record};
+
+/// The collection of stored maps.
+pub trait MapBackend: Send + Sync {
+    /// Where the maps are, for logs (`data/maps`, `s3://bucket/prefix/maps`).
+    fn location(&self) -> String;
+
+    /// Ids of the stored maps (only valid ids), sorted.
+    fn list(&self) -> Result<Vec<String>, MapError>;
+
+    /// Whether a map with this id is stored.
+    fn exists(&self, id: &str) -> Result<bool, MapError>;
+
+    /// Stores a new map holding `data` and returns its writer; [`MapError::MapExists`] if the id is taken.
+    fn create(&self, id: &str, data: &MapData) -> Result<Box<dyn MapJournal>, MapError>;
+
+    /// Loads a map (verifying every checksum) and returns it with its writer.
+    fn open(&self, id: &str) -> Result<(MapData, Box<dyn MapJournal>, LoadReport), MapError>;
+
+    /// Removes a map and everything stored for it.
+    fn delete(&self, id: &str) -> Result<(), MapError>;
+}
+
+/// The writer of one open map. Calls are serialised by the caller (the map's writer lock).
+pub trait MapJournal: Send + std::fmt::Debug {
+    /// Makes the record that takes the map to version `seq` durable; returns only once it is.
+    fn append(&mut self, seq: u64, record: &Record) -> Result<(), MapError>;
+
+    /// Whether enough records accumulated to fold them into a snapshot.
+    fn wants_compaction(&self) -> bool;
+
+    /// Replaces the stored snapshot with `data` and drops the records it covers.
+    fn compact(&mut self, data: &MapData) -> Result<(), MapError>;
+
+    /// Local directory for the map's index dump.
+    fn index_dir(&self) -> &Path;
+}
+
+/// What loading found.
+#[derive(Debug, Clone, Default, PartialEq)]
+pub struct LoadReport {
+    pub replayed: usize,
+    /// Bytes cut off the end of the log (a torn, unacknowledged record).
+    pub truncated_bytes: u64,
+}

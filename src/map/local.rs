@@ -1,0 +1,249 @@
+//! Maps on the local disk: `data_dir/maps/<id>/` holds one map's `snapshot.bin`, its write-ahead
+//! `log.bin` (byte layouts in [`crate::map::format`]) and its index dump.
+//!
+//! A write is acknowledged only after its record is appended and `fdatasync` returned, so an acknowledged
+//! write survives `kill -9` and power loss (as far as the disk honours fsync). Loading replays the log
+//! records newer than the snapshot. A torn last record (the normal result of a crash in the middle of an
+//! append, never acknowledged) is cut off and the map loads. A bad record followed by more data is
+//! corruption: the map is reported and held back; the caller keeps serving the others. After
+//! `compact_every` records the map is snapshotted and the log restarted.
+//!
+//! A format-1 log is folded into a current-format snapshot with a fresh log as soon as it is opened (the
+//! same crash-safe steps as compaction), so a record of a new kind never lands in a file whose header
+//! promises the old format.
+
+use std::fs::{File, OpenOptions};
+use std::io::{Read, Seek, SeekFrom, Write};
+use std::path::{Path, PathBuf};
+
+use crate::error::MapError;
+use crate::map::format::{
+    corrupt, decode_snapshot, encode_record, encode_snapshot, io_err, read_frame, readable_version, sync_dir,
+    unreadable, write_atomic, Frame, FORMAT_VERSION, LOG_HEADER, LOG_MAGIC,
+};
+use crate::map::journal::{LoadReport, MapBackend, MapJournal};
+use crate::map::model::{validate_map_id, MapData, Record};
+
+/// The open log of one map.
+#[derive(Debug)]
+pub struct MapLog {
+    dir: PathBuf,
+    file: File,
+    records: usize,
+    compact_every: usize,
+}
+
+impl MapLog {
+    fn log_path(dir: &Path) -> PathBuf {
+        dir.join("log.bin")
+    }
+
+    fn snapshot_path(dir: &Path) -> PathBuf {
+        dir.join("snapshot.bin")
+    }
+
+    fn fresh_log(dir: &Path) -> Result<File, MapError> {
+        let path = Self::log_path(dir);
+        let tmp = path.with_extension("tmp");
+        {
+            let mut f = File::create(&tmp).map_err(io_err(&tmp))?;
+            f.write_all(LOG_MAGIC).map_err(io_err(&tmp))?;
+            f.write_all(&FORMAT_VERSION.to_le_bytes()).map_err(io_err(&tmp))?;
+            f.sync_all().map_err(io_err(&tmp))?;
+        }
+        std::fs::rename(&tmp, &path).map_err(io_err(&path))?;
+        sync_dir(dir)?;
+        let mut f = OpenOptions::new().read(true).append(true).open(&path).map_err(io_err(&path))?;
+        f.seek(SeekFrom::End(0)).map_err(io_err(&path))?;
+        Ok(f)
+    }
+
+    /// Creates the directory, a snapshot of `data` and an empty log.
+    pub fn create(dir: &Path, data: &MapData, compact_every: usize) -> Result<Self, MapError> {
+        std::fs::create_dir_all(dir).map_err(io_err(dir))?;
+        write_atomic(&Self::snapshot_path(dir), &encode_snapshot(data)?)?;
+        let file = Self::fresh_log(dir)?;
+        if let Some(parent) = dir.parent() {
+            sync_dir(parent)?;
+        }
+        Ok(Self { dir: dir.to_path_buf(), file, records: 0, compact_every })
+    }
+
+    /// Loads snapshot + log, cutting a torn tail.
+    pub fn open(dir: &Path, compact_every: usize) -> Result<(MapData, Self, LoadReport), MapError> {
+        let snap_path = Self::snapshot_path(dir);
+        let bytes = std::fs::read(&snap_path).map_err(io_err(&snap_path))?;
+        let mut data = decode_snapshot(&bytes, &snap_path)?;
+        let log_path = Self::log_path(dir);
+        let mut report = LoadReport::default();
+        if !log_path.exists() {
+            let file = Self::fresh_log(dir)?;
+            return Ok((data, Self { dir: dir.to_path_buf(), file, records: 0, compact_every }, report));
+        }
+        let mut file = OpenOptions::new().read(true).append(true).open(&log_path).map_err(io_err(&log_path))?;
+        let mut buf = Vec::new();
+        file.read_to_end(&mut buf).map_err(io_err(&log_path))?;
+        if buf.len() < LOG_HEADER as usize || &buf[..8] != LOG_MAGIC {
+            return Err(corrupt(&log_path, "not a scone log (bad magic)"));
+        }
+        let version = u32::from_le_bytes(buf[8..12].try_into().expect("4 bytes"));
+        if !readable_version(version) {
+            return Err(unreadable(&log_path, "log", version));
+        }
+        let mut pos = LOG_HEADER as usize;
+        let mut records = 0;
+        while pos < buf.len() {
+            let (seq, record, end) = match read_frame(&buf, pos, &log_path)? {
+                Frame::Torn => break,
+                Frame::BadChecksum { end } if end == buf.len() => break, // the last record is torn
+                Frame::BadChecksum { .. } => {
+                    return Err(corrupt(
+                        &log_path,
+                        format!("checksum mismatch in the record at byte {pos}, more records follow"),
+                    ))
+                }
+                Frame::Record { seq, record, end } => (seq, record, end),
+            };
+            if seq > data.version {
+                if seq != data.version + 1 {
+                    return Err(corrupt(&log_path, format!("record {seq} follows version {}", data.version)));
+                }
+                data.check(&record).map_err(|reason| corrupt(&log_path, format!("record {seq}: {reason}")))?;
+                data.apply(&record);
+                report.replayed += 1;
+            }
+            records += 1;
+            pos = end;
+        }
+        if pos < buf.len() {
+            report.truncated_bytes = (buf.len() - pos) as u64;
+            file.set_len(pos as u64).map_err(io_err(&log_path))?;
+            file.sync_all().map_err(io_err(&log_path))?;
+            tracing::warn!(log = %log_path.display(), bytes = report.truncated_bytes, "cut a torn record off the log");
+        }
+        file.seek(SeekFrom::End(0)).map_err(io_err(&log_path))?;
+        let mut log = Self { dir: dir.to_path_buf(), file, records, compact_every };
+        if version < FORMAT_VERSION {
+            // New kinds of record must not go into a file whose header promises the old format.
+            log.compact(&data)?;
+            tracing::info!(map = %dir.display(), from = version, to = FORMAT_VERSION, "upgraded the map's files");
+        }
+        Ok((data, log, report))
+    }
+
+    /// Appends the record that takes `data` to version `seq` and waits until it is on disk.
+    pub fn append(&mut self, seq: u64, record: &Record) -> Result<(), MapError> {
+        let path = Self::log_path(&self.dir);
+        let frame = encode_record(seq, record)?;
+        self.file.write_all(&frame).map_err(io_err(&path))?;
+        self.file.sync_data().map_err(io_err(&path))?;
+        self.records += 1;
+        Ok(())
+    }
+
+    /// Whether the log has grown enough to be folded into a snapshot.
+    pub fn wants_compaction(&self) -> bool {
+        self.compact_every > 0 && self.records >= self.compact_every
+    }
+
+    /// Snapshots `data` and restarts the log. Safe at any crash point: records not newer than the snapshot
+    /// are skipped at load.
+    pub fn compact(&mut self, data: &MapData) -> Result<(), MapError> {
+        write_atomic(&Self::snapshot_path(&self.dir), &encode_snapshot(data)?)?;
+        self.file = Self::fresh_log(&self.dir)?;
+        self.records = 0;
+        Ok(())
+    }
+
+    pub fn dir(&self) -> &Path {
+        &self.dir
+    }
+}
+
+/// Maps in `data_dir/maps/<id>/`, each a [`MapLog`].
+#[derive(Debug)]
+pub struct LocalBackend {
+    root: PathBuf,
+    compact_every: usize,
+}
+
+impl LocalBackend {
+    /// Creates `data_dir/maps` if needed.
+    pub fn new(data_dir: &Path, compact_every: usize) -> Result<Self, MapError> {
+        let root = data_dir.join("maps");
+        std::fs::create_dir_all(&root).map_err(|source| MapError::Io { path: root.clone(), source })?;
+        Ok(Self { root, compact_every })
+    }
+
+    fn dir(&self, id: &str) -> PathBuf {
+        self.root.join(id)
+    }
+}
+
+impl MapJournal for MapLog {
+    fn append(&mut self, seq: u64, record: &Record) -> Result<(), MapError> {
+        MapLog::append(self, seq, record)
+    }
+
+    fn wants_compaction(&self) -> bool {
+        MapLog::wants_compaction(self)
+    }
+
+    fn compact(&mut self, data: &MapData) -> Result<(), MapError> {
+        MapLog::compact(self, data)
+    }
+
+    fn index_dir(&self) -> &Path {
+        self.dir()
+    }
+}
+
+impl MapBackend for LocalBackend {
+    fn location(&self) -> String {
+        self.root.display().to_string()
+    }
+
+    fn list(&self) -> Result<Vec<String>, MapError> {
+        let io = |source| MapError::Io { path: self.root.clone(), source };
+        let mut ids = Vec::new();
+        for entry in std::fs::read_dir(&self.root).map_err(io)? {
+            let entry = entry.map_err(io)?;
+            let name = entry.file_name().to_string_lossy().into_owned();
+            // Skips the `.deleted-*` directories of an interrupted delete, among others.
+            if entry.path().is_dir() && validate_map_id(&name).is_ok() {
+                ids.push(name);
+            }
+        }
+        ids.sort();
+        Ok(ids)
+    }
+
+    fn exists(&self, id: &str) -> Result<bool, MapError> {
+        Ok(self.dir(id).exists())
+    }
+
+    fn create(&self, id: &str, data: &MapData) -> Result<Box<dyn MapJournal>, MapError> {
+        if self.dir(id).exists() {
+            return Err(MapError::MapExists { map: id.to_string() });
+        }
+        Ok(Box::new(MapLog::create(&self.dir(id), data, self.compact_every)?))
+    }
+
+    fn open(&self, id: &str) -> Result<(MapData, Box<dyn MapJournal>, LoadReport), MapError> {
+        let (data, log, report) = MapLog::open(&self.dir(id), self.compact_every)?;
+        Ok((data, Box::new(log), report))
+    }
+
+    /// Renames the directory away (atomic), then removes it.
+    fn delete(&self, id: &str) -> Result<(), MapError> {
+        let dir = self.dir(id);
+        let millis = std::time::SystemTime::now()
+            .duration_since(std::time::UNIX_EPOCH)
+            .map(|d| d.as_millis() as u64)
+            .unwrap_or(0);
+        let trash = self.root.join(format!(".deleted-{id}-{millis}"));
+        std::fs::rename(&dir, &trash).map_err(|source| MapError::Io { path: dir.clone(), source })?;
+        sync_dir(&self.root)?;
+        std::fs::remove_dir_all(&trash).map_err(|source| MapError::Io { path: trash, source })
+    }
+}
