@@ -11,13 +11,13 @@ use std::path::PathBuf;
 
 use criterion::{criterion_group, criterion_main, Criterion};
 
+use scone::camera::Camera;
 use scone::constellation;
 use scone::decode::{decode_grey, ImageLimits};
 use scone::embedding::{default_model_path, Embedder, EmbedderConfig};
 use scone::features::{self, ExtractorConfig};
 use scone::matching::{match_hamming, match_l2, RatioTest};
 use scone::pose::{relative_pose, EssentialMethod, RansacParams};
-use scone::scene::Camera;
 
 fn bench(c: &mut Criterion) {
     features::set_opencv_threads(1).unwrap();

@@ -10,13 +10,14 @@ use std::time::Instant;
 
 use rand::{Rng, SeedableRng};
 
+use scone::camera::Camera;
+use scone::camera::Pose;
 use scone::decode::ImageLimits;
 use scone::embedding::{Embedder, EmbedderConfig};
 use scone::features::{ExtractorConfig, Keypoint, DESCRIPTOR_BYTES};
 use scone::map::index::{exact_search, EmbeddingIndex, IndexParams};
-use scone::map::model::{Keyframe, MapData, MapMeta, NewObservation, Pose, Record};
+use scone::map::model::{Keyframe, MapData, MapMeta, NewObservation, Record};
 use scone::pipeline::Describer;
-use scone::scene::Camera;
 
 fn images() -> Vec<PathBuf> {
     let root = std::env::var_os("SCONE_DATA")

@@ -23,11 +23,11 @@ use std::path::{Path, PathBuf};
 use nalgebra::{Isometry3, Quaternion, Translation3, UnitQuaternion, Vector3};
 use serde::Serialize;
 
+use crate::camera::Camera;
 use crate::error::{ImportError, MapError, SceneError};
 use crate::map::builder::{ExternalCounts, ExternalObservation, KeyframeInput};
 use crate::map::store::{KeyframeAdded, MapStore, MapSummary};
 use crate::pipeline::Describer;
-use crate::scene::Camera;
 
 /// COLMAP's pixel origin is the top-left corner, scone's the centre of the top-left pixel.
 const PIXEL_SHIFT: f64 = 0.5;

@@ -19,6 +19,7 @@
 //! Path of an image: bytes -> [`decode::decode_grey`] -> [`features::extract`] -> [`constellation::build`]
 //! -> (the embedding network) -> matching and pose estimation.
 
+pub mod camera;
 pub mod colmap;
 pub mod constellation;
 pub mod decode;

@@ -9,8 +9,8 @@ use opencv::core::{Mat, Point2d, Point2f, Point3f, Vector};
 use opencv::prelude::*;
 use serde::{Deserialize, Serialize};
 
+use crate::camera::{validate_camera, Camera};
 use crate::error::PoseError;
-use crate::scene::Camera;
 
 /// RANSAC settings shared by both estimators.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
@@ -117,24 +117,6 @@ pub fn ransac_iterations_needed(w: f64, sample: i32, confidence: f64) -> f64 {
         return 1.0;
     }
     ((1.0 - confidence).ln() / (1.0 - p).ln()).max(1.0)
-}
-
-pub fn validate_camera(cam: &Camera) -> Result<(), PoseError> {
-    let bad = |reason: String| Err(PoseError::Intrinsics { reason });
-    for (name, v) in [("fx", cam.fx), ("fy", cam.fy)] {
-        if !(v.is_finite() && v > 0.0) {
-            return bad(format!("{name} must be finite and positive (got {v})"));
-        }
-    }
-    for (name, v) in [("cx", cam.cx), ("cy", cam.cy)] {
-        if !v.is_finite() {
-            return bad(format!("{name} must be finite (got {v})"));
-        }
-    }
-    if cam.width == 0 || cam.height == 0 {
-        return bad(format!("width and height must be positive (got {}x{})", cam.width, cam.height));
-    }
-    Ok(())
 }
 
 fn normalised(points: &[(f32, f32)], cam: &Camera) -> Vector<Point2d> {

@@ -10,33 +10,11 @@ use std::path::{Path, PathBuf};
 
 use nalgebra::{Isometry3, Quaternion, Translation3, UnitQuaternion};
 
+use crate::camera::Camera;
 use crate::error::SceneError;
 
 /// Default association gap between colour, depth and pose timestamps, seconds.
 pub const DEFAULT_MAX_GAP: f64 = 0.02;
-
-/// Pinhole intrinsics without distortion.
-#[derive(Debug, Clone, Copy, PartialEq, serde::Serialize, serde::Deserialize)]
-pub struct Camera {
-    pub fx: f64,
-    pub fy: f64,
-    pub cx: f64,
-    pub cy: f64,
-    pub width: u32,
-    pub height: u32,
-}
-
-impl Camera {
-    /// The 3x3 calibration matrix, row-major.
-    pub fn k(&self) -> [[f64; 3]; 3] {
-        [[self.fx, 0.0, self.cx], [0.0, self.fy, self.cy], [0.0, 0.0, 1.0]]
-    }
-
-    /// Pixel of a point given in this camera's coordinates; `None` when it is not in front (z <= 0).
-    pub fn project(&self, p: &nalgebra::Point3<f64>) -> Option<(f64, f64)> {
-        (p.z > 0.0).then(|| (self.fx * p.x / p.z + self.cx, self.fy * p.y / p.z + self.cy))
-    }
-}
 
 /// One colour frame with what was associated to it.
 #[derive(Debug, Clone)]

@@ -11,21 +11,21 @@
 use std::sync::{Arc, OnceLock};
 use std::time::Instant;
 
-use nalgebra::UnitQuaternion;
 use opencv::prelude::MatTraitConst;
 use serde::Serialize;
 
+use crate::camera::validate_camera;
+use crate::camera::Camera;
+use crate::camera::Pose;
 use crate::decode::{check_limits, decode_depth_png, decode_grey, ImageLimits};
 use crate::error::{EmbeddingError, FeatureError, MapError, PoseError};
 use crate::features::{self, Features, Keypoint, KeypointLimits};
 use crate::map::builder::{Depth, ExternalObservation, KeyframeInput};
 use crate::map::localize::{LandmarkMatch, Prior};
-use crate::map::model::Pose;
 use crate::map::store::{KeyframeAdded, MapStore, MapSummary};
 use crate::matching::{match_scone, Match, RatioTest, SconeFrame, SconeMatcher, SAME_CORNER_PX};
 use crate::pipeline::{DescribeError, Describer};
-use crate::pose::{relative_pose, validate_camera, AbsolutePose, RansacParams, RelativePose};
-use crate::scene::Camera;
+use crate::pose::{relative_pose, AbsolutePose, RansacParams, RelativePose};
 
 /// Keypoints with FREAK descriptors computed by a client (see the client contract in the proto).
 #[derive(Debug, Clone, Default)]
@@ -566,15 +566,4 @@ impl Service {
             None => Ok(()),
         }
     }
-}
-
-/// A pose from a translation and a quaternion given as (x, y, z, w); checks happen in the callers.
-pub fn pose_from_parts(t: [f64; 3], q: [f64; 4]) -> Pose {
-    Pose { translation: t, rotation: q }
-}
-
-/// (x, y, z, w) of a rotation.
-pub fn quaternion_xyzw(r: &nalgebra::Rotation3<f64>) -> [f64; 4] {
-    let q = UnitQuaternion::from_rotation_matrix(r);
-    [q.i, q.j, q.k, q.w]
 }

@@ -22,6 +22,7 @@ use serde::{Deserialize, Serialize};
 
 use super::methods::{describe, putative_matches, Described, Method};
 use super::{accuracy, auc, median};
+use crate::camera::Camera;
 use crate::decode::{decode_depth_png, decode_grey, ImageLimits};
 use crate::embedding::Embedder;
 use crate::features::ExtractorConfig;
@@ -29,7 +30,7 @@ use crate::matching::{RatioTest, SconeMatcher};
 use crate::pose::{
     ransac_iterations_needed, relative_motion, relative_pose, rotation_error_deg, translation_angle_deg, RansacParams,
 };
-use crate::scene::{Camera, Scene};
+use crate::scene::Scene;
 
 type BoxError = Box<dyn std::error::Error + Send + Sync>;
 

@@ -48,11 +48,12 @@ use opencv::core::{Mat, Point2d, Vector};
 use opencv::prelude::*;
 use serde::{Deserialize, Serialize};
 
+use crate::camera::Camera;
+use crate::camera::Pose;
 use crate::error::MapError;
 use crate::features::Features;
-use crate::map::model::{Keyframe, MapData, NewObservation, Pose, Record};
+use crate::map::model::{Keyframe, MapData, NewObservation, Record};
 use crate::matching::{match_l2, RatioTest};
-use crate::scene::Camera;
 
 /// Settings of map building.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
@@ -267,7 +268,7 @@ pub fn plan(data: &MapData, input: &KeyframeInput, params: &BuildParams) -> Resu
     }
     let pose = Pose::from_isometry(&input.pose);
     pose.validate().map_err(|reason| MapError::InvalidInput { field: "pose".into(), reason })?;
-    crate::pose::validate_camera(&input.camera)?;
+    crate::camera::validate_camera(&input.camera)?;
     let keyframe = || Keyframe {
         id: input.id,
         pose,

@@ -12,12 +12,12 @@
 
 use serde::{Deserialize, Serialize};
 
+use crate::camera::Camera;
 use crate::error::MapError;
 use crate::features::Features;
 use crate::map::index::EmbeddingIndex;
 use crate::map::model::MapData;
 use crate::pose::{absolute_pose, AbsolutePose, RansacParams};
-use crate::scene::Camera;
 
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields, default)]

@@ -10,12 +10,11 @@
 
 use std::collections::BTreeMap;
 
-use nalgebra::{Isometry3, Quaternion, Translation3, UnitQuaternion};
 use serde::{Deserialize, Serialize};
 
+use crate::camera::{Camera, Pose};
 use crate::error::MapError;
 use crate::features::{Keypoint, DESCRIPTOR_BYTES};
-use crate::scene::Camera;
 
 /// Map ids: 1-64 characters from `[A-Za-z0-9_-]`.
 pub fn validate_map_id(id: &str) -> Result<(), MapError> {
@@ -25,40 +24,6 @@ pub fn validate_map_id(id: &str) -> Result<(), MapError> {
         Ok(())
     } else {
         Err(MapError::InvalidMapId { map: id.chars().take(80).collect() })
-    }
-}
-
-/// A camera-to-world pose as translation + unit quaternion (x, y, z, w).
-#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
-pub struct Pose {
-    pub translation: [f64; 3],
-    pub rotation: [f64; 4],
-}
-
-impl Pose {
-    pub fn from_isometry(p: &Isometry3<f64>) -> Self {
-        let q = p.rotation.quaternion();
-        Self { translation: p.translation.vector.into(), rotation: [q.i, q.j, q.k, q.w] }
-    }
-
-    pub fn isometry(&self) -> Isometry3<f64> {
-        let [x, y, z, w] = self.rotation;
-        Isometry3::from_parts(
-            Translation3::new(self.translation[0], self.translation[1], self.translation[2]),
-            UnitQuaternion::from_quaternion(Quaternion::new(w, x, y, z)),
-        )
-    }
-
-    /// Finite values and a quaternion of unit length (within 1e-3).
-    pub fn validate(&self) -> Result<(), String> {
-        if !self.translation.iter().chain(self.rotation.iter()).all(|v| v.is_finite()) {
-            return Err("pose has a non-finite value".into());
-        }
-        let n = self.rotation.iter().map(|v| v * v).sum::<f64>().sqrt();
-        if (n - 1.0).abs() > 1e-3 {
-            return Err(format!("pose quaternion has norm {n:.6}, expected 1"));
-        }
-        Ok(())
     }
 }
 

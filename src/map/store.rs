@@ -20,6 +20,7 @@ use std::sync::Arc;
 use parking_lot::{Mutex, RwLock};
 use serde::{Deserialize, Serialize};
 
+use crate::camera::Camera;
 use crate::error::MapError;
 use crate::features::Features;
 use crate::map::builder::{plan, BuildParams, ExternalCounts, KeyframeInput};
@@ -30,7 +31,6 @@ use crate::map::local::LocalBackend;
 use crate::map::localize::{localize, Localization, LocalizeParams, Prior};
 use crate::map::model::{validate_map_id, MapData, MapMeta, Record};
 use crate::map::s3::{ObjectStorageBackend, S3Config, S3Credentials};
-use crate::scene::Camera;
 
 /// Settings of the map store.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]

@@ -2,12 +2,13 @@
 
 use std::path::PathBuf;
 
+use crate::camera::Camera;
+use crate::camera::Pose;
 use crate::features::{Keypoint, DESCRIPTOR_BYTES};
 use crate::map::format::{decode_snapshot, encode_snapshot};
 use crate::map::index::{exact_search, EmbeddingIndex, IndexParams};
 use crate::map::local::MapLog;
-use crate::map::model::{Keyframe, MapData, MapMeta, NewObservation, Pose, Record};
-use crate::scene::Camera;
+use crate::map::model::{Keyframe, MapData, MapMeta, NewObservation, Record};
 
 use crate::test_dir::{temp_dir, TestDir};
 

@@ -20,16 +20,13 @@ use super::connections::{CountRequestsLayer, Listener};
 use super::metrics::CountedBody;
 use super::proto::{self, frame::Source};
 use super::App;
+use crate::camera::{quaternion_xyzw, Camera, Pose};
 use crate::features::Keypoint;
 use crate::map::builder::ExternalObservation;
 use crate::map::localize::Prior;
 use crate::map::store::MapSummary;
 use crate::matching::SconeMatcher;
-use crate::scene::Camera;
-use crate::service::{
-    pose_from_parts, quaternion_xyzw, ErrorKind, FrameInput, FrameSource, KeyframeRequest, KeypointsInput, PairOptions,
-    ServiceError,
-};
+use crate::service::{ErrorKind, FrameInput, FrameSource, KeyframeRequest, KeypointsInput, PairOptions, ServiceError};
 use crate::settings::Access;
 
 /// Export chunks, bytes.
@@ -236,7 +233,7 @@ impl proto::maps_server::Maps for GrpcApi {
                         let request = KeyframeRequest {
                             id: msg.keyframe_id,
                             frame: frame(msg.frame, "frame")?,
-                            pose: pose_from_parts([p.tx, p.ty, p.tz], [p.qx, p.qy, p.qz, p.qw]),
+                            pose: Pose { translation: [p.tx, p.ty, p.tz], rotation: [p.qx, p.qy, p.qz, p.qw] },
                             depth_png: (!msg.depth_png.is_empty()).then_some(msg.depth_png),
                             depth_scale: if msg.depth_scale == 0.0 { 1.0 / 5000.0 } else { msg.depth_scale },
                             external_landmarks: external_landmarks(msg.external_landmarks)?,

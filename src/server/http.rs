@@ -29,16 +29,13 @@ use tower::ServiceExt;
 use super::connections::{DeadlineBody, GuardedBody, Listener};
 use super::metrics::CountedBody;
 use super::App;
+use crate::camera::{quaternion_xyzw, Camera, Pose};
 use crate::decode::read_header;
 use crate::features::Keypoint;
 use crate::map::builder::ExternalObservation;
 use crate::map::localize::Prior;
 use crate::map::store::MapSummary;
-use crate::scene::Camera;
-use crate::service::{
-    pose_from_parts, quaternion_xyzw, ErrorKind, FrameInput, FrameSource, KeyframeRequest, KeypointsInput, PairOptions,
-    ServiceError,
-};
+use crate::service::{ErrorKind, FrameInput, FrameSource, KeyframeRequest, KeypointsInput, PairOptions, ServiceError};
 use crate::settings::Access;
 
 /// The OpenAPI description of this transport.
@@ -774,7 +771,7 @@ async fn add_keyframe(
         let request = KeyframeRequest {
             id: j.keyframe_id,
             frame: f,
-            pose: pose_from_parts([p.tx, p.ty, p.tz], [p.qx, p.qy, p.qz, p.qw]),
+            pose: Pose { translation: [p.tx, p.ty, p.tz], rotation: [p.qx, p.qy, p.qz, p.qw] },
             depth_png,
             depth_scale: j.depth_scale.unwrap_or(1.0 / 5000.0),
             external_landmarks: j

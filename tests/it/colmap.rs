@@ -12,6 +12,7 @@ use std::sync::Arc;
 use nalgebra::{Isometry3, Point3};
 use opencv::core::Mat;
 use opencv::prelude::*;
+use scone::camera::Camera;
 use scone::colmap::{self, ColmapModel};
 use scone::decode::{decode_depth_png, decode_grey, ImageLimits};
 use scone::embedding::{Embedder, EmbedderConfig};
@@ -20,7 +21,7 @@ use scone::map::builder::{ExternalObservation, KeyframeInput};
 use scone::map::store::{MapStore, ModelInfo, StoreConfig};
 use scone::pipeline::Describer;
 use scone::pose::rotation_error_deg;
-use scone::scene::{Camera, Scene};
+use scone::scene::Scene;
 
 use crate::common::{fixture, temp_dir};
 

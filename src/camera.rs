@@ -1,0 +1,91 @@
+//! Cameras and poses, shared by every part of the crate: pinhole intrinsics ([`Camera`]) and their checks,
+//! camera-to-world poses as stored in maps and sent by clients ([`Pose`], translation + quaternion x, y, z, w),
+//! and the quaternion conversions the transports use.
+
+use nalgebra::{Isometry3, Quaternion, Rotation3, Translation3, UnitQuaternion};
+use serde::{Deserialize, Serialize};
+
+use crate::error::PoseError;
+
+/// Pinhole intrinsics without distortion.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct Camera {
+    pub fx: f64,
+    pub fy: f64,
+    pub cx: f64,
+    pub cy: f64,
+    pub width: u32,
+    pub height: u32,
+}
+
+impl Camera {
+    /// The 3x3 calibration matrix, row-major.
+    pub fn k(&self) -> [[f64; 3]; 3] {
+        [[self.fx, 0.0, self.cx], [0.0, self.fy, self.cy], [0.0, 0.0, 1.0]]
+    }
+
+    /// Pixel of a point given in this camera's coordinates; `None` when it is not in front (z <= 0).
+    pub fn project(&self, p: &nalgebra::Point3<f64>) -> Option<(f64, f64)> {
+        (p.z > 0.0).then(|| (self.fx * p.x / p.z + self.cx, self.fy * p.y / p.z + self.cy))
+    }
+}
+
+/// Checks intrinsics a client or a file gave: positive finite focal lengths, a finite principal point, a
+/// non-empty image.
+pub fn validate_camera(cam: &Camera) -> Result<(), PoseError> {
+    let bad = |reason: String| Err(PoseError::Intrinsics { reason });
+    for (name, v) in [("fx", cam.fx), ("fy", cam.fy)] {
+        if !(v.is_finite() && v > 0.0) {
+            return bad(format!("{name} must be finite and positive (got {v})"));
+        }
+    }
+    for (name, v) in [("cx", cam.cx), ("cy", cam.cy)] {
+        if !v.is_finite() {
+            return bad(format!("{name} must be finite (got {v})"));
+        }
+    }
+    if cam.width == 0 || cam.height == 0 {
+        return bad(format!("width and height must be positive (got {}x{})", cam.width, cam.height));
+    }
+    Ok(())
+}
+
+/// A camera-to-world pose as translation + unit quaternion (x, y, z, w).
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct Pose {
+    pub translation: [f64; 3],
+    pub rotation: [f64; 4],
+}
+
+impl Pose {
+    pub fn from_isometry(p: &Isometry3<f64>) -> Self {
+        let q = p.rotation.quaternion();
+        Self { translation: p.translation.vector.into(), rotation: [q.i, q.j, q.k, q.w] }
+    }
+
+    pub fn isometry(&self) -> Isometry3<f64> {
+        let [x, y, z, w] = self.rotation;
+        Isometry3::from_parts(
+            Translation3::new(self.translation[0], self.translation[1], self.translation[2]),
+            UnitQuaternion::from_quaternion(Quaternion::new(w, x, y, z)),
+        )
+    }
+
+    /// Finite values and a quaternion of unit length (within 1e-3).
+    pub fn validate(&self) -> Result<(), String> {
+        if !self.translation.iter().chain(self.rotation.iter()).all(|v| v.is_finite()) {
+            return Err("pose has a non-finite value".into());
+        }
+        let n = self.rotation.iter().map(|v| v * v).sum::<f64>().sqrt();
+        if (n - 1.0).abs() > 1e-3 {
+            return Err(format!("pose quaternion has norm {n:.6}, expected 1"));
+        }
+        Ok(())
+    }
+}
+
+/// (x, y, z, w) of a rotation.
+pub fn quaternion_xyzw(r: &Rotation3<f64>) -> [f64; 4] {
+    let q = UnitQuaternion::from_rotation_matrix(r);
+    [q.i, q.j, q.k, q.w]
+}
