@@ -20,8 +20,8 @@ use scone::features::{ExtractorConfig, KeypointLimits};
 use scone::map::builder::{Depth, KeyframeInput};
 use scone::map::index::IndexParams;
 use scone::map::store::{MapStore, ModelInfo, StoreConfig};
+use scone::offline::scene::Scene;
 use scone::pipeline::Describer;
-use scone::scene::Scene;
 use scone::service::{FrameInput, FrameSource, Service};
 
 fn rss_mb() -> f64 {

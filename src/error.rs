@@ -100,7 +100,7 @@ pub enum MapError {
     Pose(#[from] PoseError),
 }
 
-/// Errors of importing a map made by an external SfM (a COLMAP model, [`crate::colmap`]).
+/// Errors of importing a map made by an external SfM (a COLMAP model, [`crate::offline::colmap`]).
 #[derive(Debug, thiserror::Error)]
 pub enum ImportError {
     /// The model's files (file and line named).

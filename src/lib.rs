@@ -20,19 +20,16 @@
 //! -> (the embedding network) -> matching and pose estimation.
 
 pub mod camera;
-pub mod colmap;
 pub mod constellation;
 pub mod decode;
 pub mod embedding;
 pub mod error;
-pub mod eval;
-pub mod export;
 pub mod features;
 pub mod map;
 pub mod matching;
+pub mod offline;
 pub mod pipeline;
 pub mod pose;
-pub mod scene;
 pub mod server;
 pub mod service;
 pub mod settings;

@@ -6,13 +6,13 @@ use clap::{Args, Parser, Subcommand};
 use scone::constellation::{self, DEFAULT_K};
 use scone::decode::{decode_grey, ImageLimits};
 use scone::embedding::{Embedder, EmbedderConfig};
-use scone::eval::methods::Method;
-use scone::eval::pairs::{self, PairsConfig};
 use scone::features::{self, ExtractorConfig};
 use scone::map::builder::{BuildParams, Depth, KeyframeInput};
 use scone::map::store::{MapStore, ModelInfo, StoreConfig};
+use scone::offline::eval::methods::Method;
+use scone::offline::eval::pairs::{self, PairsConfig};
+use scone::offline::scene::Scene;
 use scone::pipeline::Describer;
-use scone::scene::Scene;
 
 #[derive(Parser)]
 #[command(name = "scone", version, about = "SConE image matching and relocalisation")]
@@ -339,11 +339,11 @@ fn run_map(cmd: MapCommand) -> anyhow::Result<()> {
         MapCommand::ImportColmap { data_dir, map, model_dir, images, radius_px, model } => {
             let build = BuildParams { external_radius_px: radius_px, ..BuildParams::default() };
             build.validate().map_err(|e| anyhow::anyhow!("--radius-px: {e}"))?;
-            let colmap = scone::colmap::ColmapModel::read(&model_dir)?;
+            let colmap = scone::offline::colmap::ColmapModel::read(&model_dir)?;
             let (store, describer) = open_store_with(StoreConfig { data_dir, build, ..StoreConfig::default() }, model)?;
             let mut stdout = std::io::stdout().lock();
             let mut failed: Option<std::io::Error> = None;
-            let summary = scone::colmap::import(&store, &describer, &map, &colmap, &images, &mut |i| {
+            let summary = scone::offline::colmap::import(&store, &describer, &map, &colmap, &images, &mut |i| {
                 let line = match &i.added {
                     Some(a) => format!(
                         "ack {} image {} landmarks {} observations {} rejected {} unassociated {}",
@@ -426,7 +426,7 @@ fn main() -> anyhow::Result<()> {
             println!("{}", serde_json::to_string_pretty(&summary)?);
             if let Some(out) = out {
                 let name = image.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_default();
-                scone::export::export_image(&name, &f, &c, &cfg, &out)?;
+                scone::offline::training_features::export_image(&name, &f, &c, &cfg, &out)?;
             }
         }
         Command::Eval(EvalCommand::Pairs {
@@ -508,18 +508,23 @@ fn main() -> anyhow::Result<()> {
             }
             let s = Scene::load(&scene)?;
             let embedder = load_embedder(methods.contains(&Method::Scone), &out)?;
-            let rc =
-                scone::eval::reloc::RelocConfig { methods, stride: map_stride, extractor: cfg, ..Default::default() };
-            let report =
-                scone::eval::reloc::evaluate(&s, &rc, embedder.as_ref()).map_err(|e| anyhow::anyhow!("{e}"))?;
-            print!("{}", scone::eval::reloc::markdown(&report));
+            let rc = scone::offline::eval::reloc::RelocConfig {
+                methods,
+                stride: map_stride,
+                extractor: cfg,
+                ..Default::default()
+            };
+            let report = scone::offline::eval::reloc::evaluate(&s, &rc, embedder.as_ref())
+                .map_err(|e| anyhow::anyhow!("{e}"))?;
+            print!("{}", scone::offline::eval::reloc::markdown(&report));
             out.write_json(&report)?;
         }
         Command::Map(cmd) => run_map(cmd)?,
         Command::Features { scene, out, extractor } => {
             let cfg = extractor.config()?;
             let s = Scene::load(&scene)?;
-            let summary = scone::export::export_scene(&s, &cfg, extractor.k, &ImageLimits::default(), &out)?;
+            let summary =
+                scone::offline::training_features::export_scene(&s, &cfg, extractor.k, &ImageLimits::default(), &out)?;
             println!("{}", serde_json::to_string_pretty(&summary)?);
         }
     }

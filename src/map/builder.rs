@@ -14,7 +14,7 @@
 //!    `reproj_px` in both, and the rays meet at `min_parallax_deg` or more. It becomes a landmark observed by
 //!    both keyframes; a keypoint is used by at most one landmark.
 //!
-//! **External landmarks** (a map made by an external SfM such as COLMAP, see [`crate::colmap`]): a keyframe may
+//! **External landmarks** (a map made by an external SfM such as COLMAP, see [`crate::offline::colmap`]): a keyframe may
 //! carry [`ExternalObservation`]s, each a pixel of this keyframe, the SfM's id of the 3D point seen there and
 //! that point. Such a keyframe takes its landmarks from them *instead of* steps 2-3: no matching against
 //! earlier keyframes, no depth, no triangulation. The SfM already decided which pixels see which point and

@@ -13,15 +13,15 @@ use nalgebra::{Isometry3, Point3};
 use opencv::core::Mat;
 use opencv::prelude::*;
 use scone::camera::Camera;
-use scone::colmap::{self, ColmapModel};
 use scone::decode::{decode_depth_png, decode_grey, ImageLimits};
 use scone::embedding::{Embedder, EmbedderConfig};
 use scone::features::{self, ExtractorConfig};
 use scone::map::builder::{ExternalObservation, KeyframeInput};
 use scone::map::store::{MapStore, ModelInfo, StoreConfig};
+use scone::offline::colmap::{self, ColmapModel};
+use scone::offline::scene::Scene;
 use scone::pipeline::Describer;
 use scone::pose::rotation_error_deg;
-use scone::scene::Scene;
 
 use crate::common::{fixture, temp_dir};
 

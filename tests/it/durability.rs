@@ -10,9 +10,9 @@ use scone::decode::ImageLimits;
 use scone::embedding::{Embedder, EmbedderConfig};
 use scone::features::ExtractorConfig;
 use scone::map::store::{MapStore, ModelInfo, StoreConfig};
+use scone::offline::scene::Scene;
 use scone::pipeline::Describer;
 use scone::pose::rotation_error_deg;
-use scone::scene::Scene;
 
 use crate::common::{fixture, temp_dir};
 

@@ -2,7 +2,7 @@
 
 use std::time::{Duration, Instant};
 
-use scone::scene::Scene;
+use scone::offline::scene::Scene;
 use scone::server::proto::{self, frame::Source};
 use tokio::io::{AsyncReadExt, AsyncWriteExt};
 use tokio::net::TcpStream;

@@ -24,9 +24,9 @@ use scone::map::s3::S3Config;
 use scone::map::s3::{ObjectStorageBackend, S3Credentials};
 use scone::map::store::BackendConfig;
 use scone::map::store::{MapStore, ModelInfo, StoreConfig};
+use scone::offline::scene::Scene;
 use scone::pipeline::{Described, Describer};
 use scone::pose::rotation_error_deg;
-use scone::scene::Scene;
 use scone::MapError;
 
 use crate::common::{fixture, temp_dir};

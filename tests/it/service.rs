@@ -5,7 +5,7 @@ use std::time::Duration;
 
 use nalgebra::Isometry3;
 use scone::camera::Camera;
-use scone::scene::Scene;
+use scone::offline::scene::Scene;
 use scone::server::proto::{self, frame::Source, maps_client::MapsClient, matching_client::MatchingClient};
 use scone::server::{start, Running};
 use scone::settings::Settings;

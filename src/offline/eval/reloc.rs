@@ -25,8 +25,8 @@ use crate::map::builder::{plan_keyframe, BuildParams, Depth, KeyframeInput};
 use crate::map::index::{EmbeddingIndex, IndexParams};
 use crate::map::localize::{localize, LocalizeParams};
 use crate::map::model::{MapData, MapMeta};
+use crate::offline::scene::Scene;
 use crate::pose::rotation_error_deg;
-use crate::scene::Scene;
 
 type BoxError = Box<dyn std::error::Error + Send + Sync>;
 

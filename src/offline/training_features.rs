@@ -25,7 +25,7 @@ use crate::constellation::{self, Constellations, GEOMETRY_DIM};
 use crate::decode::{decode_grey, ImageLimits};
 use crate::error::SceneError;
 use crate::features::{extract, ExtractorConfig, Features, DESCRIPTOR_BYTES};
-use crate::scene::Scene;
+use crate::offline::scene::Scene;
 
 /// Version of the export layout; bumped on any change of keys, dtypes or meanings.
 pub const EXPORT_FORMAT_VERSION: u32 = 1;

@@ -27,10 +27,10 @@ use crate::decode::{decode_depth_png, decode_grey, ImageLimits};
 use crate::embedding::Embedder;
 use crate::features::ExtractorConfig;
 use crate::matching::{RatioTest, SconeMatcher};
+use crate::offline::scene::Scene;
 use crate::pose::{
     ransac_iterations_needed, relative_motion, relative_pose, rotation_error_deg, translation_angle_deg, RansacParams,
 };
-use crate::scene::Scene;
 
 type BoxError = Box<dyn std::error::Error + Send + Sync>;
 
