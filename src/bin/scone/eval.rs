@@ -1,0 +1,185 @@
+//! `scone eval ...`: the evaluation protocol on real scenes.
+
+use std::path::PathBuf;
+
+use clap::Subcommand;
+
+use scone::features::ExtractorConfig;
+use scone::offline::eval::methods::Method;
+use scone::offline::eval::pairs::{self, PairsConfig};
+use scone::offline::eval::reloc;
+use scone::offline::scene::Scene;
+
+use crate::args::{load_embedder, ExtractorArgs, ReportArgs};
+
+#[derive(Subcommand)]
+pub enum EvalCommand {
+    /// Relative pose between the first frame of each window and every later frame, per method.
+    Pairs {
+        /// Scene directory in the TUM RGB-D layout.
+        #[arg(long)]
+        scene: PathBuf,
+        /// Methods to compare.
+        #[arg(long, value_delimiter = ',', default_value = "scone,freak,freak-gms,orb,sift")]
+        methods: Vec<Method>,
+        /// Frames per window; the first is the reference.
+        #[arg(long, default_value_t = 100)]
+        window: usize,
+        /// RANSAC seeds to average over.
+        #[arg(long, default_value_t = 5)]
+        seeds: u64,
+        /// Ratio-test threshold.
+        #[arg(long, default_value_t = 0.8)]
+        ratio: f32,
+        /// Keep only mutual nearest neighbours.
+        #[arg(long)]
+        mutual: bool,
+        /// Ratio test: candidates within this many pixels of the nearest neighbour's keypoint are the same
+        /// corner, not competitors (0 = OpenCV's plain test). Default 2, or 0 with --single-scale.
+        #[arg(long)]
+        same_corner_px: Option<f32>,
+        /// How the scone method picks its matches (scone-plain is always the plain embedding).
+        #[arg(long, value_enum, default_value_t = scone::matching::SconeMatcher::default())]
+        scone_matcher: scone::matching::SconeMatcher,
+        /// RANSAC inlier threshold in pixels.
+        #[arg(long, default_value_t = 1.0)]
+        ransac_px: f64,
+        /// RANSAC iteration cap. Default 10,000, or OpenCV's 1,000 with --single-scale.
+        #[arg(long)]
+        ransac_iters: Option<i32>,
+        /// RANSAC confidence: the search stops once it is this sure that no better model is left to find.
+        /// Default 0.9999, or OpenCV's 0.999 with --single-scale.
+        #[arg(long)]
+        ransac_confidence: Option<f64>,
+        /// Leave out of the essential-matrix estimation correspondences within this many pixels of an earlier
+        /// one in both images (0 = off).
+        #[arg(long)]
+        duplicate_px: Option<f64>,
+        /// Essential-matrix estimator. Default usac-accurate, or ransac with --single-scale.
+        #[arg(long, value_enum)]
+        essential: Option<scone::pose::EssentialMethod>,
+        /// Match precision: a match with depth at the reference keypoint is correct within this many pixels.
+        #[arg(long, default_value_t = 4.0)]
+        depth_px: f64,
+        /// Match precision without depth: symmetric epipolar distance threshold in pixels.
+        #[arg(long, default_value_t = 2.0)]
+        epipolar_px: f64,
+        /// Also score apart the pairs whose ground-truth baseline is under this (scene units), by rotation
+        /// alone (0 = off).
+        #[arg(long, default_value_t = 0.0)]
+        short_baseline: f64,
+        /// Use OpenCV's single-scale FAST (threshold 20, 2,000 strongest), as the data README's baselines.
+        #[arg(long)]
+        single_scale: bool,
+        #[command(flatten)]
+        report: ReportArgs,
+        #[command(flatten)]
+        extractor: ExtractorArgs,
+    },
+    /// Relocalisation: build a map from every S-th frame (ground-truth poses, depth when present), localise the rest.
+    Reloc {
+        /// Scene directory in the TUM RGB-D layout.
+        #[arg(long)]
+        scene: PathBuf,
+        /// Methods to compare (scone, freak, sift).
+        #[arg(long, value_delimiter = ',', default_value = "scone,freak,sift")]
+        methods: Vec<Method>,
+        /// Every S-th frame goes into the map.
+        #[arg(long, default_value_t = 3)]
+        map_stride: usize,
+        #[command(flatten)]
+        report: ReportArgs,
+        #[command(flatten)]
+        extractor: ExtractorArgs,
+    },
+}
+
+pub fn run(cmd: EvalCommand) -> anyhow::Result<()> {
+    match cmd {
+        EvalCommand::Pairs {
+            scene,
+            methods,
+            window,
+            seeds,
+            ratio,
+            mutual,
+            same_corner_px,
+            scone_matcher,
+            ransac_px,
+            ransac_iters,
+            ransac_confidence,
+            duplicate_px,
+            essential,
+            depth_px,
+            epipolar_px,
+            short_baseline,
+            single_scale,
+            report: out,
+            extractor,
+        } => {
+            // --single-scale is OpenCV's own pipeline, plain ratio test and plain RANSAC (with OpenCV's
+            // iteration cap and confidence) included.
+            let base = if single_scale {
+                scone::pose::RansacParams::opencv(ransac_px)
+            } else {
+                scone::pose::RansacParams { threshold_px: ransac_px, ..Default::default() }
+            };
+            let ransac = scone::pose::RansacParams {
+                essential: essential.unwrap_or(base.essential),
+                max_iters: ransac_iters.unwrap_or(base.max_iters),
+                confidence: ransac_confidence.unwrap_or(base.confidence),
+                duplicate_px: duplicate_px.unwrap_or(base.duplicate_px),
+                ..base
+            };
+            let same_corner_px =
+                same_corner_px.unwrap_or(if single_scale { 0.0 } else { scone::matching::SAME_CORNER_PX });
+            anyhow::ensure!(
+                same_corner_px.is_finite() && same_corner_px >= 0.0,
+                "--same-corner-px must be a finite number >= 0"
+            );
+            ransac.validate().map_err(|e| {
+                anyhow::anyhow!("--ransac-px / --ransac-iters / --ransac-confidence / --duplicate-px: {e}")
+            })?;
+            let mut cfg = extractor.config()?;
+            if single_scale {
+                cfg = ExtractorConfig::single_scale(20, 2000);
+            }
+            let s = Scene::load(&scene)?;
+            let embedder =
+                load_embedder(methods.iter().any(|m| matches!(m, Method::Scone | Method::SconePlain)), &out)?;
+            let pc = PairsConfig {
+                methods,
+                window,
+                seeds,
+                ratio,
+                mutual,
+                same_corner_px,
+                scone_matcher,
+                ransac,
+                extractor: cfg,
+                depth_px,
+                epipolar_px,
+                short_baseline,
+            };
+            let report = pairs::evaluate(&s, &pc, embedder.as_ref()).map_err(|e| anyhow::anyhow!("{e}"))?;
+            print!("{}", pairs::markdown(&report));
+            out.write_json(&report)?;
+        }
+        EvalCommand::Reloc { scene, methods, map_stride, report: out, extractor } => {
+            let cfg = extractor.config()?;
+            for m in &methods {
+                anyhow::ensure!(
+                    matches!(m, Method::Scone | Method::Freak | Method::Sift),
+                    "eval reloc compares scone, freak and sift"
+                );
+            }
+            let s = Scene::load(&scene)?;
+            let embedder = load_embedder(methods.contains(&Method::Scone), &out)?;
+            let rc = reloc::RelocConfig { methods, stride: map_stride, extractor: cfg, ..Default::default() };
+            let report = reloc::evaluate(&s, &rc, embedder.as_ref()).map_err(|e| anyhow::anyhow!("{e}"))?;
+            print!("{}", reloc::markdown(&report));
+            out.write_json(&report)?;
+        }
+    }
+    Ok(())
+}
