@@ -220,6 +220,11 @@ fn to_grey_u8(mat: Mat) -> Result<Mat, FeatureError> {
     Ok(grey)
 }
 
+/// Raw units per metre of a TUM RGB-D depth image (16-bit PNG; 0 = no reading).
+pub const TUM_DEPTH_PER_METRE: f64 = 5000.0;
+/// Metres per raw unit of a TUM RGB-D depth image: the default depth scale of every transport and command.
+pub const TUM_DEPTH_SCALE: f64 = 1.0 / TUM_DEPTH_PER_METRE;
+
 /// Decodes a 16-bit single-channel depth PNG (TUM convention: metres x 5000, 0 = no reading).
 pub fn decode_depth_png(bytes: &[u8], limits: &ImageLimits) -> Result<Mat, FeatureError> {
     let header = check_limits(bytes, limits)?;

@@ -26,6 +26,10 @@ pub struct Match {
 /// The project's default radius for [`RatioTest::same_corner_px`]: the training loss's `exclude_px`.
 pub const SAME_CORNER_PX: f32 = 2.0;
 
+/// Lowe's ratio threshold the project uses wherever a caller does not choose one (pairs, map building,
+/// relocalisation, the evaluation).
+pub const DEFAULT_RATIO: f32 = 0.8;
+
 /// Candidates examined for a competitor beyond the same-corner radius. FAST's non-maximum suppression leaves
 /// a corner about one keypoint per pyramid level, so 10 covers the default six levels with room to spare; when
 /// all of them are the same corner the last one's distance stands in, which can only make the test stricter.

@@ -1,13 +1,45 @@
 //! The path every image and every client keypoint set takes: decode -> FAST + FREAK -> constellations ->
-//! SConE embeddings. Transports and commands call this; nothing else strings the stages together.
+//! SConE embeddings. The service, the commands and the evaluation call this; nothing else strings the stages
+//! together. Callers that report stage times pass a [`StageTimes`] for the describer to fill.
 
 use std::sync::Arc;
+use std::time::Instant;
 
 use crate::constellation;
 use crate::decode::{decode_grey, ImageLimits};
 use crate::embedding::Embedder;
 use crate::error::{EmbeddingError, FeatureError};
 use crate::features::{self, ExtractorConfig, Features};
+
+/// Wall time of each stage of a request, seconds, in order.
+#[derive(Debug, Clone, Default, PartialEq)]
+pub struct StageTimes(pub Vec<(&'static str, f64)>);
+
+impl StageTimes {
+    /// Runs `f` and records its wall time as `stage`.
+    pub fn time<R>(&mut self, stage: &'static str, f: impl FnOnce() -> R) -> R {
+        let t = Instant::now();
+        let r = f();
+        self.0.push((stage, t.elapsed().as_secs_f64()));
+        r
+    }
+
+    /// Adds `other`'s times, summing stages both have (the two frames of a pair).
+    pub fn add(&mut self, other: &StageTimes) {
+        for (s, t) in &other.0 {
+            match self.0.iter_mut().find(|(n, _)| n == s) {
+                Some(e) => e.1 += t,
+                None => self.0.push((s, *t)),
+            }
+        }
+    }
+}
+
+/// SConE embeddings of a feature set (`[N, embedder.dim()]`, row-major): its constellations, then the model.
+pub fn embed(embedder: &Embedder, features: &Features) -> Result<Vec<f32>, EmbeddingError> {
+    let c = constellation::build(&features.keypoints, embedder.k());
+    embedder.embed(features, &c)
+}
 
 /// Errors of the whole path.
 #[derive(Debug, thiserror::Error)]
@@ -36,9 +68,21 @@ pub struct Describer {
 impl Describer {
     /// Encoded image -> features and embeddings.
     pub fn describe_image(&self, bytes: &[u8]) -> Result<Described, DescribeError> {
-        let image = decode_grey(bytes, &self.limits)?;
-        let features = features::extract(&image, &self.extractor)?;
-        self.describe_features(features)
+        let mut times = StageTimes::default();
+        let features = self.extract(bytes, &mut times)?;
+        Ok(self.embed(features, &mut times)?)
+    }
+
+    /// Encoded image -> FAST + FREAK features, timing `decode` and `extract`.
+    pub fn extract(&self, bytes: &[u8], times: &mut StageTimes) -> Result<Features, FeatureError> {
+        let image = times.time("decode", || decode_grey(bytes, &self.limits))?;
+        times.time("extract", || features::extract(&image, &self.extractor))
+    }
+
+    /// Features (extracted here or validated client keypoints) -> embeddings, timing `embed`.
+    pub fn embed(&self, features: Features, times: &mut StageTimes) -> Result<Described, EmbeddingError> {
+        let embeddings = times.time("embed", || embed(&self.embedder, &features))?;
+        Ok(Described { features, embeddings })
     }
 
     /// Embeddings of a stored keyframe (its keypoints and FREAK descriptors) with this model.
@@ -50,13 +94,6 @@ impl Describer {
             &keyframe.descriptors,
             &features::KeypointLimits { max_keypoints: usize::MAX, ..Default::default() },
         )?;
-        Ok(self.describe_features(features)?.embeddings)
-    }
-
-    /// Features (extracted here or validated client keypoints) -> embeddings.
-    pub fn describe_features(&self, features: Features) -> Result<Described, DescribeError> {
-        let c = constellation::build(&features.keypoints, self.embedder.k());
-        let embeddings = self.embedder.embed(&features, &c)?;
-        Ok(Described { features, embeddings })
+        Ok(embed(&self.embedder, &features)?)
     }
 }

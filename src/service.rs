@@ -9,7 +9,6 @@
 //! is ready; map operations before that answer [`ServiceError::NotReady`].
 
 use std::sync::{Arc, OnceLock};
-use std::time::Instant;
 
 use opencv::prelude::MatTraitConst;
 use serde::Serialize;
@@ -17,14 +16,14 @@ use serde::Serialize;
 use crate::camera::validate_camera;
 use crate::camera::Camera;
 use crate::camera::Pose;
-use crate::decode::{check_limits, decode_depth_png, decode_grey, ImageLimits};
+use crate::decode::{check_limits, decode_depth_png, ImageLimits};
 use crate::error::{EmbeddingError, FeatureError, MapError, PoseError};
 use crate::features::{self, Features, Keypoint, KeypointLimits};
 use crate::map::builder::{Depth, ExternalObservation, KeyframeInput};
 use crate::map::localize::{LandmarkMatch, Prior};
 use crate::map::store::{KeyframeAdded, MapStore, MapSummary};
-use crate::matching::{match_scone, Match, RatioTest, SconeFrame, SconeMatcher, SAME_CORNER_PX};
-use crate::pipeline::{DescribeError, Describer};
+use crate::matching::{match_scone, Match, RatioTest, SconeFrame, SconeMatcher, DEFAULT_RATIO, SAME_CORNER_PX};
+use crate::pipeline::{DescribeError, Describer, StageTimes};
 use crate::pose::{relative_pose, AbsolutePose, RansacParams, RelativePose};
 
 /// Keypoints with FREAK descriptors computed by a client (see the client contract in the proto).
@@ -54,19 +53,6 @@ pub struct FrameInput {
     pub camera: Option<Camera>,
 }
 
-/// Wall time of each stage of a request, seconds, in order.
-#[derive(Debug, Clone, Default, PartialEq)]
-pub struct StageTimes(pub Vec<(&'static str, f64)>);
-
-impl StageTimes {
-    fn time<R>(&mut self, stage: &'static str, f: impl FnOnce() -> R) -> R {
-        let t = Instant::now();
-        let r = f();
-        self.0.push((stage, t.elapsed().as_secs_f64()));
-        r
-    }
-}
-
 /// Keypoints and embeddings of one frame.
 #[derive(Debug, Clone)]
 pub struct Description {
@@ -90,7 +76,7 @@ pub struct PairOptions {
 
 impl Default for PairOptions {
     fn default() -> Self {
-        Self { ratio: 0.8, mutual: false, matcher: SconeMatcher::default() }
+        Self { ratio: DEFAULT_RATIO, mutual: false, matcher: SconeMatcher::default() }
     }
 }
 
@@ -101,6 +87,20 @@ pub struct PairOutcome {
     /// Camera 1 into camera 2, when enough matches support one.
     pub pose: Option<RelativePose>,
     pub times: StageTimes,
+}
+
+impl PairOutcome {
+    /// Whether each match (in the order of [`PairOutcome::matches`]) is an inlier of the pose; all false
+    /// without a pose.
+    pub fn inlier_flags(&self) -> Vec<bool> {
+        let inliers = self.pose.as_ref().map_or(&[][..], |p| &p.inliers[..]);
+        (0..self.matches.len()).map(|i| inliers.get(i).copied().unwrap_or(false)).collect()
+    }
+
+    /// Matches that are inliers of the pose (0 without one).
+    pub fn inlier_count(&self) -> usize {
+        self.pose.as_ref().map_or(0, |p| p.inlier_count)
+    }
 }
 
 /// The outcome of a relocalisation.
@@ -326,10 +326,7 @@ impl Service {
     fn features(&self, source: FrameSource, times: &mut StageTimes) -> Result<Features, ServiceError> {
         self.check_source(&source)?;
         match source {
-            FrameSource::Image(bytes) => {
-                let grey = times.time("decode", || decode_grey(&bytes, &self.describer.limits))?;
-                Ok(times.time("extract", || features::extract(&grey, &self.describer.extractor))?)
-            }
+            FrameSource::Image(bytes) => Ok(self.describer.extract(&bytes, times)?),
             FrameSource::Keypoints(k) => {
                 if let Some(m) = k.model_id.as_deref().filter(|m| !m.is_empty()) {
                     if m != self.model_id() {
@@ -349,7 +346,7 @@ impl Service {
     fn describe_source(&self, source: FrameSource) -> Result<Description, ServiceError> {
         let mut times = StageTimes::default();
         let features = self.features(source, &mut times)?;
-        let d = times.time("embed", || self.describer.describe_features(features))?;
+        let d = self.describer.embed(features, &mut times)?;
         Ok(Description {
             features: d.features,
             embeddings: d.embeddings,
@@ -420,14 +417,8 @@ impl Service {
         Self::check_frame_size(&d1, &cam1, "frame1.intrinsics")?;
         let d2 = self.describe_source(b.source)?;
         Self::check_frame_size(&d2, &cam2, "frame2.intrinsics")?;
-        let mut times = StageTimes::default();
-        times.0.extend(d1.times.0.iter().map(|(s, t)| (*s, *t)));
-        for (s, t) in &d2.times.0 {
-            match times.0.iter_mut().find(|(n, _)| n == s) {
-                Some(e) => e.1 += t,
-                None => times.0.push((s, *t)),
-            }
-        }
+        let mut times = d1.times.clone();
+        times.add(&d2.times);
         let test = RatioTest { ratio: options.ratio, mutual: options.mutual, same_corner_px: SAME_CORNER_PX };
         let (points1, points2) = (d1.features.points(), d2.features.points());
         let matches = times.time("match", || {
@@ -565,5 +556,24 @@ impl Service {
             Some(s) => Ok(s.flush()?),
             None => Ok(()),
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_pair_outcome_flags_each_match_once_and_none_without_a_pose() {
+        let m = |i| Match { query: i, train: i, distance: 0.1 };
+        let mut o = PairOutcome { matches: vec![m(0), m(1), m(2)], pose: None, times: StageTimes::default() };
+        assert_eq!((o.inlier_flags(), o.inlier_count()), (vec![false; 3], 0));
+        o.pose = Some(RelativePose {
+            rotation: nalgebra::Rotation3::identity(),
+            translation: nalgebra::Vector3::x(),
+            inliers: vec![true, false, true],
+            inlier_count: 2,
+        });
+        assert_eq!((o.inlier_flags(), o.inlier_count()), (vec![true, false, true], 2));
     }
 }

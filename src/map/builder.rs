@@ -89,7 +89,7 @@ pub struct BuildParams {
 impl Default for BuildParams {
     fn default() -> Self {
         Self {
-            ratio: 0.8,
+            ratio: crate::matching::DEFAULT_RATIO,
             reproj_px: 3.0,
             min_parallax_deg: 1.0,
             candidates: 5,
@@ -159,7 +159,7 @@ pub struct Plan {
 /// Depth for a keyframe: 16-bit image and the factor that turns raw values into metres.
 pub struct Depth<'a> {
     pub image: &'a Mat,
-    /// Metres per raw unit (TUM: 1 / 5000).
+    /// Metres per raw unit (TUM: [`crate::decode::TUM_DEPTH_SCALE`]).
     pub scale: f64,
 }
 

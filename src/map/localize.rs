@@ -31,7 +31,7 @@ pub struct LocalizeParams {
 impl Default for LocalizeParams {
     fn default() -> Self {
         Self {
-            ratio: 0.8,
+            ratio: crate::matching::DEFAULT_RATIO,
             knn: 4,
             ransac: RansacParams { threshold_px: 4.0, confidence: 0.999, max_iters: 2000, ..Default::default() },
             min_inliers: 15,

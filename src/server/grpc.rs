@@ -21,11 +21,12 @@ use super::metrics::CountedBody;
 use super::proto::{self, frame::Source};
 use super::App;
 use crate::camera::{quaternion_xyzw, Camera, Pose};
+use crate::decode::TUM_DEPTH_SCALE;
 use crate::features::Keypoint;
 use crate::map::builder::ExternalObservation;
 use crate::map::localize::Prior;
 use crate::map::store::MapSummary;
-use crate::matching::SconeMatcher;
+use crate::matching::{SconeMatcher, DEFAULT_RATIO};
 use crate::service::{ErrorKind, FrameInput, FrameSource, KeyframeRequest, KeypointsInput, PairOptions, ServiceError};
 use crate::settings::Access;
 
@@ -235,7 +236,7 @@ impl proto::maps_server::Maps for GrpcApi {
                             frame: frame(msg.frame, "frame")?,
                             pose: Pose { translation: [p.tx, p.ty, p.tz], rotation: [p.qx, p.qy, p.qz, p.qw] },
                             depth_png: (!msg.depth_png.is_empty()).then_some(msg.depth_png),
-                            depth_scale: if msg.depth_scale == 0.0 { 1.0 / 5000.0 } else { msg.depth_scale },
+                            depth_scale: if msg.depth_scale == 0.0 { TUM_DEPTH_SCALE } else { msg.depth_scale },
                             external_landmarks: external_landmarks(msg.external_landmarks)?,
                         };
                         let (added, times) = a.service.add_keyframe(&msg.map_id, request)?;
@@ -355,24 +356,26 @@ impl proto::matching_server::Matching for GrpcApi {
                     Ok(proto::PairMatcher::Rerank) => SconeMatcher::Rerank,
                     Err(_) => return Err(invalid("matcher", &format!("{} is not a PairMatcher", r.matcher))),
                 };
-                let options =
-                    PairOptions { ratio: if r.ratio == 0.0 { 0.8 } else { r.ratio }, mutual: r.mutual, matcher };
+                let options = PairOptions {
+                    ratio: if r.ratio == 0.0 { DEFAULT_RATIO } else { r.ratio },
+                    mutual: r.mutual,
+                    matcher,
+                };
                 let o = a.service.match_pair(frame(r.frame1, "frame1")?, frame(r.frame2, "frame2")?, options)?;
                 a.metrics.stages(&o.times);
-                let inliers = o.pose.as_ref().map(|p| p.inliers.clone()).unwrap_or_default();
                 Ok(proto::MatchPairResponse {
                     matches: o
                         .matches
                         .iter()
-                        .enumerate()
-                        .map(|(i, m)| proto::Match {
+                        .zip(o.inlier_flags())
+                        .map(|(m, inlier)| proto::Match {
                             index1: m.query as u32,
                             index2: m.train as u32,
                             distance: m.distance,
-                            inlier: inliers.get(i).copied().unwrap_or(false),
+                            inlier,
                         })
                         .collect(),
-                    inliers: o.pose.as_ref().map_or(0, |p| p.inlier_count as u32),
+                    inliers: o.inlier_count() as u32,
                     pose: o.pose.as_ref().map(|p| {
                         let [qx, qy, qz, qw] = quaternion_xyzw(&p.rotation);
                         proto::RelativePose {

@@ -30,11 +30,12 @@ use super::connections::{DeadlineBody, GuardedBody, Listener};
 use super::metrics::CountedBody;
 use super::App;
 use crate::camera::{quaternion_xyzw, Camera, Pose};
-use crate::decode::read_header;
+use crate::decode::{read_header, TUM_DEPTH_SCALE};
 use crate::features::Keypoint;
 use crate::map::builder::ExternalObservation;
 use crate::map::localize::Prior;
 use crate::map::store::MapSummary;
+use crate::matching::DEFAULT_RATIO;
 use crate::service::{ErrorKind, FrameInput, FrameSource, KeyframeRequest, KeypointsInput, PairOptions, ServiceError};
 use crate::settings::Access;
 
@@ -685,18 +686,19 @@ async fn match_pair(
         let j: MatchJson = parse_json(&body.json)?;
         let f1 = frame(j.frame1, body.image, &[], "frame1")?;
         let f2 = frame(j.frame2, body.image2, &[], "frame2")?;
-        let options =
-            PairOptions { ratio: j.ratio.unwrap_or(0.8), mutual: j.mutual, matcher: j.matcher.unwrap_or_default() };
+        let options = PairOptions {
+            ratio: j.ratio.unwrap_or(DEFAULT_RATIO),
+            mutual: j.mutual,
+            matcher: j.matcher.unwrap_or_default(),
+        };
         let o = a.service.match_pair(f1, f2, options)?;
         a.metrics.stages(&o.times);
-        let inliers = o.pose.as_ref().map(|p| p.inliers.clone()).unwrap_or_default();
         let matches: Vec<_> = o
             .matches
             .iter()
-            .enumerate()
-            .map(|(i, m)| {
-                serde_json::json!({"index1": m.query, "index2": m.train, "distance": m.distance,
-                                   "inlier": inliers.get(i).copied().unwrap_or(false)})
+            .zip(o.inlier_flags())
+            .map(|(m, inlier)| {
+                serde_json::json!({"index1": m.query, "index2": m.train, "distance": m.distance, "inlier": inlier})
             })
             .collect();
         let pose = o.pose.as_ref().map(|p| {
@@ -707,7 +709,7 @@ async fn match_pair(
         Ok(serde_json::json!({
             "matches": matches,
             "pose": pose,
-            "inliers": o.pose.as_ref().map_or(0, |p| p.inlier_count),
+            "inliers": o.inlier_count(),
         }))
     })
     .await?;
@@ -773,7 +775,7 @@ async fn add_keyframe(
             frame: f,
             pose: Pose { translation: [p.tx, p.ty, p.tz], rotation: [p.qx, p.qy, p.qz, p.qw] },
             depth_png,
-            depth_scale: j.depth_scale.unwrap_or(1.0 / 5000.0),
+            depth_scale: j.depth_scale.unwrap_or(TUM_DEPTH_SCALE),
             external_landmarks: j
                 .external_landmarks
                 .iter()

@@ -29,7 +29,7 @@ pub enum EvalCommand {
         #[arg(long, default_value_t = 5)]
         seeds: u64,
         /// Ratio-test threshold.
-        #[arg(long, default_value_t = 0.8)]
+        #[arg(long, default_value_t = scone::matching::DEFAULT_RATIO)]
         ratio: f32,
         /// Keep only mutual nearest neighbours.
         #[arg(long)]

@@ -103,7 +103,7 @@ pub fn run(cmd: MapCommand) -> anyhow::Result<()> {
                         camera: s.camera,
                         features: &d.features,
                         embeddings: &d.embeddings,
-                        depth: depth.as_ref().map(|m| Depth { image: m, scale: 1.0 / 5000.0 }),
+                        depth: depth.as_ref().map(|m| Depth { image: m, scale: scone::decode::TUM_DEPTH_SCALE }),
                         external: None,
                     };
                     let added = store.add_keyframe(&map, &input)?;

@@ -8,7 +8,6 @@ use opencv::features2d::{ORB_ScoreType, ORB, SIFT};
 use opencv::prelude::*;
 use serde::{Deserialize, Serialize};
 
-use crate::constellation;
 use crate::decode::GreyImage;
 use crate::embedding::Embedder;
 use crate::error::FeatureError;
@@ -95,8 +94,7 @@ pub fn describe(
         Method::Scone | Method::SconePlain => {
             let embedder = embedder.ok_or("SConE needs a model (--model)")?;
             let f = features::extract(image, extractor)?;
-            let c = constellation::build(&f.keypoints, embedder.k());
-            let e = embedder.embed(&f, &c)?;
+            let e = crate::pipeline::embed(embedder, &f)?;
             freak = Some(f.descriptor_mat()?);
             (f.keypoints, embedding_mat(&e, embedder.dim())?, NORM_L2)
         }

@@ -67,7 +67,7 @@ impl Default for PairsConfig {
             methods: vec![Method::Scone, Method::Freak, Method::FreakGms, Method::Orb, Method::Sift],
             window: 100,
             seeds: 5,
-            ratio: 0.8,
+            ratio: crate::matching::DEFAULT_RATIO,
             mutual: false,
             same_corner_px: crate::matching::SAME_CORNER_PX,
             scone_matcher: SconeMatcher::default(),
@@ -183,7 +183,7 @@ impl Truth<'_> {
             if x >= 0 && y >= 0 && x < depth.cols() && y < depth.rows() {
                 let raw = *depth.at_2d::<u16>(y, x).ok()?;
                 if raw > 0 {
-                    let z = raw as f64 / 5000.0;
+                    let z = raw as f64 / crate::decode::TUM_DEPTH_PER_METRE;
                     let p1 = Vector3::new(
                         (a.0 as f64 - self.cam.cx) / self.cam.fx * z,
                         (a.1 as f64 - self.cam.cy) / self.cam.fy * z,

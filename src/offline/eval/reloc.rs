@@ -169,7 +169,7 @@ pub fn evaluate(scene: &Scene, cfg: &RelocConfig, embedder: Option<&Embedder>) -
                 camera: scene.camera,
                 features: &features,
                 embeddings: &vecs[i].0,
-                depth: depth_mat.as_ref().map(|m| Depth { image: m, scale: 1.0 / 5000.0 }),
+                depth: depth_mat.as_ref().map(|m| Depth { image: m, scale: crate::decode::TUM_DEPTH_SCALE }),
                 external: None,
             };
             let record = plan_keyframe(&data, &input, &build)?;
