@@ -1,23 +1,55 @@
 //! scone: image matching and relocalisation with the SConE constellation descriptor
 //! (Trzcinski et al., "SConE: Siamese Constellation Embedding Descriptor for Image Matching").
 //!
-//! Layout (the core modules never import a transport; only [`server`] knows tonic and axum):
+//! # Modules
 //!
-//! - [`decode`]: encoded image bytes -> grey image, with size limits checked before decoding.
+//! The core never imports a transport; only [`server`] knows tonic and axum, and only [`offline`] holds what
+//! the service never calls.
+//!
+//! The description path, in the order an image takes it:
+//! - [`decode`]: encoded image bytes -> grey image, with size limits checked before decoding; depth PNGs;
 //! - [`features`]: FAST on an image pyramid with grid bucketing, FREAK descriptors; validation of keypoints
-//!   supplied by clients. The single extraction path for the service, evaluation and training export.
-//! - [`constellation`]: each keypoint's k nearest keypoints with relative geometry in its own frame.
-//! - [`matching`]: nearest-neighbour matching with ratio test (and mutual check).
-//! - [`scene`]: scenes on disk in the TUM RGB-D layout (frames, poses, intrinsics, depth).
-//! - [`colmap`]: maps made by an external SfM: COLMAP text models, imported through the map store.
-//! - [`export`]: a scene's features and constellations as `.npz` for training.
+//!   supplied by clients (the client contract);
+//! - [`constellation`]: each keypoint's k nearest keypoints with relative geometry in its own frame;
+//! - [`embedding`]: the SConE network in ONNX Runtime, checked against its contract when loaded;
+//! - [`pipeline`]: the one function chain over the four above ([`pipeline::Describer`]), with stage times.
 //!
-//! - [`map`]: maps of landmarks with their SConE observations, durable storage, the ANN index, relocalisation.
-//! - [`service`]: the operations the API offers, in domain types; [`workers`]: the bounded CPU pool.
-//! - [`settings`]: the server's typed, layered configuration; [`server`]: the gRPC and HTTP transports.
+//! Geometry and matching:
+//! - [`camera`]: intrinsics and camera-to-world poses, their checks and quaternion conversions;
+//! - [`matching`]: nearest-neighbour matching with the ratio test, and the SConE matchers that add FREAK;
+//! - [`pose`]: relative pose (essential matrix) and absolute pose (PnP) with OpenCV's RANSAC.
 //!
-//! Path of an image: bytes -> [`decode::decode_grey`] -> [`features::extract`] -> [`constellation::build`]
-//! -> (the embedding network) -> matching and pose estimation.
+//! Maps and the service:
+//! - [`map`]: landmarks with their SConE observations, durable storage (local or S3), the ANN index,
+//!   relocalisation;
+//! - [`service`]: the operations the API offers, in domain types, with one error type for clients;
+//! - [`workers`]: the bounded CPU pool every request's CPU work runs on;
+//! - [`settings`]: the server's typed, layered configuration;
+//! - [`server`]: the gRPC and HTTP transports, auth, connection limits, metrics, life cycle;
+//! - [`error`]: the error types of the core modules.
+//!
+//! Offline: [`offline`] (scene reader, COLMAP import, training-feature export, evaluation).
+//!
+//! # One request, end to end
+//!
+//! `POST /v1/maps/office/localize` with a JPEG and intrinsics:
+//!
+//! 1. [`server::http`] refuses it at once if the CPU pool has no free slot, else reads the body (size and
+//!    time limits), checks the read key ([`server::auth`]) and turns the form into a
+//!    [`service::FrameInput`];
+//! 2. the closure runs on the [`workers::CpuPool`] under the request deadline and calls
+//!    [`service::Service::localize`], which checks the map exists, the image header and the intrinsics
+//!    ([`camera::validate_camera`]) before any decoding;
+//! 3. [`pipeline::Describer`] decodes ([`decode::decode_grey`]), extracts FAST + FREAK
+//!    ([`features::extract`]), builds constellations ([`constellation::build`]) and embeds them
+//!    ([`embedding::Embedder`]), recording each stage's time;
+//! 4. [`map::store::MapStore::localize`] searches the map's HNSW index ([`map::index`]) for each embedding's
+//!    nearest landmark observations, ratio-tests them into 2D-3D matches and runs PnP
+//!    ([`pose::absolute_pose`], in [`map::localize`]);
+//! 5. the outcome (pose, matches, inliers, confidence) goes back as JSON, its stage times to `/metrics`;
+//!    a [`service::ServiceError`] becomes one HTTP status through the transport's single error mapping.
+//!
+//! The gRPC `Localize` call ([`server::grpc`]) takes the same path from step 2.
 
 pub mod camera;
 pub mod constellation;

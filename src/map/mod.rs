@@ -2,16 +2,16 @@
 //! map.
 //!
 //! Who imports whom, top to bottom (nothing imports back up): [`store`] -> [`journal`] (the storage traits)
-//! -> [`local`] / [`s3`] (the two backends) -> [`format`] (their shared bytes) -> [`model`]; beside them
+//! -> [`local`] / [`s3`] (the two backends) -> [`format`](mod@format) (their shared bytes) -> [`model`]; beside them
 //! [`index`], [`localize`] and [`builder`], which the store calls and which import only the model (and the
-//! index its dump's atomic write from [`format`]).
+//! index its dump's atomic write from [`format`](mod@format)).
 //!
 //! - [`store`]: the registry of maps that commands (and the service) write and query through; it opens the
 //!   backend that `[store.backend]` names ([`store::BackendConfig`]);
 //! - [`journal`]: what the store needs from storage, as traits: the collection of maps, one map's writer;
 //! - [`local`]: maps in a local directory (snapshot + fsync'd write-ahead log);
 //! - [`s3`]: maps in an S3-API bucket (immutable objects, a manifest replaced conditionally);
-//! - [`format`]: the byte formats both backends share (snapshot, log records, segments) and their versions;
+//! - [`format`](mod@format): the byte formats both backends share (snapshot, log records, segments) and their versions;
 //! - [`model`]: keyframes, landmarks, observations, the records that change them, map ids;
 //! - [`index`]: exact / HNSW nearest-neighbour search over observation embeddings;
 //! - [`builder`]: which landmarks a posed keyframe observes or creates (depth or triangulation);
