@@ -14,7 +14,8 @@ fn check(f: Option<scone::server::proto::Frame>) {
     match frame(f, "frame") {
         Ok(input) => {
             if let FrameSource::Keypoints(k) = input.source {
-                if let Err(e) = from_precomputed(k.width, k.height, k.keypoints, &k.descriptors, &KeypointLimits::default())
+                if let Err(e) =
+                    from_precomputed(k.width, k.height, k.keypoints, &k.descriptors, &KeypointLimits::default())
                 {
                     assert_eq!(ServiceError::from(e).kind(), ErrorKind::InvalidArgument);
                 }
