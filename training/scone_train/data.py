@@ -159,7 +159,7 @@ def load_features(npz_path: Path) -> tuple[dict, list[FrameFeatures]]:
 
 
 # The Rust sources whose behaviour decides the exported features: a change to any of them re-exports.
-EXTRACTION_SOURCES = ["src/decode.rs", "src/features.rs", "src/constellation.rs", "src/export.rs", "Cargo.lock"]
+EXTRACTION_SOURCES = ["src/decode.rs", "src/features.rs", "src/constellation.rs", "src/offline/training_features.rs", "Cargo.lock"]
 
 
 def extraction_key(extra_args: list[str] | None = None) -> str:
