@@ -17,7 +17,8 @@
 //! Geometry and matching:
 //! - [`camera`]: intrinsics and camera-to-world poses, their checks and quaternion conversions;
 //! - [`matching`]: nearest-neighbour matching with the ratio test, and the SConE matchers that add FREAK;
-//! - [`pose`]: relative pose (essential matrix) and absolute pose (PnP) with OpenCV's RANSAC.
+//! - [`pose`]: relative pose (essential matrix) and absolute pose (PnP) with OpenCV's RANSAC;
+//! - [`render`]: pictures of matches and localisations (PNG) for people debugging the service.
 //!
 //! Maps and the service:
 //! - [`map`]: landmarks with their SConE observations, durable storage (local or S3), the ANN index,
@@ -62,6 +63,7 @@ pub mod matching;
 pub mod offline;
 pub mod pipeline;
 pub mod pose;
+pub mod render;
 pub mod server;
 pub mod service;
 pub mod settings;

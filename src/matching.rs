@@ -151,6 +151,9 @@ pub enum SconeMatcher {
     /// ratio test runs on the SConE distances of those candidates.
     #[default]
     Rerank,
+    /// FREAK descriptors alone (Hamming nearest neighbour, the same ratio test): the baseline SConE is
+    /// compared with, so that a client or the console can put the two side by side on the same keypoints.
+    Freak,
 }
 
 impl SconeMatcher {
@@ -159,6 +162,7 @@ impl SconeMatcher {
             SconeMatcher::Plain => "plain",
             SconeMatcher::Union => "union",
             SconeMatcher::Rerank => "rerank",
+            SconeMatcher::Freak => "freak",
         }
     }
 }
@@ -195,6 +199,7 @@ pub fn match_scone(
             Ok(out)
         }
         SconeMatcher::Rerank => rerank(a, b, test),
+        SconeMatcher::Freak => match_descriptors(a.freak, b.freak, NORM_HAMMING, test, b.points),
     }
 }
 

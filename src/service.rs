@@ -21,7 +21,7 @@ use crate::error::{EmbeddingError, FeatureError, MapError, PoseError};
 use crate::features::{self, Features, Keypoint, KeypointLimits};
 use crate::map::builder::{Depth, ExternalObservation, KeyframeInput};
 use crate::map::localize::{LandmarkMatch, Prior};
-use crate::map::store::{KeyframeAdded, MapStore, MapSummary};
+use crate::map::store::{KeyframeAdded, MapContents, MapStore, MapSummary};
 use crate::matching::{match_scone, Match, RatioTest, SconeFrame, SconeMatcher, DEFAULT_RATIO, SAME_CORNER_PX};
 use crate::pipeline::{DescribeError, Describer, StageTimes};
 use crate::pose::{relative_pose, AbsolutePose, RansacParams, RelativePose};
@@ -52,6 +52,11 @@ pub struct FrameInput {
     pub source: FrameSource,
     pub camera: Option<Camera>,
 }
+
+/// Landmarks a contents request may ask for at most.
+pub const MAX_CONTENTS_LANDMARKS: usize = 200_000;
+/// Landmarks a contents request gets when it does not say.
+pub const DEFAULT_CONTENTS_LANDMARKS: usize = 20_000;
 
 /// Keypoints and embeddings of one frame.
 #[derive(Debug, Clone)]
@@ -84,6 +89,9 @@ impl Default for PairOptions {
 #[derive(Debug, Clone)]
 pub struct PairOutcome {
     pub matches: Vec<Match>,
+    /// Keypoint positions of each frame (the matches index into them), for pictures.
+    pub points1: Vec<(f32, f32)>,
+    pub points2: Vec<(f32, f32)>,
     /// Camera 1 into camera 2, when enough matches support one.
     pub pose: Option<RelativePose>,
     pub times: StageTimes,
@@ -110,6 +118,27 @@ pub struct LocalizeOutcome {
     pub matches: Vec<LandmarkMatch>,
     pub confidence: f64,
     pub times: StageTimes,
+    /// The query keypoint of each match (pixels) and its landmark's position, in the order of `matches`.
+    pub pixels: Vec<(f32, f32)>,
+    pub points: Vec<[f64; 3]>,
+    pub camera: Camera,
+}
+
+impl LocalizeOutcome {
+    /// Each match as drawn: its pixel, whether it is an inlier, and its landmark reprojected at the pose.
+    pub fn drawn_points(&self) -> Vec<crate::render::LocalizedPoint> {
+        let inliers: std::collections::HashSet<usize> =
+            self.pose.as_ref().map(|p| p.inliers.iter().copied().collect()).unwrap_or_default();
+        let world_to_camera = self.pose.as_ref().map(|p| p.camera_to_world.inverse());
+        (0..self.matches.len())
+            .map(|i| {
+                let [x, y, z] = self.points[i];
+                let reprojected =
+                    world_to_camera.as_ref().and_then(|t| self.camera.project(&(t * nalgebra::Point3::new(x, y, z))));
+                crate::render::LocalizedPoint { pixel: self.pixels[i], inlier: inliers.contains(&i), reprojected }
+            })
+            .collect()
+    }
 }
 
 /// A posed keyframe to add to a map.
@@ -430,7 +459,7 @@ impl Service {
         let p1: Vec<(f32, f32)> = matches.iter().map(|m| d1.features.keypoints[m.query]).map(|k| (k.x, k.y)).collect();
         let p2: Vec<(f32, f32)> = matches.iter().map(|m| d2.features.keypoints[m.train]).map(|k| (k.x, k.y)).collect();
         let pose = times.time("pose", || relative_pose(&p1, &p2, &cam1, &cam2, &self.ransac))?;
-        Ok(PairOutcome { matches, pose, times })
+        Ok(PairOutcome { matches, pose, times, points1, points2 })
     }
 
     /// Camera-to-world pose of a frame against a map.
@@ -450,7 +479,16 @@ impl Service {
         let l = store.localize(map, &d.features, &d.embeddings, &cam, prior.as_ref())?;
         times.0.push(("search", l.search_s));
         times.0.push(("pnp", l.pnp_s));
-        Ok(LocalizeOutcome { pose: l.pose, matches: l.matches, confidence: l.confidence, times })
+        let pixels = l.matches.iter().map(|m| d.features.keypoints[m.keypoint]).map(|k| (k.x, k.y)).collect();
+        Ok(LocalizeOutcome {
+            pose: l.pose,
+            matches: l.matches,
+            confidence: l.confidence,
+            times,
+            pixels,
+            points: l.points,
+            camera: cam,
+        })
     }
 
     /// Adds a posed keyframe; returns once the write is durable.
@@ -500,6 +538,17 @@ impl Service {
 
     pub fn create_map(&self, id: &str) -> Result<MapSummary, ServiceError> {
         Ok(self.store()?.create(id)?)
+    }
+
+    /// A map's keyframes and (at most `max_landmarks`) landmarks, for viewers.
+    pub fn map_contents(&self, id: &str, max_landmarks: usize) -> Result<MapContents, ServiceError> {
+        if max_landmarks == 0 || max_landmarks > MAX_CONTENTS_LANDMARKS {
+            return Err(ServiceError::invalid(
+                "max_landmarks",
+                format!("{max_landmarks} is outside 1..={MAX_CONTENTS_LANDMARKS}"),
+            ));
+        }
+        Ok(self.store()?.contents(id, max_landmarks)?)
     }
 
     pub fn get_map(&self, id: &str) -> Result<MapSummary, ServiceError> {
@@ -566,7 +615,13 @@ mod tests {
     #[test]
     fn a_pair_outcome_flags_each_match_once_and_none_without_a_pose() {
         let m = |i| Match { query: i, train: i, distance: 0.1 };
-        let mut o = PairOutcome { matches: vec![m(0), m(1), m(2)], pose: None, times: StageTimes::default() };
+        let mut o = PairOutcome {
+            matches: vec![m(0), m(1), m(2)],
+            pose: None,
+            times: StageTimes::default(),
+            points1: vec![],
+            points2: vec![],
+        };
         assert_eq!((o.inlier_flags(), o.inlier_count()), (vec![false; 3], 0));
         o.pose = Some(RelativePose {
             rotation: nalgebra::Rotation3::identity(),

@@ -60,6 +60,8 @@ pub struct Localization {
     pub pose: Option<AbsolutePose>,
     pub matches: Vec<LandmarkMatch>,
     pub confidence: f64,
+    /// The matched landmarks' positions, in the order of `matches`.
+    pub points: Vec<[f64; 3]>,
     /// Wall time of the index search (with the ratio test) and of PnP, seconds.
     pub search_s: f64,
     pub pnp_s: f64,
@@ -150,5 +152,5 @@ pub fn localize(
         let n = p.inliers.len() as f64;
         (1.0 - (-n / 20.0).exp()) * (n / matches.len().max(1) as f64 / 0.3).min(1.0)
     });
-    Ok(Localization { pose, matches, confidence, search_s, pnp_s: t.elapsed().as_secs_f64() })
+    Ok(Localization { pose, matches, confidence, points: p3, search_s, pnp_s: t.elapsed().as_secs_f64() })
 }

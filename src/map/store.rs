@@ -82,6 +82,17 @@ pub struct MapSummary {
     pub approximate_index: bool,
 }
 
+/// A map's contents for viewers (see [`MapStore::contents`]).
+#[derive(Debug, Clone, PartialEq)]
+pub struct MapContents {
+    pub version: u64,
+    /// (keyframe id, camera-to-world pose, intrinsics), by id.
+    pub keyframes: Vec<(u64, crate::camera::Pose, Camera)>,
+    /// (landmark id, position, observations), an even subsample by id.
+    pub landmarks: Vec<(u64, [f64; 3], usize)>,
+    pub landmarks_total: usize,
+}
+
 /// What a keyframe write added.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct KeyframeAdded {
@@ -274,6 +285,27 @@ impl MapStore {
 
     pub fn summary(&self, id: &str) -> Result<MapSummary, MapError> {
         Ok(self.get(id)?.summary())
+    }
+
+    /// Keyframe poses and intrinsics, and at most `max_landmarks` landmarks (every n-th by id, so the
+    /// subsample covers the whole map), read under the map's shared lock.
+    pub fn contents(&self, id: &str, max_landmarks: usize) -> Result<MapContents, MapError> {
+        Ok(self.get(id)?.read(|data, _| {
+            let total = data.landmarks.len();
+            let step = total.div_ceil(max_landmarks.max(1)).max(1);
+            MapContents {
+                version: data.version,
+                keyframes: data.keyframes.values().map(|k| (k.id, k.pose, k.camera)).collect(),
+                landmarks: data
+                    .landmarks
+                    .iter()
+                    .step_by(step)
+                    .take(max_landmarks)
+                    .map(|(id, l)| (*id, l.point, l.observations.len()))
+                    .collect(),
+                landmarks_total: total,
+            }
+        }))
     }
 
     /// Deletes a map: out of the registry first, then out of the backend.

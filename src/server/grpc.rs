@@ -354,6 +354,7 @@ impl proto::matching_server::Matching for GrpcApi {
                     Ok(proto::PairMatcher::Plain) => SconeMatcher::Plain,
                     Ok(proto::PairMatcher::Union) => SconeMatcher::Union,
                     Ok(proto::PairMatcher::Rerank) => SconeMatcher::Rerank,
+                    Ok(proto::PairMatcher::Freak) => SconeMatcher::Freak,
                     Err(_) => return Err(invalid("matcher", &format!("{} is not a PairMatcher", r.matcher))),
                 };
                 let options = PairOptions {

@@ -117,6 +117,10 @@ pub fn run(cmd: EvalCommand) -> anyhow::Result<()> {
             report: out,
             extractor,
         } => {
+            anyhow::ensure!(
+                scone_matcher != scone::matching::SconeMatcher::Freak,
+                "--scone-matcher freak is FREAK, not SConE: compare with --methods freak instead"
+            );
             // --single-scale is OpenCV's own pipeline, plain ratio test and plain RANSAC (with OpenCV's
             // iteration cap and confidence) included.
             let base = if single_scale {

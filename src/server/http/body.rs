@@ -1,0 +1,412 @@
+//! Reading request bodies (media types, size and time limits, multipart parts) and turning their JSON into the
+//! service's frames; the query-string and path extractors, refused in the JSON envelope.
+
+use axum::body::Bytes;
+use axum::extract::{FromRequest, FromRequestParts, Multipart, Path, Query, Request};
+use axum::http::request::Parts;
+use axum::http::{header, HeaderMap, StatusCode};
+use base64::Engine;
+
+use super::error::{invalid, ApiError, ApiResult};
+use super::wire::{Frame, Intrinsics};
+use crate::camera::Camera;
+use crate::decode::read_header;
+use crate::service::{FrameInput, FrameSource, KeypointsInput, ServiceError};
+
+/// What a request body carried.
+#[derive(Default)]
+pub struct Body {
+    pub json: Option<Bytes>,
+    pub image: Option<Bytes>,
+    pub image2: Option<Bytes>,
+    pub depth: Option<Bytes>,
+}
+
+/// The body types each route takes (also in `openapi.json`); anything else is 415.
+pub const FRAME_BODIES: &[&str] =
+    &["image/jpeg", "image/png", "application/octet-stream", "application/json", "multipart/form-data"];
+pub const JSON_OR_MULTIPART: &[&str] = &["application/json", "multipart/form-data"];
+pub const JSON_ONLY: &[&str] = &["application/json"];
+pub const MAP_FILE: &[&str] = &["application/octet-stream"];
+
+pub fn too_large(limit: usize) -> ApiError {
+    ApiError::Service(ServiceError::TooLarge { what: "the request body".into(), limit })
+}
+
+/// Why reading a body failed: too long, too slow, or the client's stream broke.
+pub fn body_error(e: &(dyn std::error::Error + 'static), too_large: ApiError) -> ApiError {
+    if let Some(ms) = crate::server::connections::body_timed_out(e) {
+        return ApiError::BodyTimeout { ms };
+    }
+    let mut cur = Some(e);
+    while let Some(err) = cur {
+        if err.is::<http_body_util::LengthLimitError>() {
+            return too_large;
+        }
+        cur = err.source();
+    }
+    invalid("body", "the request body could not be read")
+}
+
+/// The media type of the request body, if the route takes it. A request without `Content-Type` passes only
+/// when it has no body.
+pub fn media_type(headers: &HeaderMap, accepted: &'static [&'static str]) -> ApiResult<String> {
+    let raw = headers.get(header::CONTENT_TYPE).map(|v| v.to_str().unwrap_or("(not text)"));
+    let mime = raw.map(|ct| ct.split(';').next().unwrap_or("").trim().to_ascii_lowercase()).unwrap_or_default();
+    if accepted.contains(&mime.as_str()) {
+        return Ok(mime);
+    }
+    let empty = match headers.get(header::CONTENT_LENGTH) {
+        Some(n) => n.as_bytes() == b"0",
+        None => !headers.contains_key(header::TRANSFER_ENCODING),
+    };
+    if raw.is_none() && empty {
+        return Ok(String::new());
+    }
+    Err(ApiError::UnsupportedMediaType { got: raw.unwrap_or("").to_string(), accepted })
+}
+
+pub async fn read_body(req: Request, limit: usize, accepted: &'static [&'static str]) -> ApiResult<Body> {
+    let mime = media_type(req.headers(), accepted)?;
+    if mime == "multipart/form-data" {
+        let mut mp = Multipart::from_request(req, &()).await.map_err(|e| invalid("body", e.body_text()))?;
+        let mut body = Body::default();
+        while let Some(field) = mp.next_field().await.map_err(|e| multipart_error(e, limit))? {
+            let name = field.name().unwrap_or("").to_string();
+            let slot = match name.as_str() {
+                "request" => &mut body.json,
+                "image" | "image1" => &mut body.image,
+                "image2" => &mut body.image2,
+                "depth" => &mut body.depth,
+                other => {
+                    return Err(invalid(
+                        "body",
+                        format!("unknown multipart part '{other}': use request, image, image1, image2, depth"),
+                    ))
+                }
+            };
+            if slot.is_some() {
+                let same =
+                    if name.starts_with("image") && name != "image2" { " (image and image1 are one part)" } else { "" };
+                return Err(invalid("body", format!("multipart part '{name}' is given more than once{same}")));
+            }
+            *slot = Some(field.bytes().await.map_err(|e| multipart_error(e, limit))?);
+        }
+        return Ok(body);
+    }
+    let bytes = axum::body::to_bytes(req.into_body(), limit).await.map_err(|e| body_error(&e, too_large(limit)))?;
+    match mime.as_str() {
+        "application/json" => Ok(Body { json: Some(bytes), ..Default::default() }),
+        "image/jpeg" | "image/png" | "application/octet-stream" => {
+            Ok(Body { image: Some(bytes), ..Default::default() })
+        }
+        _ if bytes.is_empty() => Ok(Body::default()),
+        _ => Err(ApiError::UnsupportedMediaType { got: mime, accepted }),
+    }
+}
+
+pub fn multipart_error(e: axum::extract::multipart::MultipartError, limit: usize) -> ApiError {
+    if let Some(ms) = crate::server::connections::body_timed_out(&e) {
+        ApiError::BodyTimeout { ms }
+    } else if e.status() == StatusCode::PAYLOAD_TOO_LARGE {
+        too_large(limit)
+    } else {
+        invalid("body", e.body_text())
+    }
+}
+
+pub fn parse_json<T: serde::de::DeserializeOwned + Default>(bytes: &Option<Bytes>) -> Result<T, ServiceError> {
+    match bytes {
+        None => Ok(T::default()),
+        Some(b) => serde_json::from_slice(b).map_err(|e| ServiceError::invalid("request JSON", e.to_string())),
+    }
+}
+
+pub fn base64(field: &str, s: &str) -> Result<Vec<u8>, ServiceError> {
+    base64::engine::general_purpose::STANDARD
+        .decode(s.trim())
+        .map_err(|e| ServiceError::invalid(field, format!("is not valid base64: {e}")))
+}
+
+/// The intrinsics of a frame given in several places (`frame.intrinsics`, a top-level `intrinsics`, the
+/// query string): one of them, or several that agree. A size given in one and left out in another agrees.
+pub fn agreed_intrinsics(given: &[(&str, Option<Intrinsics>)]) -> Result<Option<Intrinsics>, ServiceError> {
+    let mut chosen: Option<(&str, Intrinsics)> = None;
+    for &(name, i) in given {
+        let Some(i) = i else { continue };
+        let Some((first, c)) = chosen else {
+            chosen = Some((name, i));
+            continue;
+        };
+        let same_size = |a: Option<u32>, b: Option<u32>| a.is_none() || b.is_none() || a == b;
+        let agree = (c.fx, c.fy, c.cx, c.cy) == (i.fx, i.fy, i.cx, i.cy)
+            && same_size(c.width, i.width)
+            && same_size(c.height, i.height);
+        if !agree {
+            return Err(ServiceError::invalid(
+                format!("{first} and {name}"),
+                "give the intrinsics once, or the same values in both",
+            ));
+        }
+        chosen = Some((first, Intrinsics { width: c.width.or(i.width), height: c.height.or(i.height), ..c }));
+    }
+    Ok(chosen.map(|(_, i)| i))
+}
+
+/// A frame from its JSON description and/or a binary image part. `outer`: intrinsics given outside the
+/// frame (name, value), which must agree with the frame's own.
+pub fn frame(
+    json: Option<Frame>,
+    image: Option<Bytes>,
+    outer: &[(&str, Option<Intrinsics>)],
+    field: &str,
+) -> Result<FrameInput, ServiceError> {
+    let json = json.unwrap_or_default();
+    let own = format!("{field}.intrinsics");
+    let mut given = vec![(own.as_str(), json.intrinsics)];
+    given.extend_from_slice(outer);
+    let intrinsics = agreed_intrinsics(&given)?;
+    let (source, size) = match (image, json.image_base64, json.keypoints) {
+        (Some(bytes), None, None) => {
+            let size = read_header(&bytes).ok().map(|h| (h.width, h.height));
+            (FrameSource::Image(bytes.to_vec()), size)
+        }
+        (None, Some(b64), None) => {
+            let bytes = base64(&format!("{field}.image_base64"), &b64)?;
+            let size = read_header(&bytes).ok().map(|h| (h.width, h.height));
+            (FrameSource::Image(bytes), size)
+        }
+        (None, None, Some(k)) => {
+            let descriptors = base64(&format!("{field}.keypoints.descriptors_base64"), &k.descriptors_base64)?;
+            let keypoints = k.keypoints.iter().map(Into::into).collect();
+            let size = Some((k.width, k.height));
+            (
+                FrameSource::Keypoints(KeypointsInput {
+                    width: k.width,
+                    height: k.height,
+                    keypoints,
+                    descriptors,
+                    model_id: k.model_id,
+                }),
+                size,
+            )
+        }
+        (None, None, None) => return Err(ServiceError::invalid(field, "needs an image or keypoints")),
+        _ => return Err(ServiceError::invalid(field, "give exactly one of an image or keypoints")),
+    };
+    let camera = intrinsics.map(|i| {
+        let (w, h) = size.unwrap_or((0, 0));
+        Camera { fx: i.fx, fy: i.fy, cx: i.cx, cy: i.cy, width: i.width.unwrap_or(w), height: i.height.unwrap_or(h) }
+    });
+    Ok(FrameInput { source, camera })
+}
+
+/// Intrinsics in the query string, for a raw image body (`?fx=&fy=&cx=&cy=&width=&height=`).
+#[derive(Debug, Default, utoipa::IntoParams)]
+#[into_params(parameter_in = Query)]
+pub struct IntrinsicsQuery {
+    /// Focal length x, pixels.
+    fx: Option<f64>,
+    /// Focal length y, pixels (defaults to fx).
+    fy: Option<f64>,
+    /// Principal point x, pixels.
+    cx: Option<f64>,
+    /// Principal point y, pixels.
+    cy: Option<f64>,
+    /// Image width (defaults to the image's).
+    width: Option<u32>,
+    /// Image height (defaults to the image's).
+    height: Option<u32>,
+}
+
+impl IntrinsicsQuery {
+    fn parse(pairs: Vec<(String, String)>) -> Result<Self, ServiceError> {
+        let mut q = Self::default();
+        for (key, value) in pairs {
+            fn set<T: std::str::FromStr>(
+                slot: &mut Option<T>,
+                key: &str,
+                value: &str,
+                what: &str,
+            ) -> Result<(), ServiceError> {
+                if slot.is_some() {
+                    return Err(ServiceError::invalid(key, "is given more than once"));
+                }
+                let v =
+                    value.trim().parse().map_err(|_| ServiceError::invalid(key, format!("'{value}' is not {what}")))?;
+                *slot = Some(v);
+                Ok(())
+            }
+            let number = "a number";
+            let pixels = "a whole number of pixels";
+            match key.as_str() {
+                "fx" => set(&mut q.fx, &key, &value, number)?,
+                "fy" => set(&mut q.fy, &key, &value, number)?,
+                "cx" => set(&mut q.cx, &key, &value, number)?,
+                "cy" => set(&mut q.cy, &key, &value, number)?,
+                "width" => set(&mut q.width, &key, &value, pixels)?,
+                "height" => set(&mut q.height, &key, &value, pixels)?,
+                _ => {}
+            }
+        }
+        Ok(q)
+    }
+
+    pub fn intrinsics(&self) -> Option<Intrinsics> {
+        Some(Intrinsics {
+            fx: self.fx?,
+            fy: self.fy.or(self.fx)?,
+            cx: self.cx?,
+            cy: self.cy?,
+            width: self.width,
+            height: self.height,
+        })
+    }
+}
+
+impl<S: Send + Sync> FromRequestParts<S> for IntrinsicsQuery {
+    type Rejection = ApiError;
+
+    async fn from_request_parts(parts: &mut Parts, _: &S) -> Result<Self, ApiError> {
+        let Query(pairs) = Query::<Vec<(String, String)>>::try_from_uri(&parts.uri)
+            .map_err(|e| invalid("query string", e.body_text()))?;
+        Ok(Self::parse(pairs)?)
+    }
+}
+
+/// axum's `Path`, refused in the JSON envelope.
+pub struct ApiPath<T>(pub T);
+
+impl<S: Send + Sync, T: serde::de::DeserializeOwned + Send> FromRequestParts<S> for ApiPath<T> {
+    type Rejection = ApiError;
+
+    async fn from_request_parts(parts: &mut Parts, state: &S) -> Result<Self, ApiError> {
+        match Path::<T>::from_request_parts(parts, state).await {
+            Ok(Path(t)) => Ok(Self(t)),
+            Err(e) => {
+                tracing::debug!("path rejected: {}", e.body_text());
+                Err(invalid("URL path", "cannot be decoded (bad percent-encoding or UTF-8)"))
+            }
+        }
+    }
+}
+
+/// Whether the client asked for a picture instead of JSON: `?render=png`, or an `Accept` header that names
+/// `image/png` and not `application/json` (`?render=json` forces JSON).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct Render(pub bool);
+
+impl<S: Send + Sync> FromRequestParts<S> for Render {
+    type Rejection = ApiError;
+
+    async fn from_request_parts(parts: &mut Parts, _: &S) -> Result<Self, ApiError> {
+        let Query(pairs) = Query::<Vec<(String, String)>>::try_from_uri(&parts.uri)
+            .map_err(|e| invalid("query string", e.body_text()))?;
+        let mut asked = pairs.iter().filter(|(k, _)| k == "render").map(|(_, v)| v.as_str());
+        match (asked.next(), asked.next()) {
+            (Some(_), Some(_)) => return Err(invalid("render", "is given more than once")),
+            (Some("png"), None) => return Ok(Self(true)),
+            (Some("json"), None) => return Ok(Self(false)),
+            (Some(other), None) => return Err(invalid("render", format!("'{other}' is not png or json"))),
+            (None, _) => {}
+        }
+        let accept = parts.headers.get(header::ACCEPT).and_then(|v| v.to_str().ok()).unwrap_or("");
+        let types: Vec<String> =
+            accept.split(',').map(|t| t.split(';').next().unwrap_or("").trim().to_ascii_lowercase()).collect();
+        Ok(Self(types.iter().any(|t| t == "image/png") && !types.iter().any(|t| t == "application/json")))
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::super::wire::{DescribeRequest, Keypoint, KeypointSet, LocalizeRequest, MatchRequest};
+    use super::*;
+    use crate::features::{from_precomputed, KeypointLimits};
+    use crate::service::ErrorKind;
+    use proptest::prelude::*;
+
+    fn keypoints_body(kps: &[(f32, f32, f32, f32, i32)], descriptor_bytes: usize, w: u32, h: u32) -> Frame {
+        Frame {
+            keypoints: Some(KeypointSet {
+                width: w,
+                height: h,
+                keypoints: kps
+                    .iter()
+                    .map(|&(x, y, size, angle, octave)| Keypoint { x, y, size, angle, response: 1.0, octave })
+                    .collect(),
+                descriptors_base64: base64::engine::general_purpose::STANDARD.encode(vec![0x5a; descriptor_bytes]),
+                model_id: None,
+            }),
+            ..Default::default()
+        }
+    }
+
+    proptest! {
+        /// Any keypoint set a client can send decodes to a frame and is then accepted or refused with a
+        /// client error; nothing panics and nothing is classified as the server's fault.
+        #[test]
+        fn client_keypoints_decode_and_validate_without_panics(
+            kps in prop::collection::vec(
+                (any::<f32>(), any::<f32>(), any::<f32>(), any::<f32>(), any::<i32>()), 0..40),
+            extra in -70i64..70,
+            w in 0u32..5000,
+            h in 0u32..5000,
+        ) {
+            let bytes = (kps.len() as i64 * 64 + extra).max(0) as usize;
+            let f = frame(Some(keypoints_body(&kps, bytes, w, h)), None, &[], "frame").unwrap();
+            let FrameSource::Keypoints(k) = f.source else { panic!("keypoints expected") };
+            match from_precomputed(k.width, k.height, k.keypoints, &k.descriptors, &KeypointLimits::default()) {
+                Ok(features) => {
+                    prop_assert_eq!(features.len(), kps.len());
+                    prop_assert_eq!(bytes, kps.len() * 64);
+                }
+                Err(e) => prop_assert_eq!(ServiceError::from(e).kind(), ErrorKind::InvalidArgument),
+            }
+        }
+
+        /// Well-formed keypoints inside the image are accepted.
+        #[test]
+        fn in_range_keypoints_are_accepted(
+            kps in prop::collection::vec((40.0f32..600.0, 40.0f32..440.0, 7.0f32..12.0, 0.0f32..359.9, 0i32..3), 1..60),
+        ) {
+            let f = frame(Some(keypoints_body(&kps, kps.len() * 64, 640, 480)), None, &[], "frame").unwrap();
+            let FrameSource::Keypoints(k) = f.source else { panic!("keypoints expected") };
+            let features = from_precomputed(k.width, k.height, k.keypoints, &k.descriptors, &KeypointLimits::default());
+            prop_assert!(features.is_ok(), "{:?}", features.err());
+        }
+
+        /// Arbitrary bytes as a request's JSON are refused as the client's error, never a panic.
+        #[test]
+        fn arbitrary_request_json_is_refused_cleanly(bytes in prop::collection::vec(any::<u8>(), 0..300)) {
+            for r in [
+                parse_json::<LocalizeRequest>(&Some(Bytes::from(bytes.clone()))).err(),
+                parse_json::<MatchRequest>(&Some(Bytes::from(bytes.clone()))).err(),
+                parse_json::<DescribeRequest>(&Some(Bytes::from(bytes))).err(),
+            ].into_iter().flatten() {
+                prop_assert_eq!(r.kind(), ErrorKind::InvalidArgument);
+            }
+        }
+
+        /// Base64 that is not base64, and frames with both or neither source, are refused with the field.
+        #[test]
+        fn malformed_frames_name_the_field(junk in "[!-*,-.:-<>-@\\[-`{-~]{1,20}") {
+            let f = Frame { image_base64: Some(junk), ..Default::default() };
+            let e = frame(Some(f), None, &[], "frame1").unwrap_err();
+            prop_assert!(e.to_string().contains("frame1.image_base64"), "{}", e);
+            let both = Frame { image_base64: Some("aGk=".into()), ..keypoints_body(&[], 0, 1, 1) };
+            prop_assert!(frame(Some(both), None, &[], "frame").is_err());
+        }
+    }
+
+    #[test]
+    fn intrinsics_given_twice_must_agree() {
+        let a = Intrinsics { fx: 250.0, fy: 250.0, cx: 159.5, cy: 119.5, width: None, height: None };
+        let sized = Intrinsics { width: Some(320), height: Some(240), ..a };
+        let got = agreed_intrinsics(&[("frame.intrinsics", Some(a)), ("intrinsics", Some(sized))]).unwrap().unwrap();
+        assert_eq!((got.width, got.height), (Some(320), Some(240)));
+        assert!(agreed_intrinsics(&[("frame.intrinsics", None), ("intrinsics", None)]).unwrap().is_none());
+        let other = Intrinsics { cx: 160.0, ..a };
+        let e = agreed_intrinsics(&[("frame.intrinsics", Some(a)), ("intrinsics", Some(other))]).unwrap_err();
+        assert!(e.to_string().contains("frame.intrinsics and intrinsics"), "{e}");
+    }
+}

@@ -1,0 +1,226 @@
+//! Handlers of the frame routes: Describe, MatchPair and Localize. MatchPair and Localize answer with a
+//! picture instead of JSON when asked (`?render=png` or `Accept: image/png`; [`Render`]).
+
+use std::sync::Arc;
+
+use axum::extract::{Request, State};
+use axum::http::{header, HeaderMap};
+use axum::response::{IntoResponse, Response};
+use axum::Json;
+use base64::Engine;
+
+use super::body::{frame, parse_json, read_body, ApiPath, IntrinsicsQuery, Render, FRAME_BODIES, JSON_OR_MULTIPART};
+use super::error::{ApiErrors, ApiResult};
+use super::wire::{self, examples};
+use super::{call, App};
+use crate::camera::quaternion_xyzw;
+use crate::map::localize::Prior;
+use crate::matching::DEFAULT_RATIO;
+use crate::render::{self, Backdrop};
+use crate::service::{FrameInput, FrameSource, PairOptions, ServiceError};
+use crate::settings::Access;
+
+/// What a frame is drawn on: its image, or a blank canvas of its keypoint set's size.
+fn backdrop(f: &FrameInput) -> Backdrop<'_> {
+    match &f.source {
+        FrameSource::Image(bytes) => Backdrop::Image(bytes),
+        FrameSource::Keypoints(k) => Backdrop::Blank { width: k.width, height: k.height },
+    }
+}
+
+/// A copy of the frame kept for drawing after the service consumed the original.
+fn keep_for_picture(wanted: bool, f: &FrameInput) -> Option<FrameInput> {
+    wanted.then(|| f.clone())
+}
+
+fn png(bytes: Vec<u8>) -> Response {
+    ([(header::CONTENT_TYPE, "image/png"), (header::CACHE_CONTROL, "no-store")], bytes).into_response()
+}
+
+/// A picture with the counts a page shows beside it.
+fn png_with_counts(bytes: Vec<u8>, matches: usize, inliers: usize) -> Response {
+    let mut resp = png(bytes);
+    let h = resp.headers_mut();
+    h.insert("x-scone-matches", matches.into());
+    h.insert("x-scone-inliers", inliers.into());
+    resp
+}
+
+/// Keypoints, FREAK descriptors and SConE embeddings of one frame (rpc Matching.Describe).
+#[utoipa::path(post, path = "/v1/describe", tag = "matching",
+    params(IntrinsicsQuery),
+    request_body(description = "A frame: raw image body, multipart, or JSON (base64 image or keypoints)", content(
+        (wire::DescribeRequest = "application/json", example = examples::describe),
+        (wire::FrameForm = "multipart/form-data"),
+        (wire::Binary = "image/jpeg"),
+        (wire::Binary = "image/png"),
+        (wire::Binary = "application/octet-stream"))),
+    responses((status = 200, description = "The frame's description", body = wire::DescribeResponse), ApiErrors))]
+pub async fn describe(
+    State(app): State<Arc<App>>,
+    headers: HeaderMap,
+    req: Request,
+) -> ApiResult<Json<wire::DescribeResponse>> {
+    let body = read_body(req, app.settings.server.max_request_bytes, FRAME_BODIES).await?;
+    let out = call(&app, &headers, Access::Read, "Describe", move |a| {
+        let j: wire::DescribeRequest = parse_json(&body.json)?;
+        let f = frame(j.frame, body.image, &[], "frame")?;
+        let d = a.service.describe(f.source)?;
+        a.metrics.stages(&d.times);
+        Ok(wire::DescribeResponse {
+            width: d.features.width,
+            height: d.features.height,
+            keypoints: d.features.keypoints.iter().map(Into::into).collect(),
+            descriptors_base64: base64::engine::general_purpose::STANDARD.encode(d.features.descriptors.concat()),
+            embeddings: d.embeddings,
+            dim: d.dim,
+            model_id: d.model_id,
+        })
+    })
+    .await?;
+    Ok(Json(out))
+}
+
+/// Matches between two frames and their relative pose (rpc Matching.MatchPair); with `?render=png` or
+/// `Accept: image/png`, the two frames side by side with the matches drawn (inliers green, outliers red).
+#[utoipa::path(post, path = "/v1/match", tag = "matching",
+    params(wire::RenderQuery),
+    request_body(description = "Two frames: multipart (image1, image2) or JSON", content(
+        (wire::MatchRequest = "application/json", example = examples::match_pair),
+        (wire::PairForm = "multipart/form-data"))),
+    responses(
+        (status = 200, description = "Matches and relative pose, or their picture", content(
+            (wire::MatchResponse = "application/json"),
+            (wire::Binary = "image/png")),
+            headers(("x-scone-matches" = usize, description = "With a picture: putative matches drawn"),
+                    ("x-scone-inliers" = usize, description = "With a picture: inliers of the relative pose"))),
+        ApiErrors))]
+pub async fn match_pair(
+    State(app): State<Arc<App>>,
+    Render(picture): Render,
+    headers: HeaderMap,
+    req: Request,
+) -> ApiResult<Response> {
+    let body = read_body(req, app.settings.server.max_request_bytes, JSON_OR_MULTIPART).await?;
+    call(&app, &headers, Access::Read, "MatchPair", move |a| {
+        let j: wire::MatchRequest = parse_json(&body.json)?;
+        let f1 = frame(j.frame1, body.image, &[], "frame1")?;
+        let f2 = frame(j.frame2, body.image2, &[], "frame2")?;
+        let (keep1, keep2) = (keep_for_picture(picture, &f1), keep_for_picture(picture, &f2));
+        let options = PairOptions {
+            ratio: j.ratio.unwrap_or(DEFAULT_RATIO),
+            mutual: j.mutual,
+            matcher: j.matcher.map(Into::into).unwrap_or_default(),
+        };
+        let o = a.service.match_pair(f1, f2, options)?;
+        a.metrics.stages(&o.times);
+        if let (Some(f1), Some(f2)) = (keep1, keep2) {
+            let pairs: Vec<(usize, usize)> = o.matches.iter().map(|m| (m.query, m.train)).collect();
+            let pose = o.pose.as_ref().map_or("no relative pose".to_string(), |p| {
+                let angle = p.rotation.angle().to_degrees();
+                let t = p.translation;
+                format!("rotation {angle:.1} deg, translation direction ({:.2}, {:.2}, {:.2})", t.x, t.y, t.z)
+            });
+            let caption = [
+                format!("MatchPair, SConE matcher '{}', ratio {}", options.matcher.name(), options.ratio),
+                format!(
+                    "{} putative matches, {} inliers (green), {} outliers (red)",
+                    pairs.len(),
+                    o.inlier_count(),
+                    pairs.len() - o.inlier_count()
+                ),
+                pose,
+            ];
+            let drawn = render::pair(
+                &backdrop(&f1),
+                &backdrop(&f2),
+                &o.points1,
+                &o.points2,
+                &pairs,
+                &o.inlier_flags(),
+                &caption,
+            )
+            .map_err(ServiceError::from)?;
+            return Ok(png_with_counts(drawn, pairs.len(), o.inlier_count()));
+        }
+        let matches = o
+            .matches
+            .iter()
+            .zip(o.inlier_flags())
+            .map(|(m, inlier)| wire::PairMatch { index1: m.query, index2: m.train, distance: m.distance, inlier })
+            .collect();
+        let pose = o.pose.as_ref().map(|p| {
+            let [qx, qy, qz, qw] = quaternion_xyzw(&p.rotation);
+            wire::RelativePose { qx, qy, qz, qw, tx: p.translation.x, ty: p.translation.y, tz: p.translation.z }
+        });
+        Ok(Json(wire::MatchResponse { matches, pose, inliers: o.inlier_count() }).into_response())
+    })
+    .await
+}
+
+/// The camera-to-world pose of a frame against a map (rpc Relocalization.Localize); with `?render=png` or
+/// `Accept: image/png`, the frame with its 2D-3D matches (inliers green, outliers red) and the inlier
+/// landmarks reprojected at the estimated pose (cyan rings, residuals in yellow).
+#[utoipa::path(post, path = "/v1/maps/{map_id}/localize", tag = "maps",
+    params(("map_id" = String, Path, description = "The map", example = "example"), IntrinsicsQuery, wire::RenderQuery),
+    request_body(description = "A frame: raw image body (intrinsics in the query), multipart, or JSON", content(
+        (wire::LocalizeRequest = "application/json", example = examples::localize),
+        (wire::FrameForm = "multipart/form-data"),
+        (wire::Binary = "image/jpeg"),
+        (wire::Binary = "image/png"),
+        (wire::Binary = "application/octet-stream"))),
+    responses(
+        (status = 200, description = "A pose or localized=false, or their picture", content(
+            (wire::LocalizeResponse = "application/json"),
+            (wire::Binary = "image/png"))),
+        ApiErrors))]
+pub async fn localize(
+    State(app): State<Arc<App>>,
+    ApiPath(map_id): ApiPath<String>,
+    q: IntrinsicsQuery,
+    Render(picture): Render,
+    headers: HeaderMap,
+    req: Request,
+) -> ApiResult<Response> {
+    let body = read_body(req, app.settings.server.max_request_bytes, FRAME_BODIES).await?;
+    call(&app, &headers, Access::Read, "Localize", move |a| {
+        let j: wire::LocalizeRequest = parse_json(&body.json)?;
+        let outer = [("intrinsics", j.intrinsics), ("the query string's intrinsics", q.intrinsics())];
+        let f = frame(j.frame, body.image, &outer, "frame")?;
+        let kept = keep_for_picture(picture, &f);
+        let prior = j.prior.map(|p| Prior { position: [p.x, p.y, p.z], radius: p.radius });
+        let o = a.service.localize(&map_id, f, prior)?;
+        a.metrics.stages(&o.times);
+        if let Some(f) = kept {
+            let inliers = o.pose.as_ref().map_or(0, |p| p.inliers.len());
+            let pose = o.pose.as_ref().map_or("not localised".to_string(), |p| {
+                let c = p.camera_to_world.translation.vector;
+                format!(
+                    "camera at ({:.3}, {:.3}, {:.3}), reprojection error {:.2} px, confidence {:.2}",
+                    c.x, c.y, c.z, p.reprojection_error, o.confidence
+                )
+            });
+            let caption = [
+                format!("Localize against map '{map_id}'"),
+                format!(
+                    "{} 2D-3D matches, {inliers} inliers (green; landmarks reprojected in cyan), {} outliers (red)",
+                    o.matches.len(),
+                    o.matches.len() - inliers
+                ),
+                pose,
+            ];
+            let drawn = render::localization(&backdrop(&f), &o.drawn_points(), &caption).map_err(ServiceError::from)?;
+            return Ok(png(drawn));
+        }
+        Ok(Json(wire::LocalizeResponse {
+            localized: o.pose.is_some(),
+            pose: o.pose.as_ref().map(|p| wire::Pose::from_isometry(&p.camera_to_world)),
+            matches: o.matches.len(),
+            inliers: o.pose.as_ref().map_or(0, |p| p.inliers.len()),
+            reprojection_error: o.pose.as_ref().map_or(0.0, |p| p.reprojection_error),
+            confidence: o.confidence,
+        })
+        .into_response())
+    })
+    .await
+}

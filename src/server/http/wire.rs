@@ -1,0 +1,510 @@
+//! The HTTP API's JSON: every request and response body, typed, with the conversions from the service's
+//! domain types. The OpenAPI document's schemas are generated from these structs (their doc comments are the
+//! descriptions), so what is documented is what is parsed and sent.
+//!
+//! Conventions: poses are camera-to-world with quaternions (x, y, z, w) and OpenCV camera axes (x right, y
+//! down, z forward); pixels have (0, 0) at the centre of the top-left pixel; binary data in JSON is base64.
+
+use serde::{Deserialize, Serialize};
+use utoipa::{IntoParams, ToSchema};
+
+use crate::map::store::MapSummary;
+
+/// Pinhole intrinsics, pixels.
+#[derive(Debug, Clone, Copy, PartialEq, Deserialize, Serialize, ToSchema)]
+#[serde(deny_unknown_fields)]
+#[schema(example = json!({"fx": 525.0, "fy": 525.0, "cx": 319.5, "cy": 239.5}))]
+pub struct Intrinsics {
+    pub fx: f64,
+    pub fy: f64,
+    pub cx: f64,
+    pub cy: f64,
+    /// Defaults to the image's (or the keypoint set's) width.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub width: Option<u32>,
+    /// Defaults to the image's (or the keypoint set's) height.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub height: Option<u32>,
+}
+
+/// A FAST keypoint as the service extracts it (the client contract of `proto/scone/v1/scone.proto`).
+#[derive(Debug, Clone, PartialEq, Deserialize, Serialize, ToSchema)]
+#[serde(deny_unknown_fields)]
+pub struct Keypoint {
+    pub x: f32,
+    pub y: f32,
+    /// Diameter of the FREAK pattern at this keypoint's pyramid level, pixels of the full image.
+    pub size: f32,
+    /// Orientation, degrees.
+    pub angle: f32,
+    #[serde(default)]
+    pub response: f32,
+    /// Pyramid level.
+    #[serde(default)]
+    pub octave: i32,
+}
+
+impl From<&crate::features::Keypoint> for Keypoint {
+    fn from(k: &crate::features::Keypoint) -> Self {
+        Self { x: k.x, y: k.y, size: k.size, angle: k.angle, response: k.response, octave: k.octave }
+    }
+}
+
+impl From<&Keypoint> for crate::features::Keypoint {
+    fn from(k: &Keypoint) -> Self {
+        Self { x: k.x, y: k.y, size: k.size, angle: k.angle, response: k.response, octave: k.octave }
+    }
+}
+
+/// Keypoints computed on a device (FAST + FREAK by the client contract) instead of an image.
+#[derive(Debug, Clone, Deserialize, ToSchema)]
+#[serde(deny_unknown_fields)]
+pub struct KeypointSet {
+    /// Size of the image the keypoints were detected in.
+    pub width: u32,
+    pub height: u32,
+    pub keypoints: Vec<Keypoint>,
+    /// 64 bytes of FREAK bits per keypoint, in keypoint order, base64.
+    pub descriptors_base64: String,
+    /// The model the client's contract targets; when given, it must be the server's.
+    #[serde(default)]
+    pub model_id: Option<String>,
+}
+
+/// One frame: exactly one of `image_base64` or `keypoints` (or, in multipart requests, a binary image part).
+#[derive(Debug, Clone, Default, Deserialize, ToSchema)]
+#[serde(deny_unknown_fields)]
+pub struct Frame {
+    /// A PNG or JPEG image, base64.
+    #[serde(default)]
+    pub image_base64: Option<String>,
+    #[serde(default)]
+    pub keypoints: Option<KeypointSet>,
+    #[serde(default)]
+    pub intrinsics: Option<Intrinsics>,
+}
+
+/// A camera-to-world pose: translation (map units) and unit quaternion (x, y, z, w).
+#[derive(Debug, Clone, Copy, PartialEq, Deserialize, Serialize, ToSchema)]
+#[serde(deny_unknown_fields)]
+#[schema(example = json!({"tx": 0.0, "ty": 0.0, "tz": 0.0, "qx": 0.0, "qy": 0.0, "qz": 0.0, "qw": 1.0}))]
+pub struct Pose {
+    pub tx: f64,
+    pub ty: f64,
+    pub tz: f64,
+    pub qx: f64,
+    pub qy: f64,
+    pub qz: f64,
+    pub qw: f64,
+}
+
+impl Pose {
+    pub fn from_isometry(p: &nalgebra::Isometry3<f64>) -> Self {
+        let q = p.rotation.quaternion();
+        let t = p.translation.vector;
+        Self { tx: t.x, ty: t.y, tz: t.z, qx: q.i, qy: q.j, qz: q.k, qw: q.w }
+    }
+
+    pub fn domain(&self) -> crate::camera::Pose {
+        crate::camera::Pose { translation: [self.tx, self.ty, self.tz], rotation: [self.qx, self.qy, self.qz, self.qw] }
+    }
+}
+
+/// Where the camera is believed to be: only landmarks within `radius` of (x, y, z) are matched.
+#[derive(Debug, Clone, Copy, Deserialize, ToSchema)]
+#[serde(deny_unknown_fields)]
+pub struct Prior {
+    pub x: f64,
+    pub y: f64,
+    pub z: f64,
+    pub radius: f64,
+}
+
+/// Describe: keypoints, FREAK descriptors and SConE embeddings of one frame.
+#[derive(Debug, Default, Deserialize, ToSchema)]
+#[serde(deny_unknown_fields)]
+pub struct DescribeRequest {
+    /// Absent when the image comes as a raw body or a multipart `image` part.
+    #[serde(default)]
+    pub frame: Option<Frame>,
+}
+
+/// How MatchPair picks its matches.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Deserialize, ToSchema)]
+#[serde(rename_all = "lowercase")]
+pub enum Matcher {
+    /// The SConE embedding alone: L2 nearest neighbour with the ratio test.
+    Plain,
+    /// Plain SConE matches plus FREAK's where SConE has none.
+    Union,
+    /// FREAK's nearest candidates re-ranked by the SConE embedding (the default).
+    Rerank,
+    /// FREAK alone (Hamming + ratio test): the baseline, for comparison on the same keypoints.
+    Freak,
+}
+
+impl From<Matcher> for crate::matching::SconeMatcher {
+    fn from(m: Matcher) -> Self {
+        match m {
+            Matcher::Plain => Self::Plain,
+            Matcher::Union => Self::Union,
+            Matcher::Rerank => Self::Rerank,
+            Matcher::Freak => Self::Freak,
+        }
+    }
+}
+
+/// MatchPair: matches between two frames and their relative pose.
+#[derive(Debug, Default, Deserialize, ToSchema)]
+#[serde(deny_unknown_fields)]
+pub struct MatchRequest {
+    /// Absent when its image is the multipart part `image1` (or `image`).
+    #[serde(default)]
+    pub frame1: Option<Frame>,
+    /// Absent when its image is the multipart part `image2`.
+    #[serde(default)]
+    pub frame2: Option<Frame>,
+    /// Ratio-test threshold in (0, 1]; default 0.8.
+    #[serde(default)]
+    pub ratio: Option<f32>,
+    /// Keep only mutual nearest neighbours.
+    #[serde(default)]
+    pub mutual: bool,
+    /// Absent: the server's default (`rerank`).
+    #[serde(default)]
+    pub matcher: Option<Matcher>,
+}
+
+/// Localize: the camera-to-world pose of a frame against a map.
+#[derive(Debug, Default, Deserialize, ToSchema)]
+#[serde(deny_unknown_fields)]
+pub struct LocalizeRequest {
+    /// Absent when the image comes as a raw body or a multipart `image` part.
+    #[serde(default)]
+    pub frame: Option<Frame>,
+    /// The frame's intrinsics given outside it (they must agree with `frame.intrinsics` if both are given).
+    #[serde(default)]
+    pub intrinsics: Option<Intrinsics>,
+    #[serde(default)]
+    pub prior: Option<Prior>,
+}
+
+/// A 3D point in map units.
+#[derive(Debug, Clone, Copy, Deserialize, Serialize, ToSchema)]
+#[serde(deny_unknown_fields)]
+pub struct Point3 {
+    pub x: f64,
+    pub y: f64,
+    pub z: f64,
+}
+
+/// A landmark an external SfM (COLMAP and the like) gives for a pixel of the keyframe.
+#[derive(Debug, Clone, Copy, Deserialize, ToSchema)]
+#[serde(deny_unknown_fields)]
+pub struct ExternalObservation {
+    pub x: f64,
+    pub y: f64,
+    /// The SfM's id of the 3D point; observations of one id in several keyframes are one landmark.
+    pub landmark_id: u64,
+    pub point: Point3,
+}
+
+/// AddKeyframes (one keyframe): a posed frame added to a map, acknowledged once durable.
+#[derive(Debug, Deserialize, ToSchema)]
+#[serde(deny_unknown_fields)]
+pub struct KeyframeRequest {
+    pub keyframe_id: u64,
+    pub pose: Pose,
+    /// Absent when the image comes as a multipart `image` part.
+    #[serde(default)]
+    pub frame: Option<Frame>,
+    #[serde(default)]
+    pub intrinsics: Option<Intrinsics>,
+    /// A 16-bit PNG aligned with the image (or a multipart `depth` part).
+    #[serde(default)]
+    pub depth_png_base64: Option<String>,
+    /// Metres per depth unit; default 1/5000 (TUM RGB-D).
+    #[serde(default)]
+    pub depth_scale: Option<f64>,
+    /// Landmarks given by an external SfM; without them, depth or triangulation makes the landmarks.
+    #[serde(default)]
+    pub external_landmarks: Vec<ExternalObservation>,
+}
+
+/// CreateMap.
+#[derive(Debug, Deserialize, ToSchema)]
+#[serde(deny_unknown_fields)]
+#[schema(example = json!({"map_id": "office"}))]
+pub struct CreateMapRequest {
+    /// 1-64 characters from `[A-Za-z0-9_-]`.
+    pub map_id: String,
+}
+
+/// Keypoints, FREAK descriptors and SConE embeddings of a frame.
+#[derive(Debug, Serialize, ToSchema)]
+pub struct DescribeResponse {
+    pub width: u32,
+    pub height: u32,
+    pub keypoints: Vec<Keypoint>,
+    /// 64 bytes per keypoint, base64.
+    pub descriptors_base64: String,
+    /// `[keypoints, dim]`, row-major, unit norm.
+    pub embeddings: Vec<f32>,
+    pub dim: usize,
+    pub model_id: String,
+}
+
+/// One putative match: keypoint `index1` of frame 1 and `index2` of frame 2.
+#[derive(Debug, Serialize, ToSchema)]
+pub struct PairMatch {
+    pub index1: usize,
+    pub index2: usize,
+    pub distance: f32,
+    /// Whether the relative pose's RANSAC kept it.
+    pub inlier: bool,
+}
+
+/// Frame 1's camera into frame 2's: `X2 = R X1 + t`, `t` of unit length (the scale is unobservable).
+#[derive(Debug, Serialize, ToSchema)]
+pub struct RelativePose {
+    pub qx: f64,
+    pub qy: f64,
+    pub qz: f64,
+    pub qw: f64,
+    pub tx: f64,
+    pub ty: f64,
+    pub tz: f64,
+}
+
+/// Matches and the relative pose (null when too few matches support one).
+#[derive(Debug, Serialize, ToSchema)]
+pub struct MatchResponse {
+    pub matches: Vec<PairMatch>,
+    pub pose: Option<RelativePose>,
+    pub inliers: usize,
+}
+
+/// A pose, or `localized: false`.
+#[derive(Debug, Serialize, ToSchema)]
+pub struct LocalizeResponse {
+    pub localized: bool,
+    /// Camera-to-world, in the map's frame.
+    pub pose: Option<Pose>,
+    /// 2D-3D matches found.
+    pub matches: usize,
+    pub inliers: usize,
+    /// Mean reprojection error of the inliers, pixels.
+    pub reprojection_error: f64,
+    /// In [0, 1]: grows with the inlier count (`1 - exp(-inliers / 20)`) times the inlier share over 0.3
+    /// (capped at 1); 0 without a pose.
+    pub confidence: f64,
+}
+
+/// A keyframe write, durable when this is answered.
+#[derive(Debug, Serialize, ToSchema)]
+pub struct KeyframeAck {
+    pub keyframe_id: u64,
+    pub new_landmarks: usize,
+    pub observations: usize,
+    pub map_version: u64,
+    /// External landmarks refused: behind the camera, reprojecting too far from their pixel, or a second
+    /// view of one id.
+    pub external_rejected: usize,
+    /// External landmarks that were valid but found no free keypoint within the radius.
+    pub external_unassociated: usize,
+}
+
+/// A map's statistics.
+#[derive(Debug, Serialize, ToSchema)]
+pub struct MapInfo {
+    pub map_id: String,
+    /// The model the map's embeddings were made with.
+    pub model_id: String,
+    pub keyframes: usize,
+    pub landmarks: usize,
+    pub observations: usize,
+    /// Observations whose keyframe was not removed.
+    pub live_observations: usize,
+    /// Records applied since creation.
+    pub version: u64,
+    /// Whether the index is approximate (HNSW) rather than exact.
+    pub approximate_index: bool,
+}
+
+impl From<MapSummary> for MapInfo {
+    fn from(s: MapSummary) -> Self {
+        Self {
+            map_id: s.id,
+            model_id: s.model_id,
+            keyframes: s.keyframes,
+            landmarks: s.landmarks,
+            observations: s.observations,
+            live_observations: s.live_observations,
+            version: s.version,
+            approximate_index: s.approximate_index,
+        }
+    }
+}
+
+/// A stored map that could not be loaded, and why.
+#[derive(Debug, Serialize, ToSchema)]
+pub struct HeldBack {
+    pub map_id: String,
+    pub reason: String,
+}
+
+/// ListMaps: the loaded maps, and those held back.
+#[derive(Debug, Serialize, ToSchema)]
+pub struct MapList {
+    pub maps: Vec<MapInfo>,
+    pub held_back: Vec<HeldBack>,
+}
+
+/// A landmark for viewers.
+#[derive(Debug, Serialize, ToSchema)]
+pub struct LandmarkView {
+    pub id: u64,
+    pub x: f64,
+    pub y: f64,
+    pub z: f64,
+    /// Keyframes that see it.
+    pub observations: usize,
+}
+
+/// A keyframe for viewers.
+#[derive(Debug, Serialize, ToSchema)]
+pub struct KeyframeView {
+    pub keyframe_id: u64,
+    /// Camera-to-world.
+    pub pose: Pose,
+    pub intrinsics: Intrinsics,
+}
+
+/// A map's contents for viewers: keyframe poses and intrinsics, and landmarks (an even subsample when the map
+/// has more than `max_landmarks`).
+#[derive(Debug, Serialize, ToSchema)]
+pub struct MapContents {
+    pub map_id: String,
+    pub version: u64,
+    pub keyframes: Vec<KeyframeView>,
+    pub landmarks: Vec<LandmarkView>,
+    /// Landmarks in the map (`landmarks` may hold fewer).
+    pub landmarks_total: usize,
+}
+
+/// Query of the contents route.
+#[derive(Debug, Deserialize, IntoParams)]
+#[into_params(parameter_in = Query)]
+pub struct ContentsQuery {
+    /// Landmarks returned at most (default 20,000; at most 200,000).
+    pub max_landmarks: Option<usize>,
+}
+
+/// Query of the routes that can answer with a picture.
+#[derive(Debug, Default, Deserialize, IntoParams)]
+#[into_params(parameter_in = Query)]
+pub struct RenderQuery {
+    /// `png`: answer with a picture of the matches instead of JSON (as `Accept: image/png` does).
+    pub render: Option<String>,
+}
+
+/// The documented example requests (the OpenAPI test sends each of them and checks the answer against the
+/// documented schema): small keypoint sets, so the examples carry no image.
+pub mod examples {
+    use base64::Engine;
+    use serde_json::{json, Value};
+
+    /// Twelve keypoints of a 640x480 frame on a 4x3 grid, shifted by `dx` pixels, with made-up descriptors.
+    pub fn keypoint_set(dx: f32) -> Value {
+        let keypoints: Vec<Value> = (0..12)
+            .map(|i| {
+                let (col, row) = ((i % 4) as f32, (i / 4) as f32);
+                json!({"x": 120.0 + 110.0 * col + dx, "y": 110.0 + 120.0 * row, "size": 7.0,
+                       "angle": (i * 29 % 360) as f32, "response": 20.0, "octave": 0})
+            })
+            .collect();
+        let descriptors: Vec<u8> = (0..12 * 64).map(|i: u32| (i.wrapping_mul(2_654_435_761) >> 24) as u8).collect();
+        json!({"width": 640, "height": 480, "keypoints": keypoints,
+               "descriptors_base64": base64::engine::general_purpose::STANDARD.encode(descriptors)})
+    }
+
+    fn intrinsics() -> Value {
+        json!({"fx": 525.0, "fy": 525.0, "cx": 319.5, "cy": 239.5})
+    }
+
+    pub fn describe() -> Value {
+        json!({"frame": {"keypoints": keypoint_set(0.0)}})
+    }
+
+    pub fn match_pair() -> Value {
+        json!({
+            "frame1": {"keypoints": keypoint_set(0.0), "intrinsics": intrinsics()},
+            "frame2": {"keypoints": keypoint_set(6.0), "intrinsics": intrinsics()},
+            "ratio": 0.8,
+            "matcher": "rerank"
+        })
+    }
+
+    pub fn localize() -> Value {
+        json!({"frame": {"keypoints": keypoint_set(0.0)}, "intrinsics": intrinsics()})
+    }
+
+    pub fn keyframe() -> Value {
+        json!({
+            "keyframe_id": 1,
+            "pose": {"tx": 0.0, "ty": 0.0, "tz": 0.0, "qx": 0.0, "qy": 0.0, "qz": 0.0, "qw": 1.0},
+            "frame": {"keypoints": keypoint_set(0.0)},
+            "intrinsics": intrinsics()
+        })
+    }
+
+    pub fn create_map() -> Value {
+        json!({"map_id": "example"})
+    }
+}
+
+/// Raw bytes: an image (PNG or JPEG), a picture the service drew (PNG), or a map file.
+#[derive(ToSchema)]
+#[schema(value_type = String, format = Binary)]
+#[allow(dead_code)] // Documentation of a binary body; the bytes are read and sent as they are.
+pub struct Binary(Vec<u8>);
+
+/// A one-frame request as `multipart/form-data`: the JSON fields in a part named `request`, the image as a
+/// file part.
+#[derive(ToSchema)]
+#[allow(dead_code)] // Documentation of the multipart layout that `body::read_body` reads.
+pub struct FrameForm {
+    /// The request's JSON fields (as the `application/json` body), optional when the image is all.
+    request: Option<String>,
+    /// PNG or JPEG.
+    #[schema(value_type = Option<String>, format = Binary)]
+    image: Option<Vec<u8>>,
+}
+
+/// A MatchPair request as `multipart/form-data`.
+#[derive(ToSchema)]
+#[allow(dead_code)] // Documentation of the multipart layout that `body::read_body` reads.
+pub struct PairForm {
+    /// The request's JSON fields (as the `application/json` body: intrinsics of each frame, ratio, ...).
+    request: Option<String>,
+    /// Frame 1's image (the part may also be named `image`).
+    #[schema(value_type = Option<String>, format = Binary)]
+    image1: Option<Vec<u8>>,
+    /// Frame 2's image.
+    #[schema(value_type = Option<String>, format = Binary)]
+    image2: Option<Vec<u8>>,
+}
+
+/// An AddKeyframe request as `multipart/form-data`.
+#[derive(ToSchema)]
+#[allow(dead_code)] // Documentation of the multipart layout that `body::read_body` reads.
+pub struct KeyframeForm {
+    /// The request's JSON fields (keyframe_id, pose, intrinsics, ...).
+    request: String,
+    /// PNG or JPEG.
+    #[schema(value_type = Option<String>, format = Binary)]
+    image: Option<Vec<u8>>,
+    /// 16-bit PNG depth aligned with the image.
+    #[schema(value_type = Option<String>, format = Binary)]
+    depth: Option<Vec<u8>>,
+}
