@@ -250,7 +250,9 @@ mod tests {
         assert!(lines.len() > 3, "{lines:?}");
         assert_eq!(lines.last().unwrap(), "short");
         assert_eq!(lines[..lines.len() - 1].join(" "), long.trim());
-        let m = decode(&localization(&Backdrop::Blank { width: 320, height: 240 }, &[], &[long.clone()]).unwrap());
+        let m = decode(
+            &localization(&Backdrop::Blank { width: 320, height: 240 }, &[], std::slice::from_ref(&long)).unwrap(),
+        );
         let in_picture = wrap(&[long], 320 - 16).unwrap().len() as i32;
         assert!(in_picture > 3);
         assert_eq!(m.rows(), 240 + CAPTION_LINE * in_picture + 8);

@@ -3,6 +3,7 @@
 
 mod colmap;
 mod common;
+mod console;
 mod durability;
 mod embedding;
 mod hostile;

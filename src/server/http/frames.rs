@@ -122,7 +122,7 @@ pub async fn match_pair(
                 format!("rotation {angle:.1} deg, translation direction ({:.2}, {:.2}, {:.2})", t.x, t.y, t.z)
             });
             let caption = [
-                format!("MatchPair, SConE matcher '{}', ratio {}", options.matcher.name(), options.ratio),
+                format!("MatchPair, matcher '{}', ratio {}", options.matcher.name(), options.ratio),
                 format!(
                     "{} putative matches, {} inliers (green), {} outliers (red)",
                     pairs.len(),

@@ -30,8 +30,8 @@ pub async fn readyz(State(app): State<Arc<App>>) -> (StatusCode, &'static str) {
 
 /// Prometheus / OpenMetrics text: requests by route and status, stage times, pool, maps, storage.
 #[utoipa::path(get, path = "/metrics", tag = "operations",
-    responses((status = 200, description = "Metrics", body = String,
-        content_type = "application/openmetrics-text; version=1.0.0; charset=utf-8")))]
+    responses((status = 200, description = "Metrics (OpenMetrics 1.0.0 text)", body = String,
+        content_type = "application/openmetrics-text")))]
 pub async fn metrics(State(app): State<Arc<App>>) -> impl IntoResponse {
     let text = app.metrics.render(app.service.holdings(), app.pool.stats());
     ([(header::CONTENT_TYPE, "application/openmetrics-text; version=1.0.0; charset=utf-8")], text)
