@@ -115,16 +115,18 @@ function buildScene(canvas, contents) {
   const n = contents.landmarks.length;
   const positions = new Float32Array(n * 3);
   const colours = new Float32Array(n * 3);
-  const box = new THREE.Box3();
-  contents.landmarks.forEach((l, i) => {
-    positions.set([l.x, l.y, l.z], i * 3);
-    box.expandByPoint(new THREE.Vector3(l.x, l.y, l.z));
-  });
-  for (const k of contents.keyframes) box.expandByPoint(new THREE.Vector3(k.pose.tx, k.pose.ty, k.pose.tz));
-  if (box.isEmpty()) box.set(new THREE.Vector3(-1, -1, -1), new THREE.Vector3(1, 1, 1));
-  const size = box.getSize(new THREE.Vector3());
-  const extent = Math.max(size.x, size.y, size.z, 1e-3);
-  const centre = box.getCenter(new THREE.Vector3());
+  contents.landmarks.forEach((l, i) => positions.set([l.x, l.y, l.z], i * 3));
+  // The view frames the bulk of the map: the median point as centre, and the distance that holds 90 % of the
+  // landmarks and cameras as its size (a few far, badly triangulated points must not shrink the map to a dot).
+  const points = contents.landmarks.map((l) => new THREE.Vector3(l.x, l.y, l.z))
+    .concat(contents.keyframes.map((k) => new THREE.Vector3(k.pose.tx, k.pose.ty, k.pose.tz)));
+  const median = (values) => {
+    const v = [...values].sort((a, b) => a - b);
+    return v.length ? v[Math.floor(v.length / 2)] : 0;
+  };
+  const centre = new THREE.Vector3(median(points.map((p) => p.x)), median(points.map((p) => p.y)), median(points.map((p) => p.z)));
+  const distances = points.map((p) => p.distanceTo(centre)).sort((a, b) => a - b);
+  const extent = Math.max(2 * (distances.length ? distances[Math.floor(0.9 * (distances.length - 1))] : 1), 1e-3);
 
   // The cameras' mean "up" (OpenCV's -y) and viewing direction set the initial view.
   const up = new THREE.Vector3(), forward = new THREE.Vector3();
@@ -140,10 +142,12 @@ function buildScene(canvas, contents) {
 
   // Landmarks coloured by height along "up", blue (low) to orange (high).
   const heights = contents.landmarks.map((l) => new THREE.Vector3(l.x, l.y, l.z).sub(centre).dot(up));
-  const lo = Math.min(...heights, 0), hi = Math.max(...heights, 1e-6);
+  const sorted = [...heights].sort((a, b) => a - b);
+  const lo = sorted.length ? sorted[Math.floor(0.05 * (sorted.length - 1))] : 0;
+  const hi = sorted.length ? sorted[Math.floor(0.95 * (sorted.length - 1))] : 1;
   const c = new THREE.Color();
   heights.forEach((h, i) => {
-    c.setHSL(0.6 - 0.55 * ((h - lo) / (hi - lo || 1)), 0.85, 0.55);
+    c.setHSL(0.6 - 0.55 * Math.min(1, Math.max(0, (h - lo) / (hi - lo || 1))), 0.85, 0.55);
     colours.set([c.r, c.g, c.b], i * 3);
   });
   const g = new THREE.BufferGeometry();
@@ -155,7 +159,12 @@ function buildScene(canvas, contents) {
 
   const camera = new THREE.PerspectiveCamera(55, 1, extent * 1e-3, extent * 100);
   camera.up.copy(up);
-  camera.position.copy(centre).addScaledVector(forward, -1.2 * extent).addScaledVector(up, 0.6 * extent);
+  // From behind and above the mapping cameras, looking at the map: frusta in front, the scene beyond them.
+  const cameras = new THREE.Vector3();
+  for (const k of contents.keyframes) cameras.add(new THREE.Vector3(k.pose.tx, k.pose.ty, k.pose.tz));
+  if (contents.keyframes.length) cameras.divideScalar(contents.keyframes.length);
+  else cameras.copy(centre).addScaledVector(forward, -0.5 * extent);
+  camera.position.copy(cameras).addScaledVector(forward, -0.5 * extent).addScaledVector(up, 0.35 * extent);
   const controls = new OrbitControls(camera, canvas);
   controls.target.copy(centre);
   controls.update();

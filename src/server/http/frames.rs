@@ -162,7 +162,7 @@ pub async fn match_pair(
 /// `Accept: image/png`, the frame with its 2D-3D matches (inliers green, outliers red) and the inlier
 /// landmarks reprojected at the estimated pose (cyan rings, residuals in yellow).
 #[utoipa::path(post, path = "/v1/maps/{map_id}/localize", tag = "maps",
-    params(("map_id" = String, Path, description = "The map", example = "example"), IntrinsicsQuery, wire::RenderQuery),
+    params(("map_id" = String, Path, description = "The map", example = "office"), IntrinsicsQuery, wire::RenderQuery),
     request_body(description = "A frame: raw image body (intrinsics in the query), multipart, or JSON", content(
         (wire::LocalizeRequest = "application/json", example = examples::localize),
         (wire::FrameForm = "multipart/form-data"),

@@ -50,7 +50,7 @@ pub async fn list_maps(State(app): State<Arc<App>>, headers: HeaderMap) -> ApiRe
 
 /// One map's statistics (rpc Maps.GetMap).
 #[utoipa::path(get, path = "/v1/maps/{map_id}", tag = "maps",
-    params(("map_id" = String, Path, description = "The map", example = "example")),
+    params(("map_id" = String, Path, description = "The map", example = "office")),
     responses((status = 200, description = "The map", body = wire::MapInfo), ApiErrors))]
 pub async fn get_map(
     State(app): State<Arc<App>>,
@@ -63,7 +63,7 @@ pub async fn get_map(
 
 /// Deletes a map and everything stored for it (rpc Maps.DeleteMap).
 #[utoipa::path(delete, path = "/v1/maps/{map_id}", tag = "maps",
-    params(("map_id" = String, Path, description = "The map", example = "example")),
+    params(("map_id" = String, Path, description = "The map", example = "office")),
     responses((status = 204, description = "Deleted"), ApiErrors))]
 pub async fn delete_map(
     State(app): State<Arc<App>>,
@@ -77,7 +77,7 @@ pub async fn delete_map(
 /// A map's contents for viewers: keyframe poses and intrinsics, and its landmarks (an even subsample of at
 /// most `max_landmarks`). The console draws its 3D view from this.
 #[utoipa::path(get, path = "/v1/maps/{map_id}/contents", tag = "maps",
-    params(("map_id" = String, Path, description = "The map", example = "example"), wire::ContentsQuery),
+    params(("map_id" = String, Path, description = "The map", example = "office"), wire::ContentsQuery),
     responses((status = 200, description = "Keyframes and landmarks", body = wire::MapContents), ApiErrors))]
 pub async fn map_contents(
     State(app): State<Arc<App>>,
@@ -122,7 +122,7 @@ pub async fn map_contents(
 
 /// One posed keyframe (rpc Maps.AddKeyframes, one message), answered once the write is durable.
 #[utoipa::path(post, path = "/v1/maps/{map_id}/keyframes", tag = "maps",
-    params(("map_id" = String, Path, description = "The map", example = "example")),
+    params(("map_id" = String, Path, description = "The map", example = "office")),
     request_body(description = "A posed frame: multipart (request, image, depth) or JSON", content(
         (wire::KeyframeRequest = "application/json", example = examples::keyframe),
         (wire::KeyframeForm = "multipart/form-data"))),
@@ -186,7 +186,7 @@ pub async fn add_keyframe(
 
 /// Removes a keyframe; its observations leave the index (rpc Maps.RemoveKeyframe).
 #[utoipa::path(delete, path = "/v1/maps/{map_id}/keyframes/{keyframe_id}", tag = "maps",
-    params(("map_id" = String, Path, description = "The map", example = "example"),
+    params(("map_id" = String, Path, description = "The map", example = "office"),
            ("keyframe_id" = u64, Path, description = "The keyframe", example = 1)),
     responses((status = 200, description = "The map after the removal", body = wire::MapInfo), ApiErrors))]
 pub async fn remove_keyframe(
@@ -204,7 +204,7 @@ pub async fn remove_keyframe(
 
 /// The map as one versioned, checksummed file (rpc Maps.ExportMap).
 #[utoipa::path(get, path = "/v1/maps/{map_id}/export", tag = "maps",
-    params(("map_id" = String, Path, description = "The map", example = "example")),
+    params(("map_id" = String, Path, description = "The map", example = "office")),
     responses((status = 200, description = "The map file", content((wire::Binary = "application/octet-stream"))),
         ApiErrors))]
 pub async fn export_map(
@@ -227,7 +227,7 @@ pub async fn export_map(
 /// A file from ExportMap under a new id (rpc Maps.ImportMap). Idempotent: the same content again into the map
 /// it made is 201 with that map.
 #[utoipa::path(post, path = "/v1/maps/{map_id}/import", tag = "maps",
-    params(("map_id" = String, Path, description = "The new map's id", example = "example-copy")),
+    params(("map_id" = String, Path, description = "The new map's id", example = "office-copy")),
     request_body(content((wire::Binary = "application/octet-stream"))),
     responses((status = 201, description = "The imported map", body = wire::MapInfo), ApiErrors))]
 pub async fn import_map(

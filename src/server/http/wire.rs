@@ -459,7 +459,7 @@ pub mod examples {
     }
 
     pub fn create_map() -> Value {
-        json!({"map_id": "example"})
+        json!({"map_id": "office"})
     }
 }
 

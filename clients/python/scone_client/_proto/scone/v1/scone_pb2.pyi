@@ -13,10 +13,12 @@ class PairMatcher(int, metaclass=_enum_type_wrapper.EnumTypeWrapper):
     PAIR_MATCHER_PLAIN: _ClassVar[PairMatcher]
     PAIR_MATCHER_UNION: _ClassVar[PairMatcher]
     PAIR_MATCHER_RERANK: _ClassVar[PairMatcher]
+    PAIR_MATCHER_FREAK: _ClassVar[PairMatcher]
 PAIR_MATCHER_DEFAULT: PairMatcher
 PAIR_MATCHER_PLAIN: PairMatcher
 PAIR_MATCHER_UNION: PairMatcher
 PAIR_MATCHER_RERANK: PairMatcher
+PAIR_MATCHER_FREAK: PairMatcher
 
 class Intrinsics(_message.Message):
     __slots__ = ("fx", "fy", "cx", "cy", "width", "height")
