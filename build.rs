@@ -1,6 +1,7 @@
 //! Build script: make the binary find the OpenCV built by `scripts/setup` at run time (rpath), refuse to build
 //! against an OpenCV without the contrib module `xfeatures2d` (the `opencv` crate would silently drop FREAK),
-//! record the default ONNX Runtime library path of the setup prefix, and generate the gRPC code.
+//! record the default ONNX Runtime library path of the setup prefix, check that the console's libraries are
+//! installed (the binary embeds them), and generate the gRPC code.
 use std::env;
 use std::path::PathBuf;
 
@@ -29,6 +30,15 @@ fn main() {
     }
     let ort = env::var("SCONE_ORT_LIB").unwrap_or_default();
     println!("cargo:rustc-env=SCONE_DEFAULT_ORT_LIB={ort}");
+
+    // The console's browser libraries (npm, ui/package-lock.json), embedded by src/server/http/ui.rs.
+    println!("cargo:rerun-if-changed=ui/package-lock.json");
+    if !PathBuf::from("ui/node_modules/three/build/three.module.js").is_file() {
+        panic!(
+            "ui/node_modules is missing: run `scripts/setup` once (it installs the console's libraries with \
+             `npm ci --ignore-scripts` in ui/), or run that command yourself"
+        );
+    }
 
     // gRPC code and the descriptor set that server reflection serves; protoc comes from Debian's
     // protobuf-compiler (installed by scripts/setup).

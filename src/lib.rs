@@ -36,9 +36,9 @@
 //! `POST /v1/maps/office/localize` with a JPEG and intrinsics:
 //!
 //! 1. [`server::http`] refuses it at once if the CPU pool has no free slot, else reads the body (size and
-//!    time limits), checks the read key ([`server::auth`]) and turns the form into a
-//!    [`service::FrameInput`];
-//! 2. the closure runs on the [`workers::CpuPool`] under the request deadline and calls
+//!    time limits) and checks the read key ([`server::auth`]);
+//! 2. a closure runs on the [`workers::CpuPool`] under the request deadline: it turns the form into a
+//!    [`service::FrameInput`] and calls
 //!    [`service::Service::localize`], which checks the map exists, the image header and the intrinsics
 //!    ([`camera::validate_camera`]) before any decoding;
 //! 3. [`pipeline::Describer`] decodes ([`decode::decode_grey`]), extracts FAST + FREAK

@@ -15,6 +15,8 @@ use crate::error::FeatureError;
 
 /// Height of a drawn frame at most, pixels.
 pub const MAX_HEIGHT: u32 = 720;
+/// Width of a drawn frame at most, pixels (a pair picture is at most twice as wide).
+pub const MAX_WIDTH: u32 = 1440;
 
 const CAPTION_LINE: i32 = 22;
 const BACKGROUND: f64 = 60.0;
@@ -40,11 +42,14 @@ fn outlier_colour() -> Scalar {
     bgr(60.0, 60.0, 230.0)
 }
 
-/// The backdrop as a colour image scaled to `height`, and the scale applied.
-fn canvas(b: &Backdrop, height: i32) -> Result<(Mat, f64), FeatureError> {
+/// The backdrop as a colour image shrunk to fit [`MAX_WIDTH`] x [`MAX_HEIGHT`] (never enlarged), and the scale
+/// applied. Images are decoded as the extraction decodes them: EXIF orientation ignored, so keypoints land on
+/// their pixels.
+fn canvas(b: &Backdrop) -> Result<(Mat, f64), FeatureError> {
     let full = match b {
         Backdrop::Image(bytes) => {
-            let decoded = imgcodecs::imdecode(&Vector::<u8>::from_slice(bytes), imgcodecs::IMREAD_COLOR)?;
+            let flags = imgcodecs::IMREAD_COLOR | imgcodecs::IMREAD_IGNORE_ORIENTATION;
+            let decoded = imgcodecs::imdecode(&Vector::<u8>::from_slice(bytes), flags)?;
             if decoded.empty() {
                 return Err(FeatureError::CorruptImage { reason: "the image could not be decoded to draw on".into() });
             }
@@ -57,18 +62,34 @@ fn canvas(b: &Backdrop, height: i32) -> Result<(Mat, f64), FeatureError> {
             Scalar::all(BACKGROUND),
         )?,
     };
-    let scale = height as f64 / full.rows().max(1) as f64;
-    let width = ((full.cols() as f64 * scale).round() as i32).max(1);
+    let (rows, cols) = (full.rows().max(1) as f64, full.cols().max(1) as f64);
+    let scale = (MAX_HEIGHT as f64 / rows).min(MAX_WIDTH as f64 / cols).min(1.0);
+    if scale >= 1.0 {
+        return Ok((full, 1.0));
+    }
+    let size = Size::new(((cols * scale).round() as i32).max(1), ((rows * scale).round() as i32).max(1));
     let mut out = Mat::default();
-    imgproc::resize(&full, &mut out, Size::new(width, height), 0.0, 0.0, imgproc::INTER_AREA)?;
+    imgproc::resize(&full, &mut out, size, 0.0, 0.0, imgproc::INTER_AREA)?;
     Ok((out, scale))
 }
 
-fn frame_height(b: &Backdrop) -> Result<u32, FeatureError> {
-    Ok(match b {
-        Backdrop::Image(bytes) => crate::decode::read_header(bytes)?.height,
-        Backdrop::Blank { height, .. } => *height,
-    })
+/// `m` padded at the bottom with the background to `rows` rows.
+fn pad_to(m: Mat, rows: i32) -> Result<Mat, FeatureError> {
+    if m.rows() >= rows {
+        return Ok(m);
+    }
+    let mut out = Mat::default();
+    opencv::core::copy_make_border(
+        &m,
+        &mut out,
+        0,
+        rows - m.rows(),
+        0,
+        0,
+        opencv::core::BORDER_CONSTANT,
+        Scalar::all(BACKGROUND),
+    )?;
+    Ok(out)
 }
 
 fn pt(p: (f64, f64)) -> Point {
@@ -137,9 +158,10 @@ pub fn pair(
     inliers: &[bool],
     caption: &[String],
 ) -> Result<Vec<u8>, FeatureError> {
-    let h = frame_height(frame1)?.max(frame_height(frame2)?).clamp(1, MAX_HEIGHT) as i32;
-    let (c1, s1) = canvas(frame1, h)?;
-    let (c2, s2) = canvas(frame2, h)?;
+    let (c1, s1) = canvas(frame1)?;
+    let (c2, s2) = canvas(frame2)?;
+    let h = c1.rows().max(c2.rows());
+    let (c1, c2) = (pad_to(c1, h)?, pad_to(c2, h)?);
     let mut body = Mat::default();
     opencv::core::hconcat2(&c1, &c2, &mut body)?;
     let offset = c1.cols() as f64;
@@ -173,8 +195,7 @@ pub struct LocalizedPoint {
 /// A localised frame: every 2D-3D match as a dot (inliers green, outliers red), and for inliers the
 /// landmark's reprojection (a cyan ring) joined to its keypoint by a yellow line (the residual).
 pub fn localization(frame: &Backdrop, points: &[LocalizedPoint], caption: &[String]) -> Result<Vec<u8>, FeatureError> {
-    let h = frame_height(frame)?.clamp(1, MAX_HEIGHT) as i32;
-    let (mut body, s) = canvas(frame, h)?;
+    let (mut body, s) = canvas(frame)?;
     let scaled = |p: (f64, f64)| (p.0 * s, p.1 * s);
     for pass_inliers in [false, true] {
         for p in points.iter().filter(|p| p.inlier == pass_inliers) {
@@ -256,6 +277,17 @@ mod tests {
         let in_picture = wrap(&[long], 320 - 16).unwrap().len() as i32;
         assert!(in_picture > 3);
         assert_eq!(m.rows(), 240 + CAPTION_LINE * in_picture + 8);
+    }
+
+    #[test]
+    fn odd_frame_shapes_stay_within_the_picture_bounds() {
+        // A 4096 x 1 keypoint set beside a 720-high frame: each shrinks into its box, the short one is padded.
+        let thin = Backdrop::Blank { width: 4096, height: 1 };
+        let tall = Backdrop::Blank { width: 960, height: 720 };
+        let m = decode(&pair(&thin, &tall, &[(4000.0, 0.0)], &[(10.0, 10.0)], &[(0, 0)], &[true], &[]).unwrap());
+        assert_eq!((m.cols(), m.rows()), (MAX_WIDTH as i32 + 960, 720 + 8));
+        let m = decode(&localization(&Backdrop::Blank { width: 1, height: 4096 }, &[], &[]).unwrap());
+        assert!(m.cols() >= 1 && m.rows() == MAX_HEIGHT as i32 + 8);
     }
 
     #[test]

@@ -251,13 +251,18 @@ async function mapPage(id) {
       const body = await file.arrayBuffer();
       const url = `/v1/maps/${enc}/localize?${intr}`;
       const answer = await (await api(url, { method: "POST", headers: { "content-type": type }, body })).json();
-      const picture = await (await api(`${url}&render=png`, { method: "POST", headers: { "content-type": type }, body })).blob();
       const pose = el("pre", { id: "loc-pose", text: JSON.stringify(answer, null, 2) });
       result.replaceChildren(
         el("p", { id: "loc-summary", "data-localized": String(answer.localized),
           text: answer.localized ? `localised: ${answer.inliers} inliers of ${answer.matches} matches` : `not localised (${answer.matches} matches)` }),
-        pose,
-        el("img", { id: "loc-picture", class: "picture", alt: "inlier 2D-3D matches", src: URL.createObjectURL(picture) }));
+        pose);
+      // The picture is a second call (the same work again); if it fails, the pose stays shown.
+      try {
+        const picture = await (await api(`${url}&render=png`, { method: "POST", headers: { "content-type": type }, body })).blob();
+        result.append(el("img", { id: "loc-picture", class: "picture", alt: "inlier 2D-3D matches", src: URL.createObjectURL(picture) }));
+      } catch (e) {
+        result.append(el("p", { class: "error", text: `no picture: ${e.message || e}` }));
+      }
       if (answer.localized) {
         const fx = Number(document.getElementById("loc-fx").value), fy = Number(document.getElementById("loc-fy").value);
         const cx = Number(document.getElementById("loc-cx").value), cy = Number(document.getElementById("loc-cy").value);

@@ -13,9 +13,12 @@ import yaml
 
 KNOWN = {
     "server": {"grpc_addr", "http_addr", "request_timeout_ms", "shutdown_grace_ms", "max_request_bytes",
-               "max_map_bytes"},
+               "max_map_bytes", "max_connections", "header_read_timeout_ms", "body_read_timeout_ms",
+               "idle_timeout_ms", "tcp_keepalive_ms", "grpc_keepalive_interval_ms", "grpc_keepalive_timeout_ms",
+               "max_concurrent_streams", "allowed_origins"},
     "auth": {"write_keys", "read_keys", "keys_file", "allow_anonymous"},
-    "workers": {"threads", "queue"},
+    "workers": {"threads", "queue", "refusal_hold_ms"},
+    "relative_pose": None,
     "model": {"model", "runtime_library", "sessions", "intra_threads", "spinning"},
     "store": {"data_dir", "compact_every", "index", "build", "localize", "backend"},
     "limits": None,

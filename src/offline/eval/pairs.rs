@@ -225,6 +225,9 @@ pub fn window_pairs(frames: usize, window: usize) -> Vec<(usize, usize)> {
 
 /// Runs the evaluation on a scene.
 pub fn evaluate(scene: &Scene, cfg: &PairsConfig, embedder: Option<&Embedder>) -> Result<PairsReport, BoxError> {
+    if cfg.scone_matcher == SconeMatcher::Freak {
+        return Err("scone_matcher freak is FREAK, not SConE: compare with the freak method instead".into());
+    }
     let limits = ImageLimits::default();
     let pairs: Vec<(usize, usize)> = window_pairs(scene.frames.len(), cfg.window)
         .into_iter()

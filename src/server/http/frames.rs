@@ -48,7 +48,6 @@ fn png_with_counts(bytes: Vec<u8>, matches: usize, inliers: usize) -> Response {
 
 /// Keypoints, FREAK descriptors and SConE embeddings of one frame (rpc Matching.Describe).
 #[utoipa::path(post, path = "/v1/describe", tag = "matching",
-    params(IntrinsicsQuery),
     request_body(description = "A frame: raw image body, multipart, or JSON (base64 image or keypoints)", content(
         (wire::DescribeRequest = "application/json", example = examples::describe),
         (wire::FrameForm = "multipart/form-data"),

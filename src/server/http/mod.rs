@@ -50,8 +50,9 @@ pub use error::{ApiError, ApiResult};
     info(
         title = "scone",
         version = "1",
-        description = "SConE image matching and relocalisation. Every `/v1` endpoint mirrors an RPC of \
-            `proto/scone/v1/scone.proto`. Authenticate with the `x-api-key` header (or `Authorization: Bearer`) \
+        description = "SConE image matching and relocalisation. The `/v1` endpoints mirror the RPCs of \
+            `proto/scone/v1/scone.proto`, plus two for people looking at the service (a map's contents, and \
+            the pictures of MatchPair and Localize with `render=png`). Authenticate with the `x-api-key` header (or `Authorization: Bearer`) \
             when keys are configured: a read key for reads, a write key for anything that changes a map. Poses \
             are camera-to-world, quaternions (x, y, z, w), OpenCV camera axes. Browser pages may write \
             (anything but GET and HEAD) only from an allowed origin (`server.allowed_origins`; default the \
@@ -196,6 +197,8 @@ async fn method_not_allowed(method: Method, uri: Uri) -> ApiError {
 pub struct OriginPolicy {
     any: bool,
     allowed: Vec<String>,
+    /// Whether a page served by this server (its Origin is `http(s)://` + the request's Host) may write.
+    same_host: bool,
 }
 
 impl OriginPolicy {
@@ -220,7 +223,25 @@ impl OriginPolicy {
                 }
             }
         }
-        Self { any, allowed }
+        Self { any, allowed, same_host: false }
+    }
+
+    /// Also lets pages of this server's own host write (the console, when it is reached under a name or address
+    /// that is not in the list). Only with API keys on: without keys, a page whose name was rebound to this
+    /// server's address (DNS rebinding) would pass this check, so the explicit list is all that holds.
+    pub fn with_same_host(mut self, on: bool) -> Self {
+        self.same_host = on;
+        self
+    }
+
+    /// Whether `origin` is the page of the host the request was sent to.
+    fn is_same_host(&self, origin: &str, host: Option<&str>) -> bool {
+        self.same_host
+            && host.is_some_and(|h| {
+                let o = origin.to_ascii_lowercase();
+                let h = h.trim().to_ascii_lowercase();
+                o == format!("http://{h}") || o == format!("https://{h}")
+            })
     }
 
     fn allows(&self, origin: &str) -> bool {
@@ -237,12 +258,15 @@ const CORS_HEADERS: &str = "content-type, x-api-key, authorization";
 /// policy, and responses to allowed origins carry `Access-Control-Allow-Origin`.
 async fn origin_policy(State(policy): State<Arc<OriginPolicy>>, req: Request, next: Next) -> Response {
     let origin = req.headers().get(header::ORIGIN).map(|v| v.to_str().unwrap_or("(not text)").to_string());
-    let allowed = origin.as_deref().is_some_and(|o| policy.allows(o));
+    let host =
+        req.headers().get(header::HOST).and_then(|v| v.to_str().ok()).or(req.uri().authority().map(|a| a.as_str()));
+    let allowed = origin.as_deref().is_some_and(|o| policy.allows(o) || policy.is_same_host(o, host));
     let cors = |resp: &mut Response, origin: &str| {
         let h = resp.headers_mut();
         if let Ok(v) = HeaderValue::from_str(origin) {
             h.insert(header::ACCESS_CONTROL_ALLOW_ORIGIN, v);
         }
+        h.insert(header::ACCESS_CONTROL_EXPOSE_HEADERS, HeaderValue::from_static("x-scone-matches, x-scone-inliers"));
         h.append(header::VARY, HeaderValue::from_static("origin"));
     };
     if req.method() == Method::OPTIONS {
@@ -302,7 +326,8 @@ pub async fn serve(
     shutdown: impl Future<Output = ()> + Send + 'static,
 ) -> anyhow::Result<()> {
     let server = &app.settings.server;
-    let origins = OriginPolicy::new(&server.allowed_origins, listener.local_addr()?);
+    let origins =
+        OriginPolicy::new(&server.allowed_origins, listener.local_addr()?).with_same_host(!app.keys.is_empty());
     let body_timeout = Duration::from_millis(server.body_read_timeout_ms);
     let keepalive =
         (server.grpc_keepalive_interval_ms > 0).then(|| Duration::from_millis(server.grpc_keepalive_interval_ms));
@@ -377,11 +402,19 @@ mod tests {
         let p = OriginPolicy::new(&["https://App.example.com/".into()], "127.0.0.1:8080".parse().unwrap());
         assert!(p.allows("https://app.example.com") && !p.allows("http://127.0.0.1:8080"));
         assert!(OriginPolicy::new(&["*".into()], "0.0.0.0:80".parse().unwrap()).allows("https://any.where"));
+        // The server's own host: only with keys on (a rebound name must not pass a keyless server).
+        let open = OriginPolicy::new(&[], "0.0.0.0:8080".parse().unwrap());
+        assert!(!open.is_same_host("http://maps.example:8080", Some("maps.example:8080")));
+        let keyed = open.with_same_host(true);
+        assert!(keyed.is_same_host("http://maps.example:8080", Some("maps.example:8080")));
+        assert!(keyed.is_same_host("https://Maps.Example", Some("maps.example")));
+        assert!(!keyed.is_same_host("http://evil.example", Some("maps.example:8080")));
+        assert!(!keyed.is_same_host("http://maps.example:8080", None));
     }
 
-    /// The document generated from the code is one the router serves: every documented operation is routed
-    /// (answered by something other than the no-route and wrong-method fallbacks), and the router's routes
-    /// are all added through utoipa's `routes!` (so none can be missing from the document).
+    /// The document's operations are exactly the expected list, and the router's routes are all added through
+    /// utoipa's `routes!` (so none can be missing from the document). That each documented operation is
+    /// served is checked against the running server by `clients/python/tests/test_http_api.py`.
     #[test]
     fn every_documented_operation_is_routed_and_every_route_documented() {
         let doc = openapi();

@@ -3,8 +3,8 @@
 //! all compiled into the binary so the console works offline and needs nothing at run time.
 //!
 //! The files need no key (they hold no data); everything the console shows comes from the API with the key
-//! typed into its header, under the API's rules. Caching: an ETag per file (a hash of its bytes), and
-//! revalidation every time for the console's own files, an hour for the pinned libraries.
+//! typed into its header, under the API's rules. Caching: an ETag per file (a hash of its bytes), revalidated
+//! on every use (`no-cache`; unchanged files cost a 304).
 
 use std::sync::LazyLock;
 
@@ -20,8 +20,6 @@ struct Asset {
     name: &'static str,
     content_type: &'static str,
     bytes: &'static [u8],
-    /// A pinned library (cached for an hour) rather than the console's own file (revalidated).
-    library: bool,
 }
 
 macro_rules! file {
@@ -35,41 +33,24 @@ const CSS: &str = "text/css; charset=utf-8";
 const HTML: &str = "text/html; charset=utf-8";
 
 static ASSETS: &[Asset] = &[
-    Asset { name: "index.html", content_type: HTML, bytes: file!("index.html"), library: false },
-    Asset { name: "api.html", content_type: HTML, bytes: file!("api.html"), library: false },
-    Asset { name: "console.js", content_type: JS, bytes: file!("console.js"), library: false },
-    Asset { name: "api.js", content_type: JS, bytes: file!("api.js"), library: false },
-    Asset { name: "console.css", content_type: CSS, bytes: file!("console.css"), library: false },
-    Asset {
-        name: "three.module.js",
-        content_type: JS,
-        bytes: file!("node_modules/three/build/three.module.js"),
-        library: true,
-    },
-    Asset {
-        name: "three.core.js",
-        content_type: JS,
-        bytes: file!("node_modules/three/build/three.core.js"),
-        library: true,
-    },
+    Asset { name: "index.html", content_type: HTML, bytes: file!("index.html") },
+    Asset { name: "api.html", content_type: HTML, bytes: file!("api.html") },
+    Asset { name: "console.js", content_type: JS, bytes: file!("console.js") },
+    Asset { name: "api.js", content_type: JS, bytes: file!("api.js") },
+    Asset { name: "console.css", content_type: CSS, bytes: file!("console.css") },
+    Asset { name: "three.module.js", content_type: JS, bytes: file!("node_modules/three/build/three.module.js") },
+    Asset { name: "three.core.js", content_type: JS, bytes: file!("node_modules/three/build/three.core.js") },
     Asset {
         name: "OrbitControls.js",
         content_type: JS,
         bytes: file!("node_modules/three/examples/jsm/controls/OrbitControls.js"),
-        library: true,
     },
     Asset {
         name: "swagger-ui-bundle.js",
         content_type: JS,
         bytes: file!("node_modules/swagger-ui-dist/swagger-ui-bundle.js"),
-        library: true,
     },
-    Asset {
-        name: "swagger-ui.css",
-        content_type: CSS,
-        bytes: file!("node_modules/swagger-ui-dist/swagger-ui.css"),
-        library: true,
-    },
+    Asset { name: "swagger-ui.css", content_type: CSS, bytes: file!("node_modules/swagger-ui-dist/swagger-ui.css") },
 ];
 
 static ETAGS: LazyLock<Vec<String>> = LazyLock::new(|| {
@@ -79,7 +60,9 @@ static ETAGS: LazyLock<Vec<String>> = LazyLock::new(|| {
 fn serve(index: usize, headers: &HeaderMap) -> Response {
     let asset = &ASSETS[index];
     let etag = &ETAGS[index];
-    let cache = if asset.library { "public, max-age=3600" } else { "no-cache" };
+    // Revalidated every time (a 304 when unchanged): file names carry no version, so an hour's caching could
+    // pair a new three.module.js with an old three.core.js after an upgrade.
+    let cache = "no-cache";
     let fresh = headers
         .get(header::IF_NONE_MATCH)
         .and_then(|v| v.to_str().ok())
