@@ -87,6 +87,22 @@ pub enum EvalCommand {
         /// Every S-th frame goes into the map.
         #[arg(long, default_value_t = 3)]
         map_stride: usize,
+        /// Instead: the map is the contiguous block A:B of the posed frames (fractions, e.g. 0:0.5), the queries
+        /// all the others (far from the map), binned by their viewing angle to it.
+        #[arg(long, value_parser = parse_block)]
+        map_block: Option<(f64, f64)>,
+        /// Scenes whose keyframes are added to the map as distractors (moved far away in space).
+        #[arg(long, value_delimiter = ',')]
+        distractors: Vec<PathBuf>,
+        /// Distractor observations to add (0: none).
+        #[arg(long, default_value_t = 0)]
+        distractor_observations: usize,
+        /// Every N-th frame of the distractor scenes.
+        #[arg(long, default_value_t = 5)]
+        distractor_stride: usize,
+        /// Multiplies the success thresholds (for scenes whose units are not metres).
+        #[arg(long, default_value_t = 1.0)]
+        unit_scale: f64,
         #[command(flatten)]
         report: ReportArgs,
         #[command(flatten)]
@@ -169,7 +185,19 @@ pub fn run(cmd: EvalCommand) -> anyhow::Result<()> {
             print!("{}", pairs::markdown(&report));
             out.write_json(&report)?;
         }
-        EvalCommand::Reloc { scene, methods, map_stride, report: out, extractor } => {
+        EvalCommand::Reloc {
+            scene,
+            methods,
+            map_stride,
+            map_block,
+            distractors,
+            distractor_observations,
+            distractor_stride,
+            unit_scale,
+            report: out,
+            extractor,
+        } => {
+            anyhow::ensure!(unit_scale.is_finite() && unit_scale > 0.0, "--unit-scale must be positive");
             let cfg = extractor.config()?;
             for m in &methods {
                 anyhow::ensure!(
@@ -179,11 +207,32 @@ pub fn run(cmd: EvalCommand) -> anyhow::Result<()> {
             }
             let s = Scene::load(&scene)?;
             let embedder = load_embedder(methods.contains(&Method::Scone), &out)?;
-            let rc = reloc::RelocConfig { methods, stride: map_stride, extractor: cfg, ..Default::default() };
+            let rc = reloc::RelocConfig {
+                methods,
+                stride: map_stride,
+                extractor: cfg,
+                map_block,
+                distractors,
+                distractor_observations,
+                distractor_stride,
+                unit_scale,
+                ..Default::default()
+            };
             let report = reloc::evaluate(&s, &rc, embedder.as_ref()).map_err(|e| anyhow::anyhow!("{e}"))?;
             print!("{}", reloc::markdown(&report));
             out.write_json(&report)?;
         }
     }
     Ok(())
+}
+
+/// `A:B` as two fractions.
+fn parse_block(s: &str) -> Result<(f64, f64), String> {
+    let (a, b) = s.split_once(':').ok_or("expected A:B, e.g. 0:0.5")?;
+    let a: f64 = a.trim().parse().map_err(|_| format!("'{a}' is not a number"))?;
+    let b: f64 = b.trim().parse().map_err(|_| format!("'{b}' is not a number"))?;
+    if !((0.0..1.0).contains(&a) && a < b && b <= 1.0) {
+        return Err(format!("{a}:{b}: needs 0 <= A < B <= 1"));
+    }
+    Ok((a, b))
 }

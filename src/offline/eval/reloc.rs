@@ -10,6 +10,17 @@
 //! Hamming, so the search is an exact popcount search; the ratio test is applied to Hamming distances by
 //! using sqrt(ratio) on L2), and SIFT (L2). All searches here are exact, so the comparison is about the
 //! descriptors, not the index.
+//!
+//! **Far maps and distractors** (the harder protocol; flags of `scone eval reloc`):
+//! * `map_block = (a, b)`: the map is the posed frames from fraction `a` to `b` of the sequence (a contiguous
+//!   block), and the queries are all the others, so most queries are far from every map keyframe. Each query
+//!   records its distance to the map: the baseline to the nearest map camera centre and the viewing angle to
+//!   the most similarly oriented map keyframe; the summary bins the queries by that angle (`ANGLE_BINS`).
+//! * `distractors`: keyframes of other real scenes are added to the same map, far away from it in space (so
+//!   their landmarks can only be wrong matches), until the map holds `distractor_observations` of their
+//!   observations; the nearest neighbours must then be found among many look-alikes. With distractors the
+//!   index is the service's (HNSW above `IndexParams::exact_below` observations), as a deployment's is.
+//! * `unit_scale`: the success thresholds are multiplied by it (scenes whose units are not metres).
 
 use std::time::Instant;
 
@@ -38,7 +49,37 @@ pub struct RelocConfig {
     pub build: BuildParams,
     pub localize: LocalizeParams,
     pub precision_px: f64,
+    /// Map from a contiguous block `[a, b)` of the posed frames (fractions) instead of every `stride`-th.
+    #[serde(default)]
+    pub map_block: Option<(f64, f64)>,
+    /// Other scenes whose keyframes are added to the map as distractors.
+    #[serde(default)]
+    pub distractors: Vec<std::path::PathBuf>,
+    /// Distractor observations to add (0: none). Distractor scenes are walked frame by frame (every
+    /// `distractor_stride`-th) until the count is reached.
+    #[serde(default)]
+    pub distractor_observations: usize,
+    #[serde(default = "one")]
+    pub distractor_stride: usize,
+    /// Multiplies the success thresholds (1 for scenes in metres).
+    #[serde(default = "one_f")]
+    pub unit_scale: f64,
 }
+
+fn one() -> usize {
+    1
+}
+
+fn one_f() -> f64 {
+    1.0
+}
+
+/// Viewing-angle bins (degrees, lower bounds) of the queries' distance to the map.
+pub const ANGLE_BINS: [f64; 4] = [0.0, 10.0, 20.0, 40.0];
+
+/// Where distractor keyframes are put: this far from the evaluated scene (scene units), one offset per
+/// distractor scene, so their landmarks never fall where the scene's are.
+const DISTRACTOR_OFFSET: f64 = 1.0e4;
 
 impl Default for RelocConfig {
     fn default() -> Self {
@@ -49,6 +90,11 @@ impl Default for RelocConfig {
             build: BuildParams::default(),
             localize: LocalizeParams::default(),
             precision_px: 5.0,
+            map_block: None,
+            distractors: Vec::new(),
+            distractor_observations: 0,
+            distractor_stride: 1,
+            unit_scale: 1.0,
         }
     }
 }
@@ -64,6 +110,25 @@ pub struct QueryRecord {
     pub inliers: usize,
     pub confidence: f64,
     pub seconds: f64,
+    /// Baseline to the nearest map camera centre (scene units).
+    #[serde(default)]
+    pub baseline_to_map: f64,
+    /// Viewing angle to the most similarly oriented map keyframe (degrees).
+    #[serde(default)]
+    pub angle_to_map_deg: f64,
+}
+
+/// Success of the queries whose viewing angle to the map falls in one bin.
+#[derive(Debug, Clone, Serialize, Deserialize)]
+pub struct BinSummary {
+    /// `[lo, hi)` degrees (`hi` infinite for the last).
+    pub angle_deg: (f64, f64),
+    pub queries: usize,
+    pub median_baseline: f64,
+    pub within_5cm_5deg: f64,
+    pub within_025m_2deg: f64,
+    pub within_05m_5deg: f64,
+    pub match_precision: f64,
 }
 
 #[derive(Debug, Clone, Serialize, Deserialize)]
@@ -83,6 +148,14 @@ pub struct RelocSummary {
     pub mean_matches: f64,
     pub build_seconds: f64,
     pub mean_query_ms: f64,
+    /// Observations of distractor scenes in the map.
+    #[serde(default)]
+    pub distractor_observations: usize,
+    #[serde(default)]
+    pub within_5cm_5deg: f64,
+    /// The queries by viewing angle to the map.
+    #[serde(default)]
+    pub bins: Vec<BinSummary>,
 }
 
 #[derive(Debug, Clone, Serialize, Deserialize)]
@@ -127,9 +200,7 @@ fn vectors(method: Method, d: &Described) -> Result<(Vec<f32>, usize), BoxError>
 pub fn evaluate(scene: &Scene, cfg: &RelocConfig, embedder: Option<&Embedder>) -> Result<RelocReport, BoxError> {
     let limits = ImageLimits::default();
     let posed: Vec<usize> = (0..scene.frames.len()).filter(|&i| scene.frames[i].pose.is_some()).collect();
-    let stride = cfg.stride.max(2);
-    let map_frames: Vec<usize> = posed.iter().copied().filter(|i| i % stride == 0).collect();
-    let query_frames: Vec<usize> = posed.iter().copied().filter(|i| i % stride != 0).collect();
+    let (map_frames, query_frames) = split_frames(&posed, cfg)?;
     let centres: Vec<_> = posed.iter().map(|&i| scene.frames[i].pose.unwrap().translation.vector).collect();
     let path_extent = centres.iter().flat_map(|a| centres.iter().map(move |b| (a - b).norm())).fold(0.0f64, f64::max);
     let mut images = Vec::new();
@@ -176,7 +247,22 @@ pub fn evaluate(scene: &Scene, cfg: &RelocConfig, embedder: Option<&Embedder>) -
             data.check(&record).map_err(|e| format!("frame {i}: {e}"))?;
             data.apply(&record);
         }
-        let mut index = EmbeddingIndex::new(IndexParams { exact_below: usize::MAX, ..IndexParams::default() });
+        let scene_observations = data.observations.len();
+        for (si, dir) in cfg.distractors.iter().enumerate() {
+            if data.observations.len() - scene_observations >= cfg.distractor_observations {
+                break;
+            }
+            add_distractors(&mut data, dir, si, scene_observations, method, cfg, &build, embedder)?;
+        }
+        let distractor_observations = data.observations.len() - scene_observations;
+        // Exact search on the scene alone (the descriptors compared, not the index); the service's index
+        // (HNSW above `exact_below`) once distractors make the map large, as a deployment's is.
+        let params = if distractor_observations > 0 {
+            IndexParams::default()
+        } else {
+            IndexParams { exact_below: usize::MAX, ..IndexParams::default() }
+        };
+        let mut index = EmbeddingIndex::new(params);
         index.sync(&data);
         let build_seconds = t0.elapsed().as_secs_f64();
         let mut recs = Vec::new();
@@ -189,6 +275,7 @@ pub fn evaluate(scene: &Scene, cfg: &RelocConfig, embedder: Option<&Embedder>) -
             let seconds = t.elapsed().as_secs_f64() + d.seconds;
             let gt = scene.frames[i].pose.unwrap();
             let gt_cw = gt.inverse();
+            let (baseline_to_map, angle_to_map_deg) = distance_to_map(scene, &map_frames, &gt);
             let correct = out
                 .matches
                 .iter()
@@ -223,12 +310,16 @@ pub fn evaluate(scene: &Scene, cfg: &RelocConfig, embedder: Option<&Embedder>) -
                 inliers,
                 confidence: out.confidence,
                 seconds,
+                baseline_to_map,
+                angle_to_map_deg,
             });
         }
         let q = recs.len().max(1) as f64;
+        let u = cfg.unit_scale;
         let within = |t: f64, r: f64| {
-            recs.iter().filter(|x| x.translation_error <= t && x.rotation_error_deg <= r).count() as f64 / q
+            recs.iter().filter(|x| x.translation_error <= t * u && x.rotation_error_deg <= r).count() as f64 / q
         };
+        let bins = bin_summaries(&recs, u);
         let loc_t: Vec<f64> = recs.iter().filter(|r| r.localised).map(|r| r.translation_error).collect();
         let loc_r: Vec<f64> = recs.iter().filter(|r| r.localised).map(|r| r.rotation_error_deg).collect();
         let matches: usize = recs.iter().map(|r| r.matches).sum();
@@ -249,16 +340,135 @@ pub fn evaluate(scene: &Scene, cfg: &RelocConfig, embedder: Option<&Embedder>) -
             mean_matches: matches as f64 / q,
             build_seconds,
             mean_query_ms: 1e3 * recs.iter().map(|r| r.seconds).sum::<f64>() / q,
+            distractor_observations,
+            within_5cm_5deg: within(0.05, 5.0),
+            bins,
         });
         queries.extend(recs.into_iter().map(|r| (method, r)));
     }
     Ok(RelocReport { scene: scene.name.clone(), path_extent, config: cfg.clone(), summaries, queries })
 }
 
+/// The map's frames and the queries: every `stride`-th posed frame and the rest, or a contiguous block and the
+/// rest.
+fn split_frames(posed: &[usize], cfg: &RelocConfig) -> Result<(Vec<usize>, Vec<usize>), BoxError> {
+    let (map, queries): (Vec<usize>, Vec<usize>) = match cfg.map_block {
+        Some((a, b)) => {
+            if !((0.0..1.0).contains(&a) && a < b && b <= 1.0) {
+                return Err(format!("map block {a}:{b}: needs 0 <= a < b <= 1").into());
+            }
+            let n = posed.len() as f64;
+            let (lo, hi) = ((a * n).floor() as usize, ((b * n).ceil() as usize).min(posed.len()));
+            let map = posed[lo..hi].to_vec();
+            (map.clone(), posed.iter().copied().filter(|i| !map.contains(i)).collect())
+        }
+        None => {
+            let stride = cfg.stride.max(2);
+            posed.iter().copied().partition(|i| i % stride == 0)
+        }
+    };
+    if map.is_empty() || queries.is_empty() {
+        return Err(format!("{} map frames and {} queries: both must be non-empty", map.len(), queries.len()).into());
+    }
+    Ok((map, queries))
+}
+
+/// Baseline to the nearest map camera centre, and viewing angle to the most similarly oriented map keyframe.
+fn distance_to_map(scene: &Scene, map_frames: &[usize], pose: &nalgebra::Isometry3<f64>) -> (f64, f64) {
+    let mut baseline = f64::INFINITY;
+    let mut angle = f64::INFINITY;
+    for &k in map_frames {
+        let kp = scene.frames[k].pose.expect("map frames are posed");
+        baseline = baseline.min((kp.translation.vector - pose.translation.vector).norm());
+        angle = angle.min(kp.rotation.angle_to(&pose.rotation).to_degrees());
+    }
+    (baseline, angle)
+}
+
+fn bin_summaries(recs: &[QueryRecord], unit_scale: f64) -> Vec<BinSummary> {
+    let mut out = Vec::new();
+    for (b, &lo) in ANGLE_BINS.iter().enumerate() {
+        let hi = ANGLE_BINS.get(b + 1).copied().unwrap_or(f64::INFINITY);
+        let inside: Vec<&QueryRecord> =
+            recs.iter().filter(|r| r.angle_to_map_deg >= lo && r.angle_to_map_deg < hi).collect();
+        let n = inside.len().max(1) as f64;
+        let within = |t: f64, r: f64| {
+            inside.iter().filter(|x| x.translation_error <= t * unit_scale && x.rotation_error_deg <= r).count() as f64
+                / n
+        };
+        let matches: usize = inside.iter().map(|r| r.matches).sum();
+        let correct: usize = inside.iter().map(|r| r.correct_matches).sum();
+        out.push(BinSummary {
+            angle_deg: (lo, hi),
+            queries: inside.len(),
+            median_baseline: median(&inside.iter().map(|r| r.baseline_to_map).collect::<Vec<_>>()),
+            within_5cm_5deg: within(0.05, 5.0),
+            within_025m_2deg: within(0.25, 2.0),
+            within_05m_5deg: within(0.5, 5.0),
+            match_precision: correct as f64 / matches.max(1) as f64,
+        });
+    }
+    out
+}
+
+/// Adds keyframes of the scene in `dir` to `data`, moved [`DISTRACTOR_OFFSET`] away per scene, until the map
+/// holds `cfg.distractor_observations` observations beyond the evaluated scene's `base`.
+#[allow(clippy::too_many_arguments)]
+fn add_distractors(
+    data: &mut MapData,
+    dir: &std::path::Path,
+    scene_index: usize,
+    base: usize,
+    method: Method,
+    cfg: &RelocConfig,
+    build: &BuildParams,
+    embedder: Option<&Embedder>,
+) -> Result<(), BoxError> {
+    let limits = ImageLimits::default();
+    let other = Scene::load(dir)?;
+    let offset = nalgebra::Vector3::new(DISTRACTOR_OFFSET * (scene_index + 1) as f64, 0.0, 0.0);
+    for (fi, f) in other.frames.iter().enumerate().step_by(cfg.distractor_stride.max(1)) {
+        if data.observations.len() - base >= cfg.distractor_observations {
+            break;
+        }
+        let Some(pose) = f.pose else { continue };
+        let bytes = std::fs::read(&f.rgb).map_err(|e| format!("{}: {e}", f.rgb.display()))?;
+        let d = describe(method, &decode_grey(&bytes, &limits)?, &cfg.extractor, embedder)?;
+        let (v, dim) = vectors(method, &d)?;
+        if dim != data.meta.dim && !v.is_empty() {
+            return Err(format!("distractor {}: dimension {dim}, the map's is {}", other.name, data.meta.dim).into());
+        }
+        let features =
+            Features { width: d.width, height: d.height, keypoints: d.keypoints.clone(), descriptors: vec![] };
+        let depth = match &f.depth {
+            Some(p) => Some(decode_depth_png(&std::fs::read(p)?, &limits)?),
+            None => None,
+        };
+        let moved = nalgebra::Isometry3::from_parts((pose.translation.vector + offset).into(), pose.rotation);
+        let input = KeyframeInput {
+            id: 1_000_000 * (scene_index as u64 + 1) + fi as u64,
+            pose: moved,
+            camera: other.camera,
+            features: &features,
+            embeddings: &v,
+            depth: depth.as_ref().map(|m| Depth { image: m, scale: crate::decode::TUM_DEPTH_SCALE }),
+            external: None,
+        };
+        let record = plan_keyframe(data, &input, build)?;
+        data.check(&record).map_err(|e| format!("distractor frame {fi}: {e}"))?;
+        data.apply(&record);
+    }
+    Ok(())
+}
+
 pub fn markdown(r: &RelocReport) -> String {
+    let map = match r.config.map_block {
+        Some((a, b)) => format!("the block {a:.2}-{b:.2} of the posed frames"),
+        None => format!("every {}th frame", r.config.stride),
+    };
     let mut s = format!(
-        "{} (map: every {}th frame; camera path extent {:.2} scene units; 2D-3D precision at {} px)\n\n",
-        r.scene, r.config.stride, r.path_extent, r.config.precision_px
+        "{} (map: {map}; camera path extent {:.2} scene units; thresholds x {}; 2D-3D precision at {} px)\n\n",
+        r.scene, r.path_extent, r.config.unit_scale, r.config.precision_px
     );
     s.push_str("| method | keyframes | landmarks | queries | (0.25 m, 2°) | (0.5 m, 5°) | (5 m, 10°) | not localised | med. t | med. R (deg) | 2D-3D precision | matches | query ms |\n");
     s.push_str("|---|---|---|---|---|---|---|---|---|---|---|---|---|\n");
@@ -280,5 +490,66 @@ pub fn markdown(r: &RelocReport) -> String {
             m.mean_query_ms
         ));
     }
+    s.push_str("\nBy viewing angle to the most similarly oriented map keyframe (success within (5 cm, 5°) / (0.25 m, 2°) / (0.5 m, 5°); 2D-3D precision):\n\n");
+    s.push_str("| method | distractor obs. | angle (deg) | queries | median baseline | (5 cm, 5°) | (0.25 m, 2°) | (0.5 m, 5°) | precision |\n");
+    s.push_str("|---|---|---|---|---|---|---|---|---|\n");
+    for m in &r.summaries {
+        for b in m.bins.iter().filter(|b| b.queries > 0) {
+            let hi = if b.angle_deg.1.is_finite() { format!("{:.0}", b.angle_deg.1) } else { "inf".into() };
+            s.push_str(&format!(
+                "| {} | {} | {:.0}-{hi} | {} | {:.3} | {:.2} | {:.2} | {:.2} | {:.3} |\n",
+                m.method.name(),
+                m.distractor_observations,
+                b.angle_deg.0,
+                b.queries,
+                b.median_baseline,
+                b.within_5cm_5deg,
+                b.within_025m_2deg,
+                b.within_05m_5deg,
+                b.match_precision
+            ));
+        }
+    }
     s
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_block_map_takes_a_contiguous_part_and_leaves_the_rest_as_queries() {
+        let posed: Vec<usize> = (0..10).collect();
+        let cfg = RelocConfig { map_block: Some((0.0, 0.3)), ..Default::default() };
+        assert_eq!(split_frames(&posed, &cfg).unwrap(), (vec![0, 1, 2], (3..10).collect()));
+        let cfg = RelocConfig { map_block: Some((0.5, 1.0)), ..Default::default() };
+        assert_eq!(split_frames(&posed, &cfg).unwrap().0, vec![5, 6, 7, 8, 9]);
+        let cfg = RelocConfig { stride: 3, ..Default::default() };
+        assert_eq!(split_frames(&posed, &cfg).unwrap().0, vec![0, 3, 6, 9]);
+        let all = RelocConfig { map_block: Some((0.0, 1.0)), ..Default::default() };
+        assert!(split_frames(&posed, &all).is_err(), "no queries left");
+    }
+
+    #[test]
+    fn queries_fall_into_their_angle_bins_with_scaled_thresholds() {
+        let rec = |angle: f64, t: f64| QueryRecord {
+            frame: String::new(),
+            localised: true,
+            translation_error: t,
+            rotation_error_deg: 1.0,
+            matches: 10,
+            correct_matches: 5,
+            inliers: 8,
+            confidence: 1.0,
+            seconds: 0.0,
+            baseline_to_map: 1.0,
+            angle_to_map_deg: angle,
+        };
+        let recs = [rec(5.0, 0.01), rec(15.0, 0.3), rec(50.0, 0.1)];
+        let bins = bin_summaries(&recs, 1.0);
+        assert_eq!(bins.iter().map(|b| b.queries).collect::<Vec<_>>(), vec![1, 1, 0, 1]);
+        assert_eq!((bins[0].within_5cm_5deg, bins[1].within_025m_2deg, bins[1].within_05m_5deg), (1.0, 0.0, 1.0));
+        // Thresholds in scene units: x10 lets the 0.3 error pass (0.25 m x 10).
+        assert_eq!(bin_summaries(&recs, 10.0)[1].within_025m_2deg, 1.0);
+    }
 }
