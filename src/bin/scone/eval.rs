@@ -133,10 +133,6 @@ pub fn run(cmd: EvalCommand) -> anyhow::Result<()> {
             report: out,
             extractor,
         } => {
-            anyhow::ensure!(
-                scone_matcher != scone::matching::SconeMatcher::Freak,
-                "--scone-matcher freak is FREAK, not SConE: compare with --methods freak instead"
-            );
             // --single-scale is OpenCV's own pipeline, plain ratio test and plain RANSAC (with OpenCV's
             // iteration cap and confidence) included.
             let base = if single_scale {
@@ -231,8 +227,6 @@ fn parse_block(s: &str) -> Result<(f64, f64), String> {
     let (a, b) = s.split_once(':').ok_or("expected A:B, e.g. 0:0.5")?;
     let a: f64 = a.trim().parse().map_err(|_| format!("'{a}' is not a number"))?;
     let b: f64 = b.trim().parse().map_err(|_| format!("'{b}' is not a number"))?;
-    if !((0.0..1.0).contains(&a) && a < b && b <= 1.0) {
-        return Err(format!("{a}:{b}: needs 0 <= A < B <= 1"));
-    }
+    reloc::check_block(a, b)?;
     Ok((a, b))
 }

@@ -349,14 +349,21 @@ pub fn evaluate(scene: &Scene, cfg: &RelocConfig, embedder: Option<&Embedder>) -
     Ok(RelocReport { scene: scene.name.clone(), path_extent, config: cfg.clone(), summaries, queries })
 }
 
+/// Checks a map block `a:b` (fractions of the posed frames): `0 <= a < b <= 1`.
+pub fn check_block(a: f64, b: f64) -> Result<(), String> {
+    if (0.0..1.0).contains(&a) && a < b && b <= 1.0 {
+        Ok(())
+    } else {
+        Err(format!("map block {a}:{b}: needs 0 <= a < b <= 1"))
+    }
+}
+
 /// The map's frames and the queries: every `stride`-th posed frame and the rest, or a contiguous block and the
 /// rest.
 fn split_frames(posed: &[usize], cfg: &RelocConfig) -> Result<(Vec<usize>, Vec<usize>), BoxError> {
     let (map, queries): (Vec<usize>, Vec<usize>) = match cfg.map_block {
         Some((a, b)) => {
-            if !((0.0..1.0).contains(&a) && a < b && b <= 1.0) {
-                return Err(format!("map block {a}:{b}: needs 0 <= a < b <= 1").into());
-            }
+            check_block(a, b)?;
             let n = posed.len() as f64;
             let (lo, hi) = ((a * n).floor() as usize, ((b * n).ceil() as usize).min(posed.len()));
             let map = posed[lo..hi].to_vec();
