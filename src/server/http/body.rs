@@ -66,9 +66,26 @@ pub fn media_type(headers: &HeaderMap, accepted: &'static [&'static str]) -> Api
     Err(ApiError::UnsupportedMediaType { got: raw.unwrap_or("").to_string(), accepted })
 }
 
+/// The whole body, at most `limit` bytes. A body that declares more is refused from its `Content-Length`
+/// alone, before any of it is read (the connection is then closed rather than drained).
+pub async fn bytes_within(req: Request, limit: usize, too_large: ApiError) -> ApiResult<Bytes> {
+    if declares_more(req.headers(), limit) {
+        return Err(too_large);
+    }
+    axum::body::to_bytes(req.into_body(), limit).await.map_err(|e| body_error(&e, too_large))
+}
+
+fn declares_more(headers: &HeaderMap, limit: usize) -> bool {
+    let declared = headers.get(header::CONTENT_LENGTH).and_then(|v| v.to_str().ok()?.parse::<u64>().ok());
+    declared.is_some_and(|n| n > limit as u64)
+}
+
 pub async fn read_body(req: Request, limit: usize, accepted: &'static [&'static str]) -> ApiResult<Body> {
     let mime = media_type(req.headers(), accepted)?;
     if mime == "multipart/form-data" {
+        if declares_more(req.headers(), limit) {
+            return Err(too_large(limit));
+        }
         let mut mp = Multipart::from_request(req, &()).await.map_err(|e| invalid("body", e.body_text()))?;
         let mut body = Body::default();
         while let Some(field) = mp.next_field().await.map_err(|e| multipart_error(e, limit))? {
@@ -94,7 +111,7 @@ pub async fn read_body(req: Request, limit: usize, accepted: &'static [&'static 
         }
         return Ok(body);
     }
-    let bytes = axum::body::to_bytes(req.into_body(), limit).await.map_err(|e| body_error(&e, too_large(limit)))?;
+    let bytes = bytes_within(req, limit, too_large(limit)).await?;
     match mime.as_str() {
         "application/json" => Ok(Body { json: Some(bytes), ..Default::default() }),
         "image/jpeg" | "image/png" | "application/octet-stream" => {

@@ -9,7 +9,7 @@ use axum::response::{IntoResponse, Response};
 use axum::Json;
 
 use super::body::{
-    base64, body_error, frame, media_type, read_body, too_large, ApiPath, JSON_ONLY, JSON_OR_MULTIPART, MAP_FILE,
+    base64, bytes_within, frame, media_type, read_body, too_large, ApiPath, JSON_ONLY, JSON_OR_MULTIPART, MAP_FILE,
 };
 use super::error::{invalid, ApiError, ApiErrors, ApiResult};
 use super::wire::{self, examples};
@@ -30,7 +30,7 @@ pub async fn create_map(
 ) -> ApiResult<(StatusCode, Json<wire::MapInfo>)> {
     media_type(&headers, JSON_ONLY)?;
     let limit = app.settings.server.max_request_bytes;
-    let body = axum::body::to_bytes(req.into_body(), limit).await.map_err(|e| body_error(&e, too_large(limit)))?;
+    let body = bytes_within(req, limit, too_large(limit)).await?;
     let j: wire::CreateMapRequest =
         serde_json::from_slice(&body).map_err(|e| invalid("request JSON", e.to_string()))?;
     let s = call(&app, &headers, Access::Write, "CreateMap", move |a| a.service.create_map(&j.map_id)).await?;
@@ -239,9 +239,8 @@ pub async fn import_map(
     app.keys.check(api_key(&headers).as_deref(), Access::Write, "ImportMap").map_err(ApiError::Service)?;
     media_type(&headers, MAP_FILE)?;
     let limit = app.settings.server.max_map_bytes;
-    let bytes = axum::body::to_bytes(req.into_body(), limit).await.map_err(|e| {
-        body_error(&e, ApiError::Service(ServiceError::TooLarge { what: "the map file".into(), limit }))
-    })?;
+    let refusal = ApiError::Service(ServiceError::TooLarge { what: "the map file".into(), limit });
+    let bytes = bytes_within(req, limit, refusal).await?;
     let s = call(&app, &headers, Access::Write, "ImportMap", move |a| a.service.import_map(&id, &bytes)).await?;
     Ok((StatusCode::CREATED, Json(s.into())))
 }
