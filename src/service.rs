@@ -304,13 +304,20 @@ impl ServiceError {
 pub type MapListing = (Vec<MapSummary>, Vec<(String, String)>);
 
 /// Counts of what the service holds, for metrics.
-#[derive(Debug, Clone, Copy, Default, Serialize)]
+#[derive(Debug, Clone, Default, Serialize)]
 pub struct Holdings {
     pub maps: usize,
     pub held_back: usize,
     pub keyframes: usize,
     pub landmarks: usize,
     pub observations: usize,
+    /// Estimated memory of the loaded maps.
+    pub loaded_bytes: u64,
+    /// The map cache's counts since start, by event (hit, miss, load, eviction, check, change, check_error).
+    pub cache_events: Vec<(&'static str, u64)>,
+    pub cache_load_seconds: f64,
+    /// Calls to the storage service (object storage) since start.
+    pub storage: Vec<crate::map::journal::OperationStats>,
 }
 
 /// The service's core: the description path, the map store and the limits on client input.
@@ -555,10 +562,10 @@ impl Service {
         Ok(self.store()?.summary(id)?)
     }
 
-    /// Loaded maps, and those held back with the reason.
+    /// The maps (every stored one in lazy mode), and those held back with the reason.
     pub fn list_maps(&self) -> Result<MapListing, ServiceError> {
         let store = self.store()?;
-        Ok((store.list(), store.held_back()))
+        Ok((store.list()?, store.held_back()))
     }
 
     pub fn delete_map(&self, id: &str) -> Result<(), ServiceError> {
@@ -589,13 +596,27 @@ impl Service {
     /// Counts for metrics (cheap: summaries only).
     pub fn holdings(&self) -> Holdings {
         let Some(store) = self.store.get() else { return Holdings::default() };
-        let maps = store.list();
+        let maps = store.loaded();
+        let c = store.cache_stats();
+        let n = |a: &std::sync::atomic::AtomicU64| a.load(std::sync::atomic::Ordering::Relaxed);
         Holdings {
             maps: maps.len(),
             held_back: store.held_back().len(),
             keyframes: maps.iter().map(|m| m.keyframes).sum(),
             landmarks: maps.iter().map(|m| m.landmarks).sum(),
             observations: maps.iter().map(|m| m.live_observations).sum(),
+            loaded_bytes: store.loaded_bytes(),
+            cache_events: vec![
+                ("hit", n(&c.hits)),
+                ("miss", n(&c.misses)),
+                ("load", n(&c.loads)),
+                ("eviction", n(&c.evictions)),
+                ("check", n(&c.checks)),
+                ("change", n(&c.changed)),
+                ("check_error", n(&c.check_errors)),
+            ],
+            cache_load_seconds: n(&c.load_nanos) as f64 * 1e-9,
+            storage: store.operation_stats(),
         }
     }
 

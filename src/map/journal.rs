@@ -2,8 +2,8 @@
 //! where maps live:
 //!
 //! * [`MapBackend`]: the collection of maps (list, exists, create, open, delete);
-//! * [`MapJournal`]: the single writer of one open map (append a record durably, compact), plus the local
-//!   directory that holds the map's HNSW index dump.
+//! * [`MapJournal`]: the single writer of one open map (append a record durably, compact, check that the copy
+//!   is current), plus the local directory that holds the map's HNSW index dump.
 //!
 //! Two implementations, chosen by [`BackendConfig`](crate::map::store::BackendConfig) (`[store.backend]`):
 //!
@@ -18,7 +18,7 @@
 use std::path::Path;
 
 use crate::error::MapError;
-use crate::map::model::{MapData, Record};
+use crate::map::model::{MapData, MapStats, Record};
 
 /// The collection of stored maps.
 pub trait MapBackend: Send + Sync {
@@ -39,21 +39,65 @@ pub trait MapBackend: Send + Sync {
 
     /// Removes a map and everything stored for it.
     fn delete(&self, id: &str) -> Result<(), MapError>;
+
+    /// Every stored map with its counts when the backend records them without loading the map (object
+    /// storage keeps them in the manifest); `None` where only loading the map tells.
+    fn list_stats(&self) -> Result<Vec<(String, Option<MapStats>)>, MapError> {
+        Ok(self.list()?.into_iter().map(|id| (id, None)).collect())
+    }
+
+    /// Requests made to the storage service, per operation (none for a local directory).
+    fn operation_stats(&self) -> Vec<OperationStats> {
+        Vec::new()
+    }
+}
+
+/// Calls of one kind made to a storage service since start.
+#[derive(Debug, Clone, Default, PartialEq, serde::Serialize)]
+pub struct OperationStats {
+    pub operation: &'static str,
+    pub calls: u64,
+    pub errors: u64,
+    pub seconds: f64,
+}
+
+/// What a freshness check of an open map found ([`MapJournal::refresh`]).
+#[derive(Debug)]
+pub enum Freshness {
+    /// The stored map is the one this copy holds.
+    Current,
+    /// Another writer appended these records since, in order: apply them (the journal now follows the
+    /// stored map again).
+    Appended(Vec<Record>),
+    /// The stored map was rewritten (another writer compacted it) or is another map under the same id: load
+    /// it again.
+    Replaced,
+    /// The map was deleted.
+    Gone,
 }
 
 /// The writer of one open map. Calls are serialised by the caller (the map's writer lock).
 pub trait MapJournal: Send + std::fmt::Debug {
-    /// Makes the record that takes the map to version `seq` durable; returns only once it is.
-    fn append(&mut self, seq: u64, record: &Record) -> Result<(), MapError>;
+    /// Makes the record that takes the map to version `seq` durable; returns only once it is. `after` is the
+    /// map's counts once the record is applied (object storage records them for listings).
+    fn append(&mut self, seq: u64, record: &Record, after: &MapStats) -> Result<(), MapError>;
 
     /// Whether enough records accumulated to fold them into a snapshot.
     fn wants_compaction(&self) -> bool;
 
-    /// Replaces the stored snapshot with `data` and drops the records it covers.
+    /// Replaces the stored snapshot with `data` and drops the records it covers. The caller has just dumped
+    /// the index of `data` into [`index_dir`](Self::index_dir): object storage uploads that dump with the
+    /// snapshot, so a replica that loads the map downloads the graph instead of rebuilding it.
     fn compact(&mut self, data: &MapData) -> Result<(), MapError>;
 
     /// Local directory for the map's index dump.
     fn index_dir(&self) -> &Path;
+
+    /// Whether the stored map moved on from this copy (another replica wrote it). A local directory has one
+    /// writer, this process, so it is always current.
+    fn refresh(&mut self) -> Result<Freshness, MapError> {
+        Ok(Freshness::Current)
+    }
 }
 
 /// What loading found.

@@ -22,7 +22,7 @@ use crate::map::format::{
     unreadable, write_atomic, Frame, FORMAT_VERSION, LOG_HEADER, LOG_MAGIC,
 };
 use crate::map::journal::{LoadReport, MapBackend, MapJournal};
-use crate::map::model::{validate_map_id, MapData, Record};
+use crate::map::model::{validate_map_id, MapData, MapStats, Record};
 
 /// The open log of one map.
 #[derive(Debug)]
@@ -181,7 +181,7 @@ impl LocalBackend {
 }
 
 impl MapJournal for MapLog {
-    fn append(&mut self, seq: u64, record: &Record) -> Result<(), MapError> {
+    fn append(&mut self, seq: u64, record: &Record, _after: &MapStats) -> Result<(), MapError> {
         MapLog::append(self, seq, record)
     }
 

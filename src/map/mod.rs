@@ -18,6 +18,8 @@
 //! - [`localize`]: 2D-3D matching and PnP against a map.
 
 pub mod builder;
+#[cfg(test)]
+mod cache_tests;
 pub mod format;
 pub mod index;
 pub mod journal;

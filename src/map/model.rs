@@ -109,6 +109,21 @@ pub enum Record {
     },
 }
 
+/// A map's counts and version, as listings report them; also recorded in object storage's manifest, so a
+/// replica lists maps it has not loaded.
+#[derive(Debug, Clone, Default, PartialEq, Eq, Serialize, Deserialize)]
+pub struct MapStats {
+    pub model_id: String,
+    pub version: u64,
+    pub keyframes: usize,
+    pub landmarks: usize,
+    pub observations: usize,
+    pub live_observations: usize,
+    /// Estimated memory of the loaded map ([`MapData::memory_bytes`]).
+    #[serde(default)]
+    pub memory_bytes: u64,
+}
+
 /// The whole state of one map.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct MapData {
@@ -137,6 +152,71 @@ impl MapData {
             version: 0,
             external_ids: BTreeMap::new(),
         }
+    }
+
+    /// Counts of the map as it is now, for listings.
+    pub fn stats(&self) -> MapStats {
+        MapStats {
+            model_id: self.meta.model_id.clone(),
+            version: self.version,
+            keyframes: self.keyframes.len(),
+            landmarks: self.landmarks.len(),
+            observations: self.observations.len(),
+            live_observations: self.live_observations(),
+            memory_bytes: self.memory_bytes() as u64,
+        }
+    }
+
+    /// The counts once `record` (checked against this map) is applied, without applying it.
+    pub fn stats_after(&self, record: &Record) -> MapStats {
+        let mut s = self.stats();
+        s.version += 1;
+        match record {
+            Record::AddKeyframe { keyframe, new_landmarks, observations }
+            | Record::AddExternalKeyframe { keyframe, new_landmarks, observations, .. } => {
+                s.keyframes += 1;
+                s.landmarks += new_landmarks.len();
+                s.observations += observations.len();
+                s.live_observations += observations.len();
+                s.memory_bytes += (std::mem::size_of::<Keyframe>()
+                    + keyframe.keypoints.len() * std::mem::size_of::<Keypoint>()
+                    + keyframe.descriptors.len()
+                    + keyframe.embeddings.len() * 4
+                    + observations.len() * (Self::OBSERVATION_BYTES + self.meta.dim * 4 * 2)
+                    + new_landmarks.len() * Self::LANDMARK_BYTES) as u64;
+            }
+            Record::RemoveKeyframe { id } => {
+                s.keyframes -= usize::from(self.keyframes.contains_key(id));
+                s.live_observations -= self.observations.iter().filter(|o| o.keyframe == *id && o.live).count();
+            }
+            Record::Reembed { model_id, .. } => s.model_id = model_id.clone(),
+        }
+        s
+    }
+
+    /// Bytes an observation costs beyond its embedding: the observation, its id in the landmark's list, and
+    /// its share of the HNSW graph (links at the base layer; the index copies the embedding too).
+    const OBSERVATION_BYTES: usize = std::mem::size_of::<Observation>() + 8 + 32 * 8;
+    /// A landmark's point, list header and map node.
+    const LANDMARK_BYTES: usize = std::mem::size_of::<Landmark>() + 48;
+
+    /// An estimate of the memory the loaded map takes (its data and its index), for the map cache's budget.
+    pub fn memory_bytes(&self) -> usize {
+        let keyframes: usize = self
+            .keyframes
+            .values()
+            .map(|k| {
+                std::mem::size_of::<Keyframe>()
+                    + k.keypoints.len() * std::mem::size_of::<Keypoint>()
+                    + k.descriptors.len()
+                    + k.embeddings.len() * 4
+            })
+            .sum();
+        keyframes
+            + self.landmarks.len() * Self::LANDMARK_BYTES
+            + self.observations.len() * Self::OBSERVATION_BYTES
+            // The map's embeddings and the index's copy of them.
+            + self.embeddings.len() * 4 * 2
     }
 
     pub fn embedding(&self, observation: usize) -> &[f32] {

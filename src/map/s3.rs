@@ -61,12 +61,16 @@
 
 use std::future::Future;
 use std::path::{Path, PathBuf};
+use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::Arc;
+use std::time::Instant;
 
 use futures_util::{StreamExt, TryStreamExt};
 use object_store::aws::{AmazonS3Builder, S3ConditionalPut};
 use object_store::path::Path as ObjectPath;
-use object_store::{ObjectStore, ObjectStoreExt, PutMode, PutOptions, PutPayload, UpdateVersion};
+use object_store::{
+    GetOptions, ObjectMeta, ObjectStore, ObjectStoreExt, PutMode, PutOptions, PutPayload, UpdateVersion,
+};
 use serde::{Deserialize, Serialize};
 
 use crate::error::MapError;
@@ -74,8 +78,8 @@ use crate::map::format::{
     decode_segment, decode_snapshot, encode_segment, encode_snapshot, readable_version, write_atomic, FORMAT_VERSION,
     OLDEST_FORMAT_VERSION,
 };
-use crate::map::journal::{LoadReport, MapBackend, MapJournal};
-use crate::map::model::{validate_map_id, MapData, Record};
+use crate::map::journal::{Freshness, LoadReport, MapBackend, MapJournal, OperationStats};
+use crate::map::model::{validate_map_id, MapData, MapStats, Record};
 
 /// Largest manifest accepted when reading (a guard against a hostile or broken object).
 const MAX_MANIFEST_BYTES: u64 = 16 << 20;
@@ -83,6 +87,9 @@ const MAX_MANIFEST_BYTES: u64 = 16 << 20;
 const PARALLEL_GETS: usize = 16;
 const MANIFEST: &str = "manifest.json";
 const CACHE_MARKER: &str = "map.json";
+/// The files of an index dump ([`EmbeddingIndex::dump`](crate::map::index::EmbeddingIndex::dump)), uploaded
+/// under `index/<version>-<nonce>/`; the manifest file goes last on upload and is compared first on download.
+const INDEX_FILES: [&str; 3] = ["index.hnsw.graph", "index.hnsw.data", "index.json"];
 
 /// Settings of the S3 backend.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -137,6 +144,22 @@ struct Manifest {
     /// Segment objects (relative to the map's prefix) holding versions `snapshot.version + 1 ..`, in order.
     segments: Vec<String>,
     next_seq: u64,
+    /// The map's counts at `next_seq - 1`, so replicas list maps they have not loaded (absent in manifests
+    /// written before they were recorded).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    stats: Option<MapStats>,
+    /// The HNSW index dump of the snapshot, uploaded with it (absent while the map is below the exact-search
+    /// threshold, or written before dumps were uploaded).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    index: Option<IndexRef>,
+}
+
+/// An index dump in the bucket: the directory (relative to the map's prefix) holding [`INDEX_FILES`], and
+/// the map version it was dumped at.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+struct IndexRef {
+    dir: String,
+    version: u64,
 }
 
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -155,6 +178,28 @@ fn nonce() -> String {
     format!("{:016x}", rand::random::<u64>())
 }
 
+/// The kinds of call made to the object store, as `/metrics` labels them.
+#[derive(Debug, Clone, Copy)]
+enum Op {
+    Get,
+    Put,
+    Head,
+    List,
+    Delete,
+}
+
+const OPS: [(Op, &str); 5] =
+    [(Op::Get, "get"), (Op::Put, "put"), (Op::Head, "head"), (Op::List, "list"), (Op::Delete, "delete")];
+
+/// Calls, failures and time per [`Op`] since start. Answers that are outcomes of the protocol (not found,
+/// not modified, a failed condition, already exists) are calls, not failures.
+#[derive(Default)]
+struct OpCounters {
+    calls: [AtomicU64; 5],
+    errors: [AtomicU64; 5],
+    nanos: [AtomicU64; 5],
+}
+
 /// State shared by the backend and its journals: the object store and the runtime that drives it.
 struct Shared {
     store: Arc<dyn ObjectStore>,
@@ -166,6 +211,7 @@ struct Shared {
     compact_every: usize,
     /// This process's writer id, recorded in every manifest it writes.
     writer: String,
+    ops: OpCounters,
     runtime: Option<tokio::runtime::Runtime>,
 }
 
@@ -214,10 +260,57 @@ impl Shared {
         self.cache_root.join(id)
     }
 
+    /// Awaits one call to the object store, counting it under `op`.
+    async fn timed<T>(
+        &self,
+        op: Op,
+        call: impl Future<Output = Result<T, object_store::Error>>,
+    ) -> Result<T, object_store::Error> {
+        let t = Instant::now();
+        let r = call.await;
+        let i = op as usize;
+        self.ops.calls[i].fetch_add(1, Ordering::Relaxed);
+        self.ops.nanos[i].fetch_add(t.elapsed().as_nanos() as u64, Ordering::Relaxed);
+        if let Err(e) = &r {
+            use object_store::Error as E;
+            if !matches!(
+                e,
+                E::NotFound { .. } | E::NotModified { .. } | E::Precondition { .. } | E::AlreadyExists { .. }
+            ) {
+                self.ops.errors[i].fetch_add(1, Ordering::Relaxed);
+            }
+        }
+        r
+    }
+
     async fn get(&self, path: &ObjectPath) -> Result<(Vec<u8>, UpdateVersion), object_store::Error> {
-        let r = self.store.get(path).await?;
-        let version = UpdateVersion { e_tag: r.meta.e_tag.clone(), version: r.meta.version.clone() };
-        Ok((r.bytes().await?.to_vec(), version))
+        self.get_with(path, GetOptions::default()).await
+    }
+
+    async fn get_with(
+        &self,
+        path: &ObjectPath,
+        options: GetOptions,
+    ) -> Result<(Vec<u8>, UpdateVersion), object_store::Error> {
+        self.timed(Op::Get, async {
+            let r = self.store.get_opts(path, options).await?;
+            let version = UpdateVersion { e_tag: r.meta.e_tag.clone(), version: r.meta.version.clone() };
+            Ok((r.bytes().await?.to_vec(), version))
+        })
+        .await
+    }
+
+    /// A GET conditional on the object's ETag no longer being `known`: `None` when it still is.
+    async fn get_changed(
+        &self,
+        path: &ObjectPath,
+        known: String,
+    ) -> Result<Option<(Vec<u8>, UpdateVersion)>, object_store::Error> {
+        match self.get_with(path, GetOptions { if_none_match: Some(known), ..Default::default() }).await {
+            Ok(got) => Ok(Some(got)),
+            Err(object_store::Error::NotModified { .. }) => Ok(None),
+            Err(e) => Err(e),
+        }
     }
 
     async fn put(
@@ -226,8 +319,21 @@ impl Shared {
         bytes: Vec<u8>,
         mode: PutMode,
     ) -> Result<UpdateVersion, object_store::Error> {
-        let r = self.store.put_opts(path, PutPayload::from(bytes), PutOptions::from(mode)).await?;
+        let r = self.timed(Op::Put, self.store.put_opts(path, PutPayload::from(bytes), PutOptions::from(mode))).await?;
         Ok(UpdateVersion { e_tag: r.e_tag, version: r.version })
+    }
+
+    async fn head(&self, path: &ObjectPath) -> Result<ObjectMeta, object_store::Error> {
+        self.timed(Op::Head, self.store.head(path)).await
+    }
+
+    /// Every object under `prefix`.
+    async fn list_under(&self, prefix: &ObjectPath) -> Result<Vec<ObjectPath>, object_store::Error> {
+        self.timed(Op::List, self.store.list(Some(prefix)).map_ok(|o| o.location).try_collect::<Vec<_>>()).await
+    }
+
+    async fn delete_one(&self, path: &ObjectPath) -> Result<(), object_store::Error> {
+        self.timed(Op::Delete, self.store.delete(path)).await
     }
 
     /// Deletes objects, logging (not failing on) what could not be deleted.
@@ -235,12 +341,20 @@ impl Shared {
         if paths.is_empty() {
             return;
         }
+        let t = Instant::now();
+        let n = paths.len() as u64;
         let results: Vec<_> =
             self.store.delete_stream(futures_util::stream::iter(paths.into_iter().map(Ok)).boxed()).collect().await;
+        let i = Op::Delete as usize;
+        self.ops.calls[i].fetch_add(n, Ordering::Relaxed);
+        self.ops.nanos[i].fetch_add(t.elapsed().as_nanos() as u64, Ordering::Relaxed);
         for r in results {
             match r {
                 Ok(_) | Err(object_store::Error::NotFound { .. }) => {}
-                Err(e) => tracing::warn!(error = %e, "could not delete a replaced object; it stays as garbage"),
+                Err(e) => {
+                    self.ops.errors[i].fetch_add(1, Ordering::Relaxed);
+                    tracing::warn!(error = %e, "could not delete a replaced object; it stays as garbage")
+                }
             }
         }
     }
@@ -248,7 +362,7 @@ impl Shared {
     /// Reads and checks a manifest (`None` when there is none).
     async fn read_manifest(&self, id: &str) -> Result<Option<(Manifest, Vec<u8>, UpdateVersion)>, MapError> {
         let path = self.object(id, MANIFEST);
-        let meta = match self.store.head(&path).await {
+        let meta = match self.head(&path).await {
             Ok(m) => m,
             Err(object_store::Error::NotFound { .. }) => return Ok(None),
             Err(e) => return Err(self.io(&path, e)),
@@ -289,10 +403,50 @@ impl Shared {
                 return Err(self.corrupt(&path, format!("segment {i} '{s}' is out of sequence")));
             }
         }
+        if let Some(ix) = &m.index {
+            let dir_ok = ix.dir.strip_prefix("index/").is_some_and(|d| !d.is_empty() && !d.contains('/'));
+            if !dir_ok || number_of(&ix.dir) != Some(ix.version) || ObjectPath::parse(&ix.dir).is_err() {
+                return Err(self.corrupt(&path, format!("bad index reference '{}'", ix.dir)));
+            }
+        }
         if m.next_seq != m.snapshot.version + 1 + m.segments.len() as u64 {
             return Err(self.corrupt(&path, format!("next_seq {} does not follow the segments", m.next_seq)));
         }
         Ok(m)
+    }
+
+    /// Puts the index dump the manifest names into the map's cache directory, unless the dump there is that
+    /// one already (same `index.json`, which holds the files' checksums). The files are written atomically,
+    /// `index.json` last; the index loader checks the checksums, so a dump that does not match is rebuilt.
+    async fn fetch_index(&self, id: &str, index: &IndexRef, cache_dir: &Path) -> Result<(), MapError> {
+        let remote = |file: &str| self.object(id, &format!("{}/{file}", index.dir));
+        let manifest_path = remote("index.json");
+        let (manifest, _) = self.get(&manifest_path).await.map_err(|e| self.io(&manifest_path, e))?;
+        if std::fs::read(cache_dir.join("index.json")).ok().as_deref() == Some(manifest.as_slice()) {
+            return Ok(());
+        }
+        let _ = std::fs::remove_file(cache_dir.join("index.json"));
+        for file in &INDEX_FILES[..2] {
+            let path = remote(file);
+            let (bytes, _) = self.get(&path).await.map_err(|e| self.io(&path, e))?;
+            write_atomic(&cache_dir.join(file), &bytes)?;
+        }
+        write_atomic(&cache_dir.join("index.json"), &manifest)
+    }
+
+    /// Uploads the index dump in `cache_dir` (when there is one) under a new `index/<version>-<nonce>/`.
+    async fn upload_index(&self, id: &str, version: u64, cache_dir: &Path) -> Result<Option<IndexRef>, MapError> {
+        if !cache_dir.join("index.json").exists() {
+            return Ok(None);
+        }
+        let dir = format!("index/{version:020}-{}", nonce());
+        for file in INDEX_FILES {
+            let local = cache_dir.join(file);
+            let bytes = std::fs::read(&local).map_err(|source| MapError::Io { path: local.clone(), source })?;
+            let path = self.object(id, &format!("{dir}/{file}"));
+            self.put(&path, bytes, PutMode::Create).await.map_err(|e| self.io(&path, e))?;
+        }
+        Ok(Some(IndexRef { dir, version }))
     }
 
     /// Makes the cache directory of a map belong to this incarnation of it (`map_uid`), emptying it otherwise.
@@ -390,6 +544,7 @@ impl ObjectStorageBackend {
                 cache_root: cache_root.to_path_buf(),
                 compact_every,
                 writer: writer_id(),
+                ops: OpCounters::default(),
                 runtime: Some(runtime),
             }),
         })
@@ -409,13 +564,12 @@ impl MapBackend for ObjectStorageBackend {
     /// Maps are the prefixes with a manifest (a prefix without one is a create or delete that did not finish).
     fn list(&self) -> Result<Vec<String>, MapError> {
         let s = &self.shared;
-        let objects: Vec<_> =
-            s.block_on(s.store.list(Some(&s.root)).try_collect::<Vec<_>>()).map_err(|e| s.io(&s.root, e))?;
+        let objects = s.block_on(s.list_under(&s.root)).map_err(|e| s.io(&s.root, e))?;
         let depth = s.root.parts().count();
         let mut ids: Vec<String> = objects
             .iter()
             .filter_map(|o| {
-                let parts: Vec<_> = o.location.parts().skip(depth).collect();
+                let parts: Vec<_> = o.parts().skip(depth).collect();
                 match parts.as_slice() {
                     [id, file] if file.as_ref() == MANIFEST && validate_map_id(id.as_ref()).is_ok() => {
                         Some(id.as_ref().to_string())
@@ -432,7 +586,7 @@ impl MapBackend for ObjectStorageBackend {
     fn exists(&self, id: &str) -> Result<bool, MapError> {
         let s = &self.shared;
         let path = s.object(id, MANIFEST);
-        match s.block_on(s.store.head(&path)) {
+        match s.block_on(s.head(&path)) {
             Ok(_) => Ok(true),
             Err(object_store::Error::NotFound { .. }) => Ok(false),
             Err(e) => Err(s.io(&path, e)),
@@ -453,6 +607,8 @@ impl MapBackend for ObjectStorageBackend {
             snapshot: SnapshotRef { object: snapshot, version: data.version },
             segments: Vec::new(),
             next_seq: data.version + 1,
+            stats: Some(data.stats()),
+            index: None,
         };
         let bytes = serde_json::to_vec_pretty(&manifest).expect("manifest serialises");
         let manifest_path = s.object(id, MANIFEST);
@@ -521,6 +677,11 @@ impl MapBackend for ObjectStorageBackend {
             report.replayed += 1;
         }
         let cache_dir = s.claim_cache(id, &manifest.map_uid)?;
+        if let Some(index) = &manifest.index {
+            if let Err(e) = s.block_on(s.fetch_index(id, index, &cache_dir)) {
+                tracing::warn!(map = %id, error = %e, "cannot download the index dump; it is rebuilt");
+            }
+        }
         let journal = ObjectJournal {
             shared: Arc::clone(s),
             id: id.to_string(),
@@ -538,20 +699,54 @@ impl MapBackend for ObjectStorageBackend {
     fn delete(&self, id: &str) -> Result<(), MapError> {
         let s = &self.shared;
         let manifest_path = s.object(id, MANIFEST);
-        match s.block_on(s.store.delete(&manifest_path)) {
+        match s.block_on(s.delete_one(&manifest_path)) {
             Ok(()) | Err(object_store::Error::NotFound { .. }) => {}
             Err(e) => return Err(s.io(&manifest_path, e)),
         }
         let prefix = s.map_prefix(id);
-        let rest: Vec<ObjectPath> = s
-            .block_on(s.store.list(Some(&prefix)).map_ok(|o| o.location).try_collect::<Vec<_>>())
-            .map_err(|e| s.io(&prefix, e))?;
+        let rest = s.block_on(s.list_under(&prefix)).map_err(|e| s.io(&prefix, e))?;
         s.block_on(s.delete_quietly(rest));
         let cache = s.cache_dir(id);
         if cache.exists() {
             std::fs::remove_dir_all(&cache).map_err(|source| MapError::Io { path: cache, source })?;
         }
         Ok(())
+    }
+
+    /// The ids, then every manifest (in parallel) for the counts it records. A manifest that cannot be read
+    /// or has no counts gives `None`: the store loads that map to tell (and holds it back if it is corrupt).
+    fn list_stats(&self) -> Result<Vec<(String, Option<MapStats>)>, MapError> {
+        let s = &self.shared;
+        let ids = self.list()?;
+        Ok(s.block_on(
+            futures_util::stream::iter(ids.into_iter().map(|id| async move {
+                let stats = match s.read_manifest(&id).await {
+                    Ok(m) => m.and_then(|(m, _, _)| m.stats),
+                    Err(e) => {
+                        tracing::warn!(map = %id, error = %e, "cannot read the manifest for the listing");
+                        None
+                    }
+                };
+                (id, stats)
+            }))
+            .buffered(PARALLEL_GETS)
+            .collect::<Vec<_>>(),
+        ))
+    }
+
+    fn operation_stats(&self) -> Vec<OperationStats> {
+        let ops = &self.shared.ops;
+        OPS.iter()
+            .map(|&(op, name)| {
+                let i = op as usize;
+                OperationStats {
+                    operation: name,
+                    calls: ops.calls[i].load(Ordering::Relaxed),
+                    errors: ops.errors[i].load(Ordering::Relaxed),
+                    seconds: ops.nanos[i].load(Ordering::Relaxed) as f64 * 1e-9,
+                }
+            })
+            .collect()
     }
 }
 
@@ -654,7 +849,7 @@ impl ObjectJournal {
 }
 
 impl MapJournal for ObjectJournal {
-    fn append(&mut self, seq: u64, record: &Record) -> Result<(), MapError> {
+    fn append(&mut self, seq: u64, record: &Record, after: &MapStats) -> Result<(), MapError> {
         self.check_fence()?;
         if seq != self.manifest.next_seq {
             return Err(MapError::Unavailable {
@@ -672,6 +867,7 @@ impl MapJournal for ObjectJournal {
         next.writer = s.writer.clone();
         next.segments.push(name);
         next.next_seq += 1;
+        next.stats = Some(after.clone());
         let outcome = self.replace_manifest(&next);
         self.settle(next, outcome, path)?;
         self.wrote = true;
@@ -703,25 +899,37 @@ impl MapJournal for ObjectJournal {
         let name = format!("snapshots/{:020}-{}.bin", data.version, nonce());
         let path = s.object(&self.id, &name);
         s.block_on(s.put(&path, encode_snapshot(data)?, PutMode::Create)).map_err(|e| s.io(&path, e))?;
+        // The dump is an optimisation for other replicas: a failed upload leaves the map without one.
+        let index = s.block_on(s.upload_index(&self.id, data.version, &self.cache_dir)).unwrap_or_else(|e| {
+            tracing::warn!(map = %self.id, error = %e, "cannot upload the index dump; replicas will rebuild it");
+            None
+        });
         let old = self.manifest.clone();
         let mut next = old.clone();
         next.format_version = FORMAT_VERSION;
         next.writer = s.writer.clone();
         next.snapshot = SnapshotRef { object: name.clone(), version: data.version };
         next.segments.clear();
+        next.stats = Some(data.stats());
+        next.index = index.clone();
         let outcome = self.replace_manifest(&next);
+        if !matches!(outcome, Outcome::Written(_)) {
+            if let Some(ix) = &index {
+                let files = INDEX_FILES.iter().map(|f| s.object(&self.id, &format!("{}/{f}", ix.dir))).collect();
+                s.block_on(s.delete_quietly(files));
+            }
+        }
         self.settle(next, outcome, path)?;
         // The new manifest is in place: the replaced objects, and orphans it covers, are garbage. No valid
         // manifest can name a segment numbered <= data.version or a snapshot older than this one again.
         let prefix = s.map_prefix(&self.id);
-        let listed: Vec<ObjectPath> = s
-            .block_on(s.store.list(Some(&prefix)).map_ok(|o| o.location).try_collect::<Vec<_>>())
-            .unwrap_or_else(|e| {
-                tracing::warn!(map = %self.id, error = %e, "cannot list objects to collect garbage");
-                Vec::new()
-            });
+        let listed: Vec<ObjectPath> = s.block_on(s.list_under(&prefix)).unwrap_or_else(|e| {
+            tracing::warn!(map = %self.id, error = %e, "cannot list objects to collect garbage");
+            Vec::new()
+        });
         let depth = prefix.parts().count();
         let current = s.object(&self.id, &name);
+        let current_index = index.as_ref().map(|ix| ix.dir.trim_start_matches("index/").to_string());
         let mut garbage: Vec<ObjectPath> = listed
             .into_iter()
             .filter(|p| {
@@ -730,6 +938,10 @@ impl MapJournal for ObjectJournal {
                     [dir, file] if dir == "segments" => number_of(file).is_some_and(|n| n <= data.version),
                     [dir, file] if dir == "snapshots" => {
                         *p != current && number_of(file).is_some_and(|n| n <= data.version)
+                    }
+                    [dir, sub, _] if dir == "index" => {
+                        current_index.as_deref() != Some(sub.as_str())
+                            && number_of(sub).is_some_and(|n| n <= data.version)
                     }
                     _ => false,
                 }
@@ -745,6 +957,68 @@ impl MapJournal for ObjectJournal {
 
     fn index_dir(&self) -> &Path {
         &self.cache_dir
+    }
+
+    /// A GET of the manifest conditional on its ETag (`If-None-Match`): not modified, the copy is current;
+    /// a manifest that only appended segments to the known one, those records (fetched and checked here,
+    /// the journal then follows the new manifest); anything else (a new snapshot, another map under the id),
+    /// replaced; no manifest, gone.
+    fn refresh(&mut self) -> Result<Freshness, MapError> {
+        let s = Arc::clone(&self.shared);
+        let path = s.object(&self.id, MANIFEST);
+        let fetched = match self.version.e_tag.clone() {
+            Some(tag) => s.block_on(s.get_changed(&path, tag)),
+            None => s.block_on(s.get(&path)).map(Some),
+        };
+        let (bytes, version) = match fetched {
+            Ok(None) => return Ok(Freshness::Current),
+            Ok(Some(got)) => got,
+            Err(object_store::Error::NotFound { .. }) => return Ok(Freshness::Gone),
+            Err(e) => return Err(s.io(&path, e)),
+        };
+        let next = s.parse_manifest(&self.id, &bytes)?;
+        if next == self.manifest {
+            self.version = version;
+            return Ok(Freshness::Current);
+        }
+        let known = &self.manifest;
+        if next.map_uid != known.map_uid
+            || next.snapshot != known.snapshot
+            || !next.segments.starts_with(&known.segments)
+        {
+            return Ok(Freshness::Replaced);
+        }
+        let first = known.next_seq;
+        let paths: Vec<ObjectPath> =
+            next.segments[known.segments.len()..].iter().map(|name| s.object(&self.id, name)).collect();
+        let fetched: Vec<(ObjectPath, Vec<u8>)> = s.block_on(
+            futures_util::stream::iter(paths.into_iter().map(|p| {
+                let s = &s;
+                async move {
+                    match s.get(&p).await {
+                        Ok((bytes, _)) => Ok((p, bytes)),
+                        Err(object_store::Error::NotFound { .. }) => {
+                            Err(s.corrupt(&p, "named by the manifest but missing"))
+                        }
+                        Err(e) => Err(s.io(&p, e)),
+                    }
+                }
+            }))
+            .buffered(PARALLEL_GETS)
+            .try_collect(),
+        )?;
+        let mut records = Vec::with_capacity(fetched.len());
+        for (i, (path, bytes)) in fetched.into_iter().enumerate() {
+            let (seq, record) = decode_segment(&bytes, &s.name(&path))?;
+            if seq != first + i as u64 {
+                return Err(s.corrupt(&path, format!("holds record {seq}, expected {}", first + i as u64)));
+            }
+            records.push(record);
+        }
+        self.manifest = next;
+        self.version = version;
+        self.fenced = None;
+        Ok(Freshness::Appended(records))
     }
 }
 
@@ -767,7 +1041,7 @@ mod tests {
 
     fn write(j: &mut dyn MapJournal, data: &mut MapData, r: Record) -> Result<(), MapError> {
         data.check(&r).unwrap();
-        j.append(data.version + 1, &r)?;
+        j.append(data.version + 1, &r, &data.stats_after(&r))?;
         data.apply(&r);
         Ok(())
     }
@@ -829,7 +1103,10 @@ mod tests {
             other => panic!("{other}"),
         }
         assert_eq!(keys(&mem, "test/prefix"), before, "the fenced writer left no object behind");
-        assert!(matches!(jb.append(1, &keyframe_record(3, 4, 0, 8, 3)), Err(MapError::WriterConflict { .. })));
+        assert!(matches!(
+            jb.append(1, &keyframe_record(3, 4, 0, 8, 3), &MapStats::default()),
+            Err(MapError::WriterConflict { .. })
+        ));
         assert!(matches!(jb.compact(&data_b), Err(MapError::WriterConflict { .. })));
         assert_eq!(a.open("m").unwrap().0, data_a);
     }

@@ -6,8 +6,25 @@
 //! take it shared; a writer takes it exclusively only to apply a planned record and update the index. None
 //! of these locks is held across an `.await` (callers run this code on blocking worker threads).
 //!
-//! Start-up loads every stored map; a map that fails to load (corruption) is held back with its reason
-//! and reported as unavailable, and the others serve.
+//! **Which maps are in memory** (`[store.cache]`). Eager (the default with a local directory): start-up
+//! loads every stored map. Lazy (the default with object storage, where several replicas share one bucket):
+//! a map is loaded on its first request and kept while the loaded maps fit `memory_budget_mb` (estimated per
+//! map, [`MapData::memory_bytes`]); beyond it the least recently used map that no request is using is
+//! evicted, and loaded again when asked for. Existence is the backend's, not the cache's: create, import,
+//! delete and listings ask the backend, so a map another replica created or deleted is seen at this
+//! replica's next request for it. The server loads a map before it queues the request's CPU work
+//! ([`MapStore::prepare`]), so a load never holds a CPU worker that queries of loaded maps need.
+//!
+//! **Freshness**: a request for a loaded map whose copy was last checked more than `freshness_ms` ago first
+//! asks the backend whether the stored map moved on ([`MapJournal::refresh`]: a conditional GET of the
+//! manifest), then applies the records another replica appended, or loads the map again when it was
+//! rewritten. So a read reflects every write acknowledged by any replica more than `freshness_ms` (plus one
+//! manifest round trip) before it. One request per map checks at a time; the others meanwhile serve the
+//! copy as it is. When a check fails (the bucket unreachable) the copy is served and checked again after
+//! the interval.
+//!
+//! A map that fails to load (corruption) is held back with its reason and reported as unavailable, and the
+//! others serve; in lazy mode its load is tried again after `freshness_ms`.
 //!
 //! Storage goes through a [`MapBackend`] chosen by `store.backend`: the local directory (default) or object
 //! storage ([`crate::map::s3`]). Its calls block (fsync, HTTP round trips), like the rest of
@@ -15,7 +32,9 @@
 
 use std::collections::HashMap;
 use std::path::{Path, PathBuf};
+use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::Arc;
+use std::time::Instant;
 
 use parking_lot::{Mutex, RwLock};
 use serde::{Deserialize, Serialize};
@@ -26,10 +45,10 @@ use crate::features::Features;
 use crate::map::builder::{plan, BuildParams, ExternalCounts, KeyframeInput};
 use crate::map::format::{decode_snapshot, encode_snapshot, write_atomic};
 use crate::map::index::{EmbeddingIndex, IndexParams};
-use crate::map::journal::{LoadReport, MapBackend, MapJournal};
+use crate::map::journal::{Freshness, LoadReport, MapBackend, MapJournal, OperationStats};
 use crate::map::local::LocalBackend;
 use crate::map::localize::{localize, Localization, LocalizeParams, Prior};
-use crate::map::model::{validate_map_id, MapData, MapMeta, Record};
+use crate::map::model::{validate_map_id, MapData, MapMeta, MapStats, Record};
 use crate::map::s3::{ObjectStorageBackend, S3Config, S3Credentials};
 
 /// Settings of the map store.
@@ -46,6 +65,55 @@ pub struct StoreConfig {
     pub localize: LocalizeParams,
     /// Where maps are stored: `kind = "local"` (default) or `kind = "s3"`.
     pub backend: BackendConfig,
+    /// Which maps are kept in memory, and how fresh a replica's copy is.
+    pub cache: CacheConfig,
+}
+
+/// The cache of loaded maps (`[store.cache]`).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct CacheConfig {
+    /// Load maps on first request and evict the least recently used beyond the budget (`true`), or load
+    /// every map at start and keep them all (`false`). Absent: lazy with object storage, eager with a local
+    /// directory.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub lazy: Option<bool>,
+    /// Memory the loaded maps may take, in MiB (estimated; 0: no limit). Lazy mode only. The default suits a
+    /// pod with 4 GiB: the rest is the model, the CPU pool's images and the allocator's slack.
+    pub memory_budget_mb: u64,
+    /// A loaded map is checked against the stored one when its last check is older than this (ms); 0 checks
+    /// on every request. The staleness bound readers see.
+    pub freshness_ms: u64,
+}
+
+impl Default for CacheConfig {
+    fn default() -> Self {
+        Self { lazy: None, memory_budget_mb: 2048, freshness_ms: 2000 }
+    }
+}
+
+impl CacheConfig {
+    /// Whether maps are loaded on demand with this backend.
+    pub fn is_lazy(&self, backend: &BackendConfig) -> bool {
+        self.lazy.unwrap_or(matches!(backend, BackendConfig::S3(_)))
+    }
+}
+
+/// Counts of the map cache since start, for `/metrics`.
+#[derive(Debug, Default)]
+pub struct CacheStats {
+    /// Requests that found their map loaded...
+    pub hits: AtomicU64,
+    /// ...and that had to load it (lazy mode).
+    pub misses: AtomicU64,
+    /// Maps loaded, and the time spent loading them (ns).
+    pub loads: AtomicU64,
+    pub load_nanos: AtomicU64,
+    pub evictions: AtomicU64,
+    /// Freshness checks, and those that found the stored map changed (applied or reloaded).
+    pub checks: AtomicU64,
+    pub changed: AtomicU64,
+    pub check_errors: AtomicU64,
 }
 
 impl Default for StoreConfig {
@@ -57,6 +125,7 @@ impl Default for StoreConfig {
             build: BuildParams::default(),
             localize: LocalizeParams::default(),
             backend: BackendConfig::default(),
+            cache: CacheConfig::default(),
         }
     }
 }
@@ -80,6 +149,8 @@ pub struct MapSummary {
     pub live_observations: usize,
     pub version: u64,
     pub approximate_index: bool,
+    /// Whether this server holds the map in memory (lazy mode lists stored maps it has not loaded).
+    pub loaded: bool,
 }
 
 /// A map's contents for viewers (see [`MapStore::contents`]).
@@ -109,14 +180,39 @@ struct MapState {
     index: EmbeddingIndex,
 }
 
+/// What to do with a loaded map after a freshness check.
+enum Next {
+    Keep,
+    Reload,
+    Gone,
+}
+
 /// One loaded map.
 pub struct Map {
     id: String,
     state: RwLock<MapState>,
     log: Mutex<Box<dyn MapJournal>>,
+    /// The store's clock (ms since it opened) at the map's last request, for eviction...
+    last_used: AtomicU64,
+    /// ...and at its last freshness check.
+    checked: AtomicU64,
+    /// Estimated memory of the map and its index ([`MapData::memory_bytes`]).
+    bytes: AtomicU64,
 }
 
 impl Map {
+    fn new(id: &str, data: MapData, index: EmbeddingIndex, log: Box<dyn MapJournal>, now: u64) -> Self {
+        let bytes = data.memory_bytes() as u64;
+        Self {
+            id: id.to_string(),
+            state: RwLock::new(MapState { data, index }),
+            log: Mutex::new(log),
+            last_used: AtomicU64::new(now),
+            checked: AtomicU64::new(now),
+            bytes: AtomicU64::new(bytes),
+        }
+    }
+
     fn summary(&self) -> MapSummary {
         let s = self.state.read();
         MapSummary {
@@ -128,6 +224,7 @@ impl Map {
             live_observations: s.data.live_observations(),
             version: s.data.version,
             approximate_index: s.index.is_approximate(),
+            loaded: true,
         }
     }
 
@@ -167,10 +264,17 @@ pub struct MapStore {
     config: StoreConfig,
     backend: Arc<dyn MapBackend>,
     model: ModelInfo,
+    /// The loaded maps (all of them in eager mode, a cache in lazy mode).
     maps: RwLock<HashMap<String, Arc<Map>>>,
-    held_back: RwLock<HashMap<String, String>>,
+    /// Maps that failed to load: the reason, and when (the store's clock, ms).
+    held_back: RwLock<HashMap<String, (String, u64)>>,
     /// Serialises create, delete and import (changes to the set of maps).
     admin: Mutex<()>,
+    lazy: bool,
+    /// One lock per map being loaded, so concurrent requests for it wait for one load.
+    loading: Mutex<HashMap<String, Arc<Mutex<()>>>>,
+    cache_stats: CacheStats,
+    opened: Instant,
 }
 
 fn now_ms() -> u64 {
@@ -190,6 +294,7 @@ impl MapStore {
         model: ModelInfo,
         backend: Arc<dyn MapBackend>,
     ) -> Result<Self, MapError> {
+        let lazy = config.cache.is_lazy(&config.backend);
         let store = Self {
             config,
             backend,
@@ -197,7 +302,16 @@ impl MapStore {
             maps: RwLock::new(HashMap::new()),
             held_back: RwLock::new(HashMap::new()),
             admin: Mutex::new(()),
+            lazy,
+            loading: Mutex::new(HashMap::new()),
+            cache_stats: CacheStats::default(),
+            opened: Instant::now(),
         };
+        if lazy {
+            tracing::info!(location = %store.backend.location(), budget_mb = store.config.cache.memory_budget_mb,
+                "maps are loaded on first request");
+            return Ok(store);
+        }
         tracing::info!(location = %store.backend.location(), "loading maps");
         for name in store.backend.list()? {
             match store.load_map(&name) {
@@ -207,17 +321,45 @@ impl MapStore {
                 }
                 Err(e) => {
                     tracing::error!(map = %name, error = %e, "map held back");
-                    store.held_back.write().insert(name, held_back_reason(&e));
+                    store.held_back.write().insert(name, (held_back_reason(&e), 0));
                 }
             }
         }
         Ok(store)
     }
 
+    /// Milliseconds since the store opened (the clock of eviction and freshness).
+    fn now(&self) -> u64 {
+        self.opened.elapsed().as_millis() as u64
+    }
+
     fn load_map(&self, id: &str) -> Result<(Map, LoadReport), MapError> {
+        let t = Instant::now();
         let (data, log, report) = self.backend.open(id)?;
         let index = EmbeddingIndex::load_or_build(self.config.index, log.index_dir(), &data);
-        Ok((Map { id: id.to_string(), state: RwLock::new(MapState { data, index }), log: Mutex::new(log) }, report))
+        self.cache_stats.loads.fetch_add(1, Ordering::Relaxed);
+        self.cache_stats.load_nanos.fetch_add(t.elapsed().as_nanos() as u64, Ordering::Relaxed);
+        Ok((Map::new(id, data, index, log, self.now()), report))
+    }
+
+    /// Whether maps are loaded on demand (and evicted).
+    pub fn is_lazy(&self) -> bool {
+        self.lazy
+    }
+
+    pub fn cache_stats(&self) -> &CacheStats {
+        &self.cache_stats
+    }
+
+    /// Calls made to the storage service (object storage), per operation.
+    pub fn operation_stats(&self) -> Vec<OperationStats> {
+        self.backend.operation_stats()
+    }
+
+    /// Loads `id` if it is not loaded and checks its freshness: what [`MapStore::get`] does first, for the
+    /// server to run before it queues the request's CPU work.
+    pub fn prepare(&self, id: &str) -> Result<(), MapError> {
+        self.get(id).map(drop)
     }
 
     pub fn model(&self) -> &ModelInfo {
@@ -227,13 +369,169 @@ impl MapStore {
     /// The map, or why it cannot be used.
     pub fn get(&self, id: &str) -> Result<Arc<Map>, MapError> {
         validate_map_id(id)?;
-        if let Some(m) = self.maps.read().get(id) {
-            return Ok(Arc::clone(m));
+        let cached = self.maps.read().get(id).cloned();
+        if let Some(map) = cached {
+            map.last_used.store(self.now(), Ordering::Relaxed);
+            self.cache_stats.hits.fetch_add(1, Ordering::Relaxed);
+            return self.fresh(map);
         }
-        if let Some(reason) = self.held_back.read().get(id) {
+        if self.lazy {
+            return self.load_into_cache(id);
+        }
+        if let Some((reason, _)) = self.held_back.read().get(id) {
             return Err(MapError::Unavailable { map: id.to_string(), reason: reason.clone() });
         }
         Err(MapError::UnknownMap { map: id.to_string() })
+    }
+
+    /// `map`, checked against the stored map when its last check is older than `freshness_ms`.
+    fn fresh(&self, map: Arc<Map>) -> Result<Arc<Map>, MapError> {
+        let now = self.now();
+        let last = map.checked.load(Ordering::Relaxed);
+        if now.saturating_sub(last) < self.config.cache.freshness_ms {
+            return Ok(map);
+        }
+        // One check per map at a time; a writer holding the journal makes the copy current (or learns that it
+        // is not) with its own write.
+        if map.checked.compare_exchange(last, now, Ordering::AcqRel, Ordering::Relaxed).is_err() {
+            return Ok(map);
+        }
+        let next = match map.log.try_lock() {
+            None => Next::Keep,
+            Some(mut log) => {
+                self.cache_stats.checks.fetch_add(1, Ordering::Relaxed);
+                match log.refresh() {
+                    Ok(Freshness::Current) => Next::Keep,
+                    Ok(Freshness::Appended(records)) => self.apply_others(&map, &records),
+                    Ok(Freshness::Replaced) => Next::Reload,
+                    Ok(Freshness::Gone) => Next::Gone,
+                    Err(e) => {
+                        self.cache_stats.check_errors.fetch_add(1, Ordering::Relaxed);
+                        tracing::warn!(map = %map.id, error = %e, "cannot check the map's freshness; serving the copy");
+                        Next::Keep
+                    }
+                }
+            }
+        };
+        match next {
+            Next::Keep => Ok(map),
+            Next::Reload => {
+                self.cache_stats.changed.fetch_add(1, Ordering::Relaxed);
+                self.reload(&map)
+            }
+            Next::Gone => {
+                self.cache_stats.changed.fetch_add(1, Ordering::Relaxed);
+                let mut maps = self.maps.write();
+                if maps.get(&map.id).is_some_and(|m| Arc::ptr_eq(m, &map)) {
+                    tracing::info!(map = %map.id, "deleted through another server; dropped");
+                    maps.remove(&map.id);
+                }
+                Err(MapError::UnknownMap { map: map.id.clone() })
+            }
+        }
+    }
+
+    /// Applies records another server appended (the caller holds the map's journal); a record that does not
+    /// apply means this copy went wrong somewhere: load the map again.
+    fn apply_others(&self, map: &Map, records: &[Record]) -> Next {
+        self.cache_stats.changed.fetch_add(1, Ordering::Relaxed);
+        let mut s = map.state.write();
+        for record in records {
+            if let Err(reason) = s.data.check(record) {
+                tracing::error!(map = %map.id, %reason, "another writer's record does not apply; reloading");
+                return Next::Reload;
+            }
+            s.data.apply(record);
+        }
+        let MapState { data, index } = &mut *s;
+        index.sync(data);
+        map.bytes.store(data.memory_bytes() as u64, Ordering::Relaxed);
+        tracing::debug!(map = %map.id, records = records.len(), version = data.version, "applied other writes");
+        Next::Keep
+    }
+
+    /// Loads `stale` again and puts the new copy in its place (unless the registry moved on meanwhile).
+    fn reload(&self, stale: &Arc<Map>) -> Result<Arc<Map>, MapError> {
+        self.reload_stale(stale);
+        self.maps.read().get(&stale.id).cloned().ok_or_else(|| MapError::UnknownMap { map: stale.id.clone() })
+    }
+
+    /// Lazy mode: loads a map that is not in memory (one load per map at a time), then evicts beyond the budget.
+    fn load_into_cache(&self, id: &str) -> Result<Arc<Map>, MapError> {
+        let gate = Arc::clone(self.loading.lock().entry(id.to_string()).or_default());
+        let loaded = {
+            let _loading = gate.lock();
+            self.load_gated(id)
+        };
+        let mut loading = self.loading.lock();
+        if loading.get(id).is_some_and(|g| Arc::ptr_eq(g, &gate)) && Arc::strong_count(&gate) == 2 {
+            loading.remove(id);
+        }
+        loaded
+    }
+
+    fn load_gated(&self, id: &str) -> Result<Arc<Map>, MapError> {
+        if let Some(map) = self.maps.read().get(id).cloned() {
+            // Loaded by the request this one waited for.
+            self.cache_stats.hits.fetch_add(1, Ordering::Relaxed);
+            return Ok(map);
+        }
+        let now = self.now();
+        if let Some((reason, at)) = self.held_back.read().get(id) {
+            if now.saturating_sub(*at) < self.config.cache.freshness_ms {
+                return Err(MapError::Unavailable { map: id.to_string(), reason: reason.clone() });
+            }
+        }
+        self.cache_stats.misses.fetch_add(1, Ordering::Relaxed);
+        match self.load_map(id) {
+            Ok((map, report)) => {
+                let map = Arc::new(map);
+                tracing::info!(map = %id, replayed = report.replayed, bytes = map.bytes.load(Ordering::Relaxed),
+                    from_dump = map.state.read().index.loaded_from_dump(), "map loaded on request");
+                self.held_back.write().remove(id);
+                self.maps.write().insert(id.to_string(), Arc::clone(&map));
+                self.evict_beyond_budget(id);
+                Ok(map)
+            }
+            Err(e @ MapError::UnknownMap { .. }) => {
+                self.held_back.write().remove(id);
+                Err(e)
+            }
+            Err(e) => {
+                tracing::error!(map = %id, error = %e, "map held back");
+                let reason = held_back_reason(&e);
+                self.held_back.write().insert(id.to_string(), (reason.clone(), now));
+                Err(MapError::Unavailable { map: id.to_string(), reason })
+            }
+        }
+    }
+
+    /// Evicts the least recently used maps that no request holds until the loaded maps fit the budget
+    /// (`keep`, the map just loaded, stays even when it alone is over it).
+    fn evict_beyond_budget(&self, keep: &str) {
+        let budget = self.config.cache.memory_budget_mb << 20;
+        if budget == 0 {
+            return;
+        }
+        let mut maps = self.maps.write();
+        loop {
+            let total: u64 = maps.values().map(|m| m.bytes.load(Ordering::Relaxed)).sum();
+            if total <= budget {
+                return;
+            }
+            // A map some request holds (an `Arc` besides the registry's) is in use: evicting it could put a
+            // second copy beside it, and two writers on one local log.
+            let victim = maps
+                .iter()
+                .filter(|(id, m)| id.as_str() != keep && Arc::strong_count(m) == 1)
+                .min_by_key(|(_, m)| m.last_used.load(Ordering::Relaxed))
+                .map(|(id, _)| id.clone());
+            let Some(victim) = victim else { return };
+            if let Some(m) = maps.remove(&victim) {
+                self.cache_stats.evictions.fetch_add(1, Ordering::Relaxed);
+                tracing::info!(map = %victim, bytes = m.bytes.load(Ordering::Relaxed), total, budget, "map evicted");
+            }
+        }
     }
 
     fn check_model(&self, map: &Map) -> Result<(), MapError> {
@@ -251,7 +549,14 @@ impl MapStore {
     pub fn create(&self, id: &str) -> Result<MapSummary, MapError> {
         validate_map_id(id)?;
         let _admin = self.admin.lock();
-        if self.maps.read().contains_key(id) || self.held_back.read().contains_key(id) || self.backend.exists(id)? {
+        if self.backend.exists(id)? {
+            return Err(MapError::MapExists { map: id.to_string() });
+        }
+        // Lazy mode: what the backend does not hold is gone (deleted through another server), whatever the
+        // cache says. Eager mode: this server is the only one, and its registry is the truth.
+        if self.lazy {
+            self.forget(id);
+        } else if self.maps.read().contains_key(id) || self.held_back.read().contains_key(id) {
             return Err(MapError::MapExists { map: id.to_string() });
         }
         let data = MapData::new(MapMeta {
@@ -263,22 +568,72 @@ impl MapStore {
         });
         let log = self.backend.create(id, &data)?;
         let index = EmbeddingIndex::new(self.config.index);
-        let map =
-            Arc::new(Map { id: id.to_string(), state: RwLock::new(MapState { data, index }), log: Mutex::new(log) });
+        let map = Arc::new(Map::new(id, data, index, log, self.now()));
         self.maps.write().insert(id.to_string(), Arc::clone(&map));
+        if self.lazy {
+            self.evict_beyond_budget(id);
+        }
         Ok(map.summary())
     }
 
-    pub fn list(&self) -> Vec<MapSummary> {
+    /// Drops a map from memory and from the held-back list (not from the backend).
+    fn forget(&self, id: &str) {
+        self.maps.write().remove(id);
+        self.held_back.write().remove(id);
+    }
+
+    /// Every map: the loaded ones (eager mode), or every stored map (lazy mode), the counts of those not
+    /// loaded as the backend records them. A stored map without recorded counts is loaded to tell; one
+    /// that fails to load is left out (it is in [`MapStore::held_back`]).
+    pub fn list(&self) -> Result<Vec<MapSummary>, MapError> {
+        if !self.lazy {
+            return Ok(self.loaded());
+        }
+        let mut out = Vec::new();
+        for (id, stats) in self.backend.list_stats()? {
+            let cached = self.maps.read().get(&id).cloned();
+            match (cached, stats) {
+                (Some(map), _) => out.push(map.summary()),
+                (None, Some(stats)) => out.push(self.stored_summary(&id, &stats)),
+                (None, None) => match self.get(&id) {
+                    Ok(map) => out.push(map.summary()),
+                    Err(e) => tracing::warn!(map = %id, error = %e, "left out of the listing"),
+                },
+            }
+        }
+        Ok(out)
+    }
+
+    /// Estimated memory of the maps in memory.
+    pub fn loaded_bytes(&self) -> u64 {
+        self.maps.read().values().map(|m| m.bytes.load(Ordering::Relaxed)).sum()
+    }
+
+    /// The maps in memory, by id (cheap: for metrics).
+    pub fn loaded(&self) -> Vec<MapSummary> {
         let maps: Vec<Arc<Map>> = self.maps.read().values().cloned().collect();
         let mut out: Vec<MapSummary> = maps.iter().map(|m| m.summary()).collect();
         out.sort_by(|a, b| a.id.cmp(&b.id));
         out
     }
 
+    fn stored_summary(&self, id: &str, stats: &MapStats) -> MapSummary {
+        MapSummary {
+            id: id.to_string(),
+            model_id: stats.model_id.clone(),
+            keyframes: stats.keyframes,
+            landmarks: stats.landmarks,
+            observations: stats.observations,
+            live_observations: stats.live_observations,
+            version: stats.version,
+            approximate_index: stats.observations >= self.config.index.exact_below,
+            loaded: false,
+        }
+    }
+
     /// Ids of maps that failed to load, with the reason.
     pub fn held_back(&self) -> Vec<(String, String)> {
-        let mut v: Vec<_> = self.held_back.read().iter().map(|(k, v)| (k.clone(), v.clone())).collect();
+        let mut v: Vec<_> = self.held_back.read().iter().map(|(k, (reason, _))| (k.clone(), reason.clone())).collect();
         v.sort();
         v
     }
@@ -313,6 +668,9 @@ impl MapStore {
         validate_map_id(id)?;
         let _admin = self.admin.lock();
         let known = self.maps.write().remove(id).is_some() | self.held_back.write().remove(id).is_some();
+        // Lazy mode: the map may be stored without being loaded here; a cached copy of a map deleted
+        // elsewhere is not a map.
+        let known = if self.lazy { self.backend.exists(id)? } else { known };
         if !known {
             return Err(MapError::UnknownMap { map: id.to_string() });
         }
@@ -394,8 +752,11 @@ impl MapStore {
 
     /// Log (fsync) then apply; compacts and dumps the index when the log is long. Returns the new version.
     fn commit(&self, map: &Map, log: &mut dyn MapJournal, record: Record) -> Result<u64, MapError> {
-        let seq = map.state.read().data.version + 1;
-        if let Err(e) = log.append(seq, &record) {
+        let (seq, after) = {
+            let s = map.state.read();
+            (s.data.version + 1, s.data.stats_after(&record))
+        };
+        if let Err(e) = log.append(seq, &record, &after) {
             if matches!(e, MapError::WriterConflict { .. }) {
                 self.reload_stale(map);
             }
@@ -405,9 +766,11 @@ impl MapStore {
         s.data.apply(&record);
         let MapState { data, index } = &mut *s;
         index.sync(data);
+        map.bytes.store(data.memory_bytes() as u64, Ordering::Relaxed);
+        map.checked.store(self.now(), Ordering::Relaxed);
         if log.wants_compaction() {
-            log.compact(data)?;
             index.dump(log.index_dir(), &data.meta.model_id)?;
+            log.compact(data)?;
         }
         Ok(data.version)
     }
@@ -451,22 +814,33 @@ impl MapStore {
         }
         data.meta.id = id.to_string();
         let _admin = self.admin.lock();
-        let existing = self.maps.read().get(id).cloned();
+        let existing = match self.lazy {
+            // The stored map (loaded to compare), if there is one.
+            true => match self.get(id) {
+                Ok(map) => Some(map),
+                Err(MapError::UnknownMap { .. }) => None,
+                Err(MapError::Unavailable { .. }) => return Err(MapError::MapExists { map: id.to_string() }),
+                Err(e) => return Err(e),
+            },
+            false => self.maps.read().get(id).cloned(),
+        };
         if let Some(map) = existing {
             if map.read(|held, _| *held == data) {
                 return Ok(map.summary());
             }
             return Err(MapError::MapExists { map: id.to_string() });
         }
-        if self.held_back.read().contains_key(id) || self.backend.exists(id)? {
+        if (!self.lazy && self.held_back.read().contains_key(id)) || self.backend.exists(id)? {
             return Err(MapError::MapExists { map: id.to_string() });
         }
         let log = self.backend.create(id, &data)?;
         let mut index = EmbeddingIndex::new(self.config.index);
         index.sync(&data);
-        let map =
-            Arc::new(Map { id: id.to_string(), state: RwLock::new(MapState { data, index }), log: Mutex::new(log) });
+        let map = Arc::new(Map::new(id, data, index, log, self.now()));
         self.maps.write().insert(id.to_string(), Arc::clone(&map));
+        if self.lazy {
+            self.evict_beyond_budget(id);
+        }
         Ok(map.summary())
     }
 
@@ -505,6 +879,7 @@ impl MapStore {
         for map in maps {
             let mut log = map.log.lock();
             let s = map.state.read();
+            s.index.dump(log.index_dir(), &s.data.meta.model_id)?;
             match log.compact(&s.data) {
                 Ok(()) => {}
                 Err(e @ MapError::WriterConflict { .. }) => {
@@ -513,7 +888,6 @@ impl MapStore {
                 }
                 Err(e) => return Err(e),
             }
-            s.index.dump(log.index_dir(), &s.data.meta.model_id)?;
         }
         Ok(())
     }

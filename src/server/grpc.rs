@@ -116,6 +116,7 @@ fn map_info(s: MapSummary) -> proto::MapInfo {
         live_observations: s.live_observations as u64,
         version: s.version,
         approximate_index: s.approximate_index,
+        loaded: s.loaded,
     }
 }
 
@@ -141,8 +142,42 @@ impl GrpcApi {
         R: Send + 'static,
         F: FnOnce(&App) -> Result<R, ServiceError> + Send + 'static,
     {
+        self.handle_on(route, access, key, None, f).await
+    }
+
+    /// [`GrpcApi::handle`] for a request on one map ([`App::call_map`]).
+    async fn handle_map<R, F>(
+        &self,
+        route: &'static str,
+        access: Access,
+        key: Option<&str>,
+        map: &str,
+        f: F,
+    ) -> Result<R, Status>
+    where
+        R: Send + 'static,
+        F: FnOnce(&App) -> Result<R, ServiceError> + Send + 'static,
+    {
+        self.handle_on(route, access, key, Some(map), f).await
+    }
+
+    async fn handle_on<R, F>(
+        &self,
+        route: &'static str,
+        access: Access,
+        key: Option<&str>,
+        map: Option<&str>,
+        f: F,
+    ) -> Result<R, Status>
+    where
+        R: Send + 'static,
+        F: FnOnce(&App) -> Result<R, ServiceError> + Send + 'static,
+    {
         let t = Instant::now();
-        let r = self.app.call(key, access, route, f).await;
+        let r = match map {
+            Some(map) => self.app.call_map(key, access, route, map, f).await,
+            None => self.app.call(key, access, route, f).await,
+        };
         let code = match &r {
             Ok(_) => Code::Ok,
             Err(e) => to_status(e).code(),
@@ -181,7 +216,9 @@ impl proto::maps_server::Maps for GrpcApi {
     async fn get_map(&self, req: Request<proto::GetMapRequest>) -> Result<Response<proto::MapInfo>, Status> {
         let key = key(req.metadata());
         let id = req.into_inner().map_id;
-        let s = self.handle("GetMap", Access::Read, key.as_deref(), move |a| a.service.get_map(&id)).await?;
+        let s = self
+            .handle_map("GetMap", Access::Read, key.as_deref(), &id.clone(), move |a| a.service.get_map(&id))
+            .await?;
         Ok(Response::new(map_info(s)))
     }
 
@@ -228,8 +265,9 @@ impl proto::maps_server::Maps for GrpcApi {
                         break;
                     }
                 };
+                let map = msg.map_id.clone();
                 let r = api
-                    .handle("AddKeyframes", Access::Write, key.as_deref(), move |a| {
+                    .handle_map("AddKeyframes", Access::Write, key.as_deref(), &map, move |a| {
                         let p = msg.pose.ok_or_else(|| invalid("pose", "is required"))?;
                         let request = KeyframeRequest {
                             id: msg.keyframe_id,
@@ -266,8 +304,9 @@ impl proto::maps_server::Maps for GrpcApi {
     ) -> Result<Response<proto::MapInfo>, Status> {
         let key = key(req.metadata());
         let r = req.into_inner();
+        let map = r.map_id.clone();
         let s = self
-            .handle("RemoveKeyframe", Access::Write, key.as_deref(), move |a| {
+            .handle_map("RemoveKeyframe", Access::Write, key.as_deref(), &map, move |a| {
                 a.service.remove_keyframe(&r.map_id, r.keyframe_id)
             })
             .await?;
@@ -282,7 +321,9 @@ impl proto::maps_server::Maps for GrpcApi {
     ) -> Result<Response<Self::ExportMapStream>, Status> {
         let key = key(req.metadata());
         let id = req.into_inner().map_id;
-        let bytes = self.handle("ExportMap", Access::Read, key.as_deref(), move |a| a.service.export_map(&id)).await?;
+        let bytes = self
+            .handle_map("ExportMap", Access::Read, key.as_deref(), &id.clone(), move |a| a.service.export_map(&id))
+            .await?;
         let chunks: Vec<Result<proto::MapChunk, Status>> =
             bytes.chunks(CHUNK).map(|c| Ok(proto::MapChunk { map_id: String::new(), data: c.to_vec() })).collect();
         Ok(Response::new(Box::pin(tokio_stream::iter(chunks))))
@@ -401,8 +442,9 @@ impl proto::matching_server::Matching for GrpcApi {
     ) -> Result<Response<proto::LocalizeResponse>, Status> {
         let key = key(req.metadata());
         let r = req.into_inner();
+        let map = r.map_id.clone();
         let out = self
-            .handle("Localize", Access::Read, key.as_deref(), move |a| {
+            .handle_map("Localize", Access::Read, key.as_deref(), &map, move |a| {
                 let prior = r.prior.map(|p| Prior { position: [p.x, p.y, p.z], radius: p.radius });
                 let o = a.service.localize(&r.map_id, frame(r.frame, "frame")?, prior)?;
                 a.metrics.stages(&o.times);

@@ -3,7 +3,7 @@
 //! read at scrape time.
 
 use std::pin::Pin;
-use std::sync::atomic::Ordering;
+use std::sync::atomic::{AtomicU64, Ordering};
 use std::task::{Context, Poll};
 
 use axum::body::Bytes;
@@ -44,6 +44,33 @@ struct StageLabels {
     stage: String,
 }
 
+#[derive(Clone, Debug, Hash, PartialEq, Eq, EncodeLabelSet)]
+struct EventLabels {
+    event: String,
+}
+
+#[derive(Clone, Debug, Hash, PartialEq, Eq, EncodeLabelSet)]
+struct OperationLabels {
+    operation: String,
+}
+
+type Seconds = Counter<f64, AtomicU64>;
+
+/// Brings a counter up to a count kept elsewhere (the store's atomics, read at scrape time).
+fn catch_up(counter: &Counter, total: u64) {
+    let behind = total.saturating_sub(counter.get());
+    if behind > 0 {
+        counter.inc_by(behind);
+    }
+}
+
+fn catch_up_seconds(counter: &Seconds, total: f64) {
+    let behind = total - counter.get();
+    if behind > 0.0 {
+        counter.inc_by(behind);
+    }
+}
+
 fn latency_histogram() -> Histogram {
     // 1 ms .. ~33 s
     Histogram::new(exponential_buckets(0.001, 2.0, 16))
@@ -64,6 +91,12 @@ pub struct Metrics {
     queued: Gauge,
     running: Gauge,
     rejected: Gauge,
+    loaded_bytes: Gauge,
+    cache_events: Family<EventLabels, Counter>,
+    cache_load_seconds: Seconds,
+    storage_requests: Family<OperationLabels, Counter>,
+    storage_errors: Family<OperationLabels, Counter>,
+    storage_seconds: Family<OperationLabels, Seconds>,
 }
 
 impl Default for Metrics {
@@ -101,6 +134,25 @@ impl Metrics {
         let running = gauge(&mut registry, "pool_running", "Requests running on CPU workers");
         let rejected =
             gauge(&mut registry, "pool_rejected", "Requests refused because the queue was full (since start)");
+        let loaded_bytes = gauge(&mut registry, "map_cache_bytes", "Estimated memory of the loaded maps");
+        let cache_events = Family::<EventLabels, Counter>::default();
+        registry.register(
+            "map_cache_events",
+            "Map cache: hit, miss, load, eviction, check (freshness), change (found changed), check_error",
+            cache_events.clone(),
+        );
+        let cache_load_seconds = Seconds::default();
+        registry.register("map_cache_load_seconds", "Time spent loading maps", cache_load_seconds.clone());
+        let storage_requests = Family::<OperationLabels, Counter>::default();
+        registry.register("object_storage_requests", "Object storage calls by operation", storage_requests.clone());
+        let storage_errors = Family::<OperationLabels, Counter>::default();
+        registry.register(
+            "object_storage_errors",
+            "Object storage calls that failed (not found, not modified and failed conditions are answers, not failures)",
+            storage_errors.clone(),
+        );
+        let storage_seconds = Family::<OperationLabels, Seconds>::default();
+        registry.register("object_storage_seconds", "Time in object storage calls", storage_seconds.clone());
         Self {
             registry: Mutex::new(registry),
             requests,
@@ -115,6 +167,12 @@ impl Metrics {
             queued,
             running,
             rejected,
+            loaded_bytes,
+            cache_events,
+            cache_load_seconds,
+            storage_requests,
+            storage_errors,
+            storage_seconds,
         }
     }
 
@@ -154,6 +212,17 @@ impl Metrics {
         self.queued.set(pool.queued.load(Ordering::Relaxed) as i64);
         self.running.set(pool.running.load(Ordering::Relaxed) as i64);
         self.rejected.set(pool.rejected.load(Ordering::Relaxed) as i64);
+        self.loaded_bytes.set(holdings.loaded_bytes as i64);
+        for (event, n) in &holdings.cache_events {
+            catch_up(&self.cache_events.get_or_create(&EventLabels { event: event.to_string() }), *n);
+        }
+        catch_up_seconds(&self.cache_load_seconds, holdings.cache_load_seconds);
+        for op in &holdings.storage {
+            let labels = OperationLabels { operation: op.operation.to_string() };
+            catch_up(&self.storage_requests.get_or_create(&labels), op.calls);
+            catch_up(&self.storage_errors.get_or_create(&labels), op.errors);
+            catch_up_seconds(&self.storage_seconds.get_or_create(&labels), op.seconds);
+        }
         let mut out = String::new();
         if encode(&mut out, &self.registry.lock()).is_err() {
             out.clear();

@@ -84,6 +84,33 @@ impl App {
         }
     }
 
+    /// [`App::call`] for a request on one map: first, when maps are loaded on demand, the map is loaded (or
+    /// checked for freshness) on tokio's blocking threads, so a load never holds a CPU worker that requests
+    /// for loaded maps need; an unknown map is refused before any CPU work.
+    pub async fn call_map<R, F>(
+        self: &Arc<Self>,
+        key: Option<&str>,
+        access: Access,
+        operation: &str,
+        map: &str,
+        f: F,
+    ) -> Result<R, ServiceError>
+    where
+        R: Send + 'static,
+        F: FnOnce(&App) -> Result<R, ServiceError> + Send + 'static,
+    {
+        self.keys.check(key, access, operation)?;
+        if let Ok(store) = self.service.store() {
+            if store.is_lazy() {
+                let (store, id) = (Arc::clone(store), map.to_string());
+                tokio::task::spawn_blocking(move || store.prepare(&id))
+                    .await
+                    .map_err(|_| ServiceError::Internal(format!("{operation}: loading the map panicked")))??;
+            }
+        }
+        self.call(key, access, operation, f).await
+    }
+
     /// Refuses with [`ServiceError::Overloaded`] when every slot of the CPU pool is taken. The transports
     /// call this before they read a body that the pool would refuse anyway; it reserves nothing.
     pub fn check_room(&self) -> Result<(), ServiceError> {

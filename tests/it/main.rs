@@ -10,6 +10,7 @@ mod hostile;
 mod object_store;
 
 mod pipeline;
+mod replicas;
 mod service;
 #[path = "../../src/test_dir.rs"]
 mod test_dir;

@@ -23,7 +23,7 @@ use scone::map::model::{MapData, Record};
 use scone::map::s3::S3Config;
 use scone::map::s3::{ObjectStorageBackend, S3Credentials};
 use scone::map::store::BackendConfig;
-use scone::map::store::{MapStore, ModelInfo, StoreConfig};
+use scone::map::store::{CacheConfig, MapStore, ModelInfo, StoreConfig};
 use scone::offline::scene::Scene;
 use scone::pipeline::{Described, Describer};
 use scone::pose::rotation_error_deg;
@@ -31,14 +31,14 @@ use scone::MapError;
 
 use crate::common::{fixture, temp_dir};
 
-const KEY_ID: &str = "testing";
-const SECRET: &str = "testing";
-const PREFIX: &str = "it";
+pub(crate) const KEY_ID: &str = "testing";
+pub(crate) const SECRET: &str = "testing";
+pub(crate) const PREFIX: &str = "it";
 
 /// A moto server on a free loopback port, stopped on drop.
-struct Moto {
+pub(crate) struct Moto {
     child: Child,
-    endpoint: String,
+    pub(crate) endpoint: String,
 }
 
 fn moto_server() -> PathBuf {
@@ -56,7 +56,7 @@ fn runtime() -> tokio::runtime::Runtime {
 }
 
 impl Moto {
-    fn start() -> Self {
+    pub(crate) fn start() -> Self {
         let bin = moto_server();
         let port = TcpListener::bind("127.0.0.1:0").unwrap().local_addr().unwrap().port();
         let child = Command::new(&bin)
@@ -78,7 +78,7 @@ impl Moto {
     }
 
     /// Creates a bucket (object_store cannot): a plain `PUT /<bucket>`.
-    fn bucket(&self, name: &str) -> String {
+    pub(crate) fn bucket(&self, name: &str) -> String {
         let r = runtime().block_on(reqwest::Client::new().put(format!("{}/{name}", self.endpoint)).send()).unwrap();
         assert!(r.status().is_success(), "creating bucket {name}: {}", r.status());
         name.to_string()
@@ -100,10 +100,14 @@ impl Moto {
         let s3 = self.config(bucket, cache);
         let creds = S3Credentials::Static { access_key_id: KEY_ID.into(), secret_access_key: SECRET.into() };
         let backend = ObjectStorageBackend::s3(&s3, cache, compact_every, creds).unwrap();
+        // Every map loaded at open, and no freshness checks: these tests are about the storage protocol (what
+        // a replica that does not re-check sees, what its conditional writes do). The cache is in
+        // `src/map/cache_tests.rs` and `replicas.rs`.
         let config = StoreConfig {
             data_dir: cache.to_path_buf(),
             compact_every,
             backend: BackendConfig::S3(s3),
+            cache: CacheConfig { lazy: Some(false), freshness_ms: 3_600_000, ..CacheConfig::default() },
             ..StoreConfig::default()
         };
         MapStore::open_with_backend(config, model, Arc::new(backend)).unwrap()
@@ -219,23 +223,25 @@ fn a_map_in_object_storage_reloads_equal_localises_compacts_and_deletes() {
     .unwrap();
     assert_eq!(manifest["snapshot"]["version"], 3, "{manifest}");
     assert_eq!(manifest["segments"].as_array().unwrap().len(), 2, "{manifest}");
-    assert_eq!(objects.len(), 4, "manifest, one snapshot, two segments: {objects:?}");
-    // The map is past the exact-search threshold: its HNSW dump sits in A's local cache, not in the bucket.
+    assert_eq!(objects.len(), 7, "manifest, one snapshot, two segments, the index dump: {objects:?}");
+    // The map is past the exact-search threshold: its HNSW dump sits in A's local cache and, as of the
+    // snapshot, in the bucket (named by the manifest).
     assert!(a.summary("m").unwrap().approximate_index);
     assert!(tmp.join("a/m/index.json").exists());
-    assert!(!objects.iter().any(|k| k.contains("index")), "{objects:?}");
+    assert_eq!(manifest["index"]["version"], 3, "{manifest}");
+    assert_eq!(objects.iter().filter(|o| o.contains("/index/00000000000000000003-")).count(), 3);
 
-    // Replica B, with an empty cache (it rebuilds the index), sees the same map and localises with it.
+    // Replica B, with an empty cache (it downloads the index dump), sees the same map and localises with it.
     let b = moto.store(&bucket, &tmp.join("b"), 3, f.model.clone());
     assert_eq!(data(&b, "m"), written);
-    assert!(!b.get("m").unwrap().read(|_, index| index.loaded_from_dump()), "B's cache was empty");
+    assert!(b.get("m").unwrap().read(|_, index| index.loaded_from_dump()), "B's cache was empty: it downloaded");
     f.localises(&b, "m", 3);
     drop(b);
 
     // Compaction at shutdown (flush), then a reopen sees the same map from the snapshot alone.
     a.flush().unwrap();
     let objects = keys(&moto.raw(&bucket), "it/maps/m");
-    assert_eq!(objects.len(), 2, "manifest and snapshot: {objects:?}");
+    assert_eq!(objects.len(), 5, "manifest, snapshot and its index dump: {objects:?}");
     drop(a);
     let c = moto.store(&bucket, &tmp.join("a"), 3, f.model.clone());
     assert_eq!(data(&c, "m"), written);
@@ -247,7 +253,7 @@ fn a_map_in_object_storage_reloads_equal_localises_compacts_and_deletes() {
     assert!(keys(&moto.raw(&bucket), "it").is_empty());
     assert!(!tmp.join("a/m").exists(), "the local cache of the map is removed too");
     let d = moto.store(&bucket, &tmp.join("d"), 3, f.model.clone());
-    assert!(d.list().is_empty());
+    assert!(d.list().unwrap().is_empty());
     d.create("m").unwrap();
     assert_eq!(d.summary("m").unwrap().keyframes, 0);
 }
@@ -425,6 +431,7 @@ fn scone_serve_stores_maps_in_the_bucket_its_settings_name() {
     let store = moto.store(&bucket, &tmp.join("check"), 0, model);
     let summary = store.summary("served").unwrap();
     assert_eq!((summary.keyframes, summary.version), (1, 1));
-    // The shutdown flush compacted the map into one snapshot.
-    assert_eq!(keys(&moto.raw(&bucket), "it/maps/served").len(), 2);
+    // The shutdown flush compacted the map into one snapshot, with its index dump (three files).
+    let objects = keys(&moto.raw(&bucket), "it/maps/served");
+    assert_eq!(objects.len(), 5, "{objects:?}");
 }

@@ -151,7 +151,7 @@ pub fn run(cmd: MapCommand) -> anyhow::Result<()> {
                 store.held_back().into_iter().map(|(m, r)| serde_json::json!({"map": m, "reason": r})).collect();
             println!(
                 "{}",
-                serde_json::to_string_pretty(&serde_json::json!({"maps": store.list(), "held_back": held}))?
+                serde_json::to_string_pretty(&serde_json::json!({"maps": store.list()?, "held_back": held}))?
             );
         }
     }

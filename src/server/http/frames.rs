@@ -12,7 +12,7 @@ use base64::Engine;
 use super::body::{frame, parse_json, read_body, ApiPath, IntrinsicsQuery, Render, FRAME_BODIES, JSON_OR_MULTIPART};
 use super::error::{ApiErrors, ApiResult};
 use super::wire::{self, examples};
-use super::{call, App};
+use super::{call, call_map, App};
 use crate::camera::quaternion_xyzw;
 use crate::map::localize::Prior;
 use crate::matching::DEFAULT_RATIO;
@@ -182,7 +182,8 @@ pub async fn localize(
     req: Request,
 ) -> ApiResult<Response> {
     let body = read_body(req, app.settings.server.max_request_bytes, FRAME_BODIES).await?;
-    call(&app, &headers, Access::Read, "Localize", move |a| {
+    let map = map_id.clone();
+    call_map(&app, &headers, Access::Read, "Localize", &map, move |a| {
         let j: wire::LocalizeRequest = parse_json(&body.json)?;
         let outer = [("intrinsics", j.intrinsics), ("the query string's intrinsics", q.intrinsics())];
         let f = frame(j.frame, body.image, &outer, "frame")?;

@@ -13,7 +13,7 @@ use super::body::{
 };
 use super::error::{invalid, ApiError, ApiErrors, ApiResult};
 use super::wire::{self, examples};
-use super::{api_key, call, App};
+use super::{api_key, call, call_map, App};
 use crate::decode::TUM_DEPTH_SCALE;
 use crate::map::builder::ExternalObservation;
 use crate::service::{KeyframeRequest, ServiceError, DEFAULT_CONTENTS_LANDMARKS};
@@ -57,7 +57,7 @@ pub async fn get_map(
     ApiPath(id): ApiPath<String>,
     headers: HeaderMap,
 ) -> ApiResult<Json<wire::MapInfo>> {
-    let s = call(&app, &headers, Access::Read, "GetMap", move |a| a.service.get_map(&id)).await?;
+    let s = call_map(&app, &headers, Access::Read, "GetMap", &id.clone(), move |a| a.service.get_map(&id)).await?;
     Ok(Json(s.into()))
 }
 
@@ -87,7 +87,7 @@ pub async fn map_contents(
 ) -> ApiResult<Json<wire::MapContents>> {
     let Query(q) = query.map_err(|e| invalid("query string", e.body_text()))?;
     let max = q.max_landmarks.unwrap_or(DEFAULT_CONTENTS_LANDMARKS);
-    let out = call(&app, &headers, Access::Read, "MapContents", move |a| {
+    let out = call_map(&app, &headers, Access::Read, "MapContents", &id.clone(), move |a| {
         let c = a.service.map_contents(&id, max)?;
         Ok(wire::MapContents {
             map_id: id,
@@ -136,7 +136,7 @@ pub async fn add_keyframe(
     // Authenticate before reading a possibly large body.
     app.keys.check(api_key(&headers).as_deref(), Access::Write, "AddKeyframe").map_err(ApiError::Service)?;
     let body = read_body(req, app.settings.server.max_request_bytes, JSON_OR_MULTIPART).await?;
-    let out = call(&app, &headers, Access::Write, "AddKeyframe", move |a| {
+    let out = call_map(&app, &headers, Access::Write, "AddKeyframe", &map_id.clone(), move |a| {
         let Some(json) = &body.json else {
             return Err(ServiceError::invalid(
                 "body",
@@ -197,8 +197,10 @@ pub async fn remove_keyframe(
     let keyframe: u64 = keyframe
         .parse()
         .map_err(|_| invalid("keyframe_id", format!("'{keyframe}' is not a keyframe id (a whole number)")))?;
-    let s = call(&app, &headers, Access::Write, "RemoveKeyframe", move |a| a.service.remove_keyframe(&id, keyframe))
-        .await?;
+    let s = call_map(&app, &headers, Access::Write, "RemoveKeyframe", &id.clone(), move |a| {
+        a.service.remove_keyframe(&id, keyframe)
+    })
+    .await?;
     Ok(Json(s.into()))
 }
 
@@ -213,7 +215,8 @@ pub async fn export_map(
     headers: HeaderMap,
 ) -> ApiResult<Response> {
     let name = id.clone();
-    let bytes = call(&app, &headers, Access::Read, "ExportMap", move |a| a.service.export_map(&id)).await?;
+    let bytes =
+        call_map(&app, &headers, Access::Read, "ExportMap", &id.clone(), move |a| a.service.export_map(&id)).await?;
     Ok((
         [
             (header::CONTENT_TYPE, "application/octet-stream".to_string()),

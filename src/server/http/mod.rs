@@ -135,6 +135,18 @@ where
     })
 }
 
+/// [`call`] for a request on map `map` ([`App::call_map`]).
+async fn call_map<R, F>(app: &Arc<App>, headers: &HeaderMap, access: Access, op: &str, map: &str, f: F) -> ApiResult<R>
+where
+    R: Send + 'static,
+    F: FnOnce(&App) -> Result<R, ServiceError> + Send + 'static,
+{
+    app.call_map(api_key(headers).as_deref(), access, op, map, f).await.map_err(|e| {
+        app.log_error(op, &e);
+        ApiError::Service(e)
+    })
+}
+
 /// A refused HTTP/1.1 request whose unread body is at most this long is read and discarded after the answer,
 /// so its connection carries the client's next request; a longer one closes the connection.
 const DRAIN_LIMIT: u64 = 1 << 20;

@@ -329,6 +329,9 @@ pub struct MapInfo {
     pub version: u64,
     /// Whether the index is approximate (HNSW) rather than exact.
     pub approximate_index: bool,
+    /// Whether the answering server holds the map in memory (with object storage, maps are loaded on
+    /// demand and listings name every stored map; the counts of one not loaded are its manifest's).
+    pub loaded: bool,
 }
 
 impl From<MapSummary> for MapInfo {
@@ -342,6 +345,7 @@ impl From<MapSummary> for MapInfo {
             live_observations: s.live_observations,
             version: s.version,
             approximate_index: s.approximate_index,
+            loaded: s.loaded,
         }
     }
 }
