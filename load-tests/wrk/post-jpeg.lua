@@ -2,21 +2,37 @@
 -- to the path of the URL given to wrk (e.g. /v1/describe or /v1/maps/big/localize?fx=..). One line of JSON
 -- with the figures is printed at the end, after "SCONE-WRK-JSON ", for load-tests/lib/harness.py.
 -- $SCONE_WRK_MAX_REQUESTS, when set, stops each wrk thread after that many responses.
+-- $SCONE_WRK_TARGETS instead (";"-separated "path|file" pairs) gives each body its own path, and a path under
+-- /v1/maps/{map_id}/ also the `x-scone-map-id` header, as a client of the router sends it (load-tests/replicas).
 --
 --   SCONE_WRK_FILES=a.jpg:b.jpg wrk -t1 -c4 -d30s --timeout 60s -s post-jpeg.lua http://127.0.0.1:18151/v1/describe
 
-local bodies = {}
-for f in string.gmatch(os.getenv("SCONE_WRK_FILES") or "", "[^:]+") do
-  local h = assert(io.open(f, "rb"))
-  bodies[#bodies + 1] = h:read("*a")
+local function read(file)
+  local h = assert(io.open(file, "rb"))
+  local body = h:read("*a")
   h:close()
+  return body
 end
-assert(#bodies > 0, "SCONE_WRK_FILES lists no file")
+
+local targets = {}
+for f in string.gmatch(os.getenv("SCONE_WRK_FILES") or "", "[^:]+") do
+  targets[#targets + 1] = { body = read(f) }
+end
+for pair in string.gmatch(os.getenv("SCONE_WRK_TARGETS") or "", "[^;]+") do
+  local path, file = string.match(pair, "^(.-)|(.+)$")
+  targets[#targets + 1] = { path = path, map = string.match(path, "^/v1/maps/([^/?]+)/"), body = read(file) }
+end
+assert(#targets > 0, "neither SCONE_WRK_FILES nor SCONE_WRK_TARGETS lists a file")
 
 local i = 0
 request = function()
-  i = i % #bodies + 1
-  return wrk.format("POST", nil, { ["Content-Type"] = "image/jpeg" }, bodies[i])
+  i = i % #targets + 1
+  local t = targets[i]
+  local headers = { ["Content-Type"] = "image/jpeg" }
+  if t.map then
+    headers["x-scone-map-id"] = t.map
+  end
+  return wrk.format("POST", t.path, headers, t.body)
 end
 
 local max_requests = tonumber(os.getenv("SCONE_WRK_MAX_REQUESTS") or "")

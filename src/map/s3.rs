@@ -5,11 +5,15 @@
 //! `<prefix>/maps/<id>/`:
 //!
 //! * `manifest.json`: `{format_version, map_uid, writer, snapshot: {object, version}, segments: [..],
-//!   next_seq}`. The one mutable object: what it names is the map.
+//!   next_seq, stats, index}`. The one mutable object: what it names is the map. `stats` (the map's counts,
+//!   for listings by replicas that have not loaded it) and `index` (the dump of the snapshot's HNSW graph)
+//!   are optional: manifests written before them still read.
 //! * `snapshots/<version:020>-<nonce:016x>.bin`: the whole map in the snapshot/export format
 //!   ([`encode_snapshot`]), written once.
 //! * `segments/<seq:020>-<nonce:016x>.rec`: one record each, with the local log's framing and CRC
 //!   ([`encode_segment`]), written once.
+//! * `index/<version:020>-<nonce:016x>/{index.hnsw.graph, index.hnsw.data, index.json}`: the index dump of
+//!   a snapshot, written once, named by the manifest with that snapshot.
 //!
 //! Every new object is written with `If-None-Match: *` (`PutMode::Create`) under a name with a random nonce,
 //! so no object is ever overwritten, not even by a writer that lost its claim or by a retry of a failed write.
@@ -29,8 +33,9 @@
 //! (pods added or removed), the new writer's copy may be older than the old writer's last write: its first
 //! write then fails the same way, and the store reloads the map
 //! ([`MapStore`](crate::map::store::MapStore) on [`MapError::WriterConflict`]), so the client's retry
-//! succeeds on fresh data. Between writes, a replica's reads come from the copy it loaded: a replica that
-//! does not write a map does not see other replicas' writes to it until it reloads it.
+//! succeeds on fresh data. Between writes, a replica's reads come from the copy it loaded, checked against
+//! the stored map at most every `store.cache.freshness_ms` ([`MapJournal::refresh`]: a GET of the manifest
+//! with `If-None-Match`; appended segments are applied, a rewritten map is loaded again).
 //!
 //! **Crash between the two PUTs**: the segment exists but no manifest names it (an orphan). Loading reads only
 //! what the manifest names, so the orphan is ignored; the write was never acknowledged. Compaction deletes
@@ -39,16 +44,17 @@
 //! **Compaction**: PUT a new snapshot (create-only), conditional manifest PUT pointing at it with an empty
 //! segment list, then best-effort deletion of the replaced snapshot and segments. Only the replica that wrote
 //! records compacts, and only when there is something to fold: shutting down a replica that merely loaded a
-//! map (every replica loads every map today) neither rewrites it nor fences its writer.
+//! map neither rewrites it nor fences its writer.
 //!
 //! **Loading** reads the manifest, the snapshot and the segments in order and verifies every checksum and
 //! sequence number; a problem is [`MapError::Corrupt`] naming the object (`s3://bucket/key`), and the store
 //! holds that map back while the others serve.
 //!
-//! **Index dump**: the HNSW graph is dumped to a local cache directory (`<cache_dir>/<id>/`), not to object
-//! storage; a replica without it (new pod, emptied cache) rebuilds the graph from the map data, which takes
-//! about 1-2 ms per observation. A marker with the manifest's `map_uid` keeps a dump of an earlier map of the
-//! same id from being used.
+//! **Index dump**: the HNSW graph is dumped to a local cache directory (`<cache_dir>/<id>/`) and, at
+//! compaction, uploaded with the snapshot; a replica without a matching local dump (new pod, emptied cache)
+//! downloads it instead of rebuilding the graph from the map data (about 1-2 ms per observation), and inserts
+//! the observations of the segments after it. A download that fails is a rebuild, not an error. A marker
+//! with the manifest's `map_uid` keeps a dump of an earlier map of the same id from being used.
 //!
 //! **Threads**: `object_store` is async. The backend owns a small tokio runtime (one worker, for the HTTP
 //! client's I/O) and `block_on`s it from the store's synchronous methods. Those run on blocking threads (the

@@ -1,0 +1,225 @@
+//! Time to ready of a cold replica over object storage: a map of ~100k observations from real, different
+//! frames (`sun3d-studyroom` with its depth, then `7scenes-redkitchen` triangulated from its poses) is written
+//! into a bucket of moto's server mode (an S3 *emulator* on loopback, not Amazon S3) and compacted, which
+//! uploads the HNSW dump with the snapshot. Then a replica with an empty cache answers its first request for
+//! the map, once with the dump in the bucket (download + load) and once without it (the graph rebuilt from
+//! the map data), in the same run; plus the memory the loaded map takes against the cache's estimate.
+//! Run: `cargo bench --bench replica` (needs `../shared/data` or `$SCONE_DATA`; prints a note without it).
+//! `SCONE_BENCH_OBSERVATIONS` changes the map size (default 100000).
+
+use std::path::{Path, PathBuf};
+use std::process::{Child, Command, Stdio};
+use std::sync::Arc;
+use std::time::{Duration, Instant};
+
+use futures_util::TryStreamExt;
+use object_store::aws::AmazonS3Builder;
+use object_store::path::Path as ObjectPath;
+use object_store::{ObjectStore, ObjectStoreExt};
+use scone::decode::{decode_depth_png, ImageLimits, TUM_DEPTH_SCALE};
+use scone::embedding::{Embedder, EmbedderConfig};
+use scone::features::ExtractorConfig;
+use scone::map::builder::{Depth, KeyframeInput};
+use scone::map::s3::S3Config;
+use scone::map::store::{BackendConfig, CacheConfig, MapStore, ModelInfo, StoreConfig};
+use scone::offline::scene::Scene;
+use scone::pipeline::Describer;
+
+const KEY: &str = "bench";
+
+fn rss_mb() -> f64 {
+    let s = std::fs::read_to_string("/proc/self/status").unwrap_or_default();
+    s.lines()
+        .find(|l| l.starts_with("VmRSS:"))
+        .and_then(|l| l.split_whitespace().nth(1))
+        .and_then(|v| v.parse::<f64>().ok())
+        .map_or(0.0, |kb| kb / 1024.0)
+}
+
+struct Moto(Child);
+
+impl Drop for Moto {
+    fn drop(&mut self) {
+        let _ = self.0.kill();
+        let _ = self.0.wait();
+    }
+}
+
+fn start_moto(port: u16) -> Moto {
+    let root = PathBuf::from(env!("CARGO_MANIFEST_DIR"));
+    let ok = Command::new("bash").arg(root.join("scripts/setup-s3-test")).status().map(|s| s.success());
+    assert!(ok.unwrap_or(false), "scripts/setup-s3-test failed");
+    let prefix = std::env::var_os("SCONE_PREFIX")
+        .map(PathBuf::from)
+        .unwrap_or_else(|| PathBuf::from(std::env::var_os("HOME").unwrap()).join(".cache/scone"));
+    let child = Command::new(prefix.join("venv-s3/bin/moto_server"))
+        .args(["-H", "127.0.0.1", "-p", &port.to_string()])
+        .stdout(Stdio::null())
+        .stderr(Stdio::null())
+        .spawn()
+        .unwrap();
+    Moto(child)
+}
+
+fn s3(endpoint: &str, bucket: &str) -> S3Config {
+    S3Config {
+        bucket: bucket.into(),
+        prefix: "bench".into(),
+        region: Some("us-east-1".into()),
+        endpoint: Some(endpoint.into()),
+        allow_http: true,
+        cache_dir: None,
+    }
+}
+
+fn store(endpoint: &str, bucket: &str, dir: &Path, model: &ModelInfo) -> MapStore {
+    let config = StoreConfig {
+        data_dir: dir.to_path_buf(),
+        compact_every: usize::MAX,
+        backend: BackendConfig::S3(s3(endpoint, bucket)),
+        cache: CacheConfig { lazy: Some(true), memory_budget_mb: 0, ..CacheConfig::default() },
+        ..StoreConfig::default()
+    };
+    MapStore::open(config, model.clone()).unwrap()
+}
+
+fn main() {
+    if std::env::args().any(|a| a == "--list") {
+        return;
+    }
+    let root = std::env::var_os("SCONE_DATA")
+        .map(PathBuf::from)
+        .unwrap_or_else(|| PathBuf::from(concat!(env!("CARGO_MANIFEST_DIR"), "/../shared/data")));
+    let (Ok(sun3d), Ok(kitchen)) =
+        (Scene::load(&root.join("scenes/sun3d-studyroom")), Scene::load(&root.join("scenes/7scenes-redkitchen")))
+    else {
+        eprintln!("replica bench: no shared data at {}; nothing measured", root.display());
+        return;
+    };
+    let target: usize = std::env::var("SCONE_BENCH_OBSERVATIONS").ok().and_then(|v| v.parse().ok()).unwrap_or(100_000);
+    scone::features::set_opencv_threads(1).unwrap();
+    // The static credentials of the emulator, through the variables `from_env` reads.
+    std::env::set_var("AWS_ACCESS_KEY_ID", KEY);
+    std::env::set_var("AWS_SECRET_ACCESS_KEY", KEY);
+    std::env::set_var("AWS_REGION", "us-east-1");
+    let port = std::net::TcpListener::bind("127.0.0.1:0").unwrap().local_addr().unwrap().port();
+    let _moto = start_moto(port);
+    let endpoint = format!("http://127.0.0.1:{port}");
+    let rt = tokio::runtime::Builder::new_current_thread().enable_all().build().unwrap();
+    let http = reqwest::Client::new();
+    let t = Instant::now();
+    while rt.block_on(http.get(&endpoint).send()).is_err() {
+        assert!(t.elapsed() < Duration::from_secs(60), "moto did not start");
+        std::thread::sleep(Duration::from_millis(100));
+    }
+    let bucket = "replica-bench";
+    assert!(rt.block_on(http.put(format!("{endpoint}/{bucket}")).send()).unwrap().status().is_success());
+
+    let embedder = Arc::new(Embedder::load(&EmbedderConfig::default()).unwrap());
+    let model = ModelInfo { model_id: embedder.model_id().to_string(), k: embedder.k(), dim: embedder.dim() };
+    let describer = Describer { extractor: ExtractorConfig::default(), limits: ImageLimits::default(), embedder };
+    let limits = ImageLimits::default();
+    let tmp = std::env::temp_dir().join(format!("scone-bench-replica-{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&tmp);
+
+    // The writer: every frame of sun3d-studyroom, then 7scenes-redkitchen, until the target.
+    let t = Instant::now();
+    let (mut frames, mut id) = (0, 0u64);
+    {
+        let writer = store(&endpoint, bucket, &tmp.join("writer"), &model);
+        writer.create("m").unwrap();
+        'scenes: for scene in [&sun3d, &kitchen] {
+            for f in &scene.frames {
+                if writer.summary("m").unwrap().observations >= target {
+                    break 'scenes;
+                }
+                let Some(pose) = f.pose else { continue };
+                let d = describer.describe_image(&std::fs::read(&f.rgb).unwrap()).unwrap();
+                let depth = f.depth.as_ref().map(|p| decode_depth_png(&std::fs::read(p).unwrap(), &limits).unwrap());
+                let input = KeyframeInput {
+                    id,
+                    pose,
+                    camera: scene.camera,
+                    features: &d.features,
+                    embeddings: &d.embeddings,
+                    depth: depth.as_ref().map(|m| Depth { image: m, scale: TUM_DEPTH_SCALE }),
+                    external: None,
+                };
+                writer.add_keyframe("m", &input).unwrap();
+                id += 1;
+                frames += 1;
+            }
+        }
+        writer.flush().unwrap();
+    }
+    let build_s = t.elapsed().as_secs_f64();
+
+    let raw = AmazonS3Builder::new()
+        .with_bucket_name(bucket)
+        .with_endpoint(&endpoint)
+        .with_allow_http(true)
+        .with_region("us-east-1")
+        .with_access_key_id(KEY)
+        .with_secret_access_key(KEY)
+        .build()
+        .unwrap();
+    let objects: Vec<_> =
+        rt.block_on(raw.list(Some(&ObjectPath::from("bench/maps/m"))).try_collect::<Vec<_>>()).unwrap();
+    let mb = |part: &str| {
+        objects.iter().filter(|o| o.location.as_ref().contains(part)).map(|o| o.size).sum::<u64>() as f64 / 1e6
+    };
+    let (snapshot_mb, index_mb) = (mb("/snapshots/"), mb("/index/"));
+    assert!(index_mb > 0.0, "the compaction uploaded no index dump");
+
+    // Cold replicas: an empty cache each, first request for the map.
+    let cold = |name: &str| {
+        let s = store(&endpoint, bucket, &tmp.join(name), &model);
+        let rss = rss_mb();
+        let t = Instant::now();
+        let summary = s.summary("m").unwrap();
+        let ready = t.elapsed().as_secs_f64();
+        let from_dump = s.get("m").unwrap().read(|_, index| index.loaded_from_dump());
+        let rss_mb_loaded = rss_mb() - rss;
+        let estimate_mb = s.loaded_bytes() as f64 / 1e6;
+        (ready, from_dump, summary, rss_mb_loaded, estimate_mb)
+    };
+    let mut with_dump = Vec::new();
+    let mut memory = (0.0, 0.0);
+    for run in 0..3 {
+        let (ready, from_dump, _, rss, estimate) = cold(&format!("dump-{run}"));
+        assert!(from_dump, "the cold replica did not use the dump");
+        if run == 0 {
+            memory = (rss, estimate);
+        }
+        with_dump.push(ready);
+    }
+    with_dump.sort_by(f64::total_cmp);
+    for o in objects.iter().filter(|o| o.location.as_ref().contains("/index/")) {
+        rt.block_on(raw.delete(&o.location)).unwrap();
+    }
+    let (rebuild, from_dump, summary, _, _) = cold("rebuild");
+    assert!(!from_dump);
+    let obs = summary.observations as f64;
+    println!(
+        "map: {} keyframes ({frames} frames of sun3d-studyroom then 7scenes-redkitchen), {} landmarks, {} observations; \
+         built and written to the bucket in {build_s:.0} s",
+        summary.keyframes, summary.landmarks, summary.observations
+    );
+    println!("bucket: snapshot {snapshot_mb:.1} MB, index dump {index_mb:.1} MB (moto on loopback)");
+    println!();
+    println!("| cold replica, first request | time to ready s | vs rebuild |");
+    println!("|---|---|---|");
+    println!("| index dump downloaded (median of 3) | {:.2} | {:.3} |", with_dump[1], with_dump[1] / rebuild);
+    println!("| index rebuilt from the map data | {rebuild:.2} | 1 |");
+    println!();
+    println!(
+        "memory of the loaded map: RSS +{:.0} MB = {:.0} B per observation; the cache's estimate {:.0} MB = {:.0} B \
+         per observation (estimate / RSS = {:.2})",
+        memory.0,
+        memory.0 * 1e6 / obs,
+        memory.1,
+        memory.1 * 1e6 / obs,
+        memory.1 / memory.0
+    );
+    let _ = std::fs::remove_dir_all(&tmp);
+}
