@@ -20,7 +20,7 @@ KNOWN = {
     "workers": {"threads", "queue", "refusal_hold_ms"},
     "relative_pose": None,
     "model": {"model", "runtime_library", "sessions", "intra_threads", "spinning"},
-    "store": {"data_dir", "compact_every", "index", "build", "localize", "backend"},
+    "store": {"data_dir", "compact_every", "index", "build", "localize", "backend", "cache"},
     "limits": None,
     "extractor": None,
 }

@@ -173,7 +173,7 @@ fn maps_beyond_the_memory_budget_are_evicted_least_recently_used_first_and_reloa
     let writer = bucket.replica("w", CacheConfig { memory_budget_mb: 0, ..CacheConfig::default() }, 0, 100_000);
     for (i, id) in ["m1", "m2", "m3"].iter().enumerate() {
         writer.create(id).unwrap();
-        add(&writer, id, 1, &frame(60, 40, 0, i as u64)).unwrap();
+        add(&writer, id, 1, &frame(40, 20, 0, i as u64)).unwrap();
     }
     let r = bucket.replica("r", budget, 0, 100_000);
     let bytes = |store: &MapStore| store.loaded_bytes();
@@ -200,7 +200,7 @@ fn maps_beyond_the_memory_budget_are_evicted_least_recently_used_first_and_reloa
     drop(held);
     // The listing names every stored map, loaded or not.
     let listed: Vec<(String, usize)> = r.list().unwrap().into_iter().map(|m| (m.id, m.observations)).collect();
-    assert_eq!(listed, vec![("m1".into(), 2400), ("m2".into(), 2400), ("m3".into(), 2400)]);
+    assert_eq!(listed, vec![("m1".into(), 800), ("m2".into(), 800), ("m3".into(), 800)]);
 }
 
 #[test]

@@ -195,8 +195,11 @@ impl MapData {
     }
 
     /// Bytes an observation costs beyond its embedding: the observation, its id in the landmark's list, and
-    /// its share of the HNSW graph (links at the base layer; the index copies the embedding too).
-    const OBSERVATION_BYTES: usize = std::mem::size_of::<Observation>() + 8 + 32 * 8;
+    /// its node of the HNSW graph at the default 16 links (hnsw_rs keeps 32 base-layer neighbours per point,
+    /// each an `Arc` to a small allocation, ~40 bytes a link, plus the point itself; the index copies the
+    /// embedding too). Calibrated against the RSS of a loaded 100k-observation map (`cargo bench --bench
+    /// replica`).
+    const OBSERVATION_BYTES: usize = std::mem::size_of::<Observation>() + 8 + 32 * 40 + 128;
     /// A landmark's point, list header and map node.
     const LANDMARK_BYTES: usize = std::mem::size_of::<Landmark>() + 48;
 

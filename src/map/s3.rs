@@ -52,7 +52,7 @@
 //!
 //! **Index dump**: the HNSW graph is dumped to a local cache directory (`<cache_dir>/<id>/`) and, at
 //! compaction, uploaded with the snapshot; a replica without a matching local dump (new pod, emptied cache)
-//! downloads it instead of rebuilding the graph from the map data (about 1-2 ms per observation), and inserts
+//! downloads it instead of rebuilding the graph from the map data (11-18 s per 100k observations here), and inserts
 //! the observations of the segments after it. A download that fails is a rebuild, not an error. A marker
 //! with the manifest's `map_uid` keeps a dump of an earlier map of the same id from being used.
 //!

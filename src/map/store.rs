@@ -192,9 +192,10 @@ pub struct Map {
     id: String,
     state: RwLock<MapState>,
     log: Mutex<Box<dyn MapJournal>>,
-    /// The store's clock (ms since it opened) at the map's last request, for eviction...
+    /// The store's request counter at the map's last request, for eviction (a counter, not a clock: two
+    /// requests in one millisecond still have an order).
     last_used: AtomicU64,
-    /// ...and at its last freshness check.
+    /// The store's clock (ms since it opened) at the map's last freshness check.
     checked: AtomicU64,
     /// Estimated memory of the map and its index ([`MapData::memory_bytes`]).
     bytes: AtomicU64,
@@ -207,7 +208,7 @@ impl Map {
             id: id.to_string(),
             state: RwLock::new(MapState { data, index }),
             log: Mutex::new(log),
-            last_used: AtomicU64::new(now),
+            last_used: AtomicU64::new(0),
             checked: AtomicU64::new(now),
             bytes: AtomicU64::new(bytes),
         }
@@ -275,6 +276,8 @@ pub struct MapStore {
     loading: Mutex<HashMap<String, Arc<Mutex<()>>>>,
     cache_stats: CacheStats,
     opened: Instant,
+    /// Requests for maps so far (the order of [`Map::last_used`]).
+    requests: AtomicU64,
 }
 
 fn now_ms() -> u64 {
@@ -306,6 +309,7 @@ impl MapStore {
             loading: Mutex::new(HashMap::new()),
             cache_stats: CacheStats::default(),
             opened: Instant::now(),
+            requests: AtomicU64::new(0),
         };
         if lazy {
             tracing::info!(location = %store.backend.location(), budget_mb = store.config.cache.memory_budget_mb,
@@ -342,6 +346,11 @@ impl MapStore {
         Ok((Map::new(id, data, index, log, self.now()), report))
     }
 
+    /// Marks `map` as the most recently used.
+    fn touch(&self, map: &Map) {
+        map.last_used.store(self.requests.fetch_add(1, Ordering::Relaxed) + 1, Ordering::Relaxed);
+    }
+
     /// Whether maps are loaded on demand (and evicted).
     pub fn is_lazy(&self) -> bool {
         self.lazy
@@ -371,7 +380,7 @@ impl MapStore {
         validate_map_id(id)?;
         let cached = self.maps.read().get(id).cloned();
         if let Some(map) = cached {
-            map.last_used.store(self.now(), Ordering::Relaxed);
+            self.touch(&map);
             self.cache_stats.hits.fetch_add(1, Ordering::Relaxed);
             return self.fresh(map);
         }
@@ -486,6 +495,7 @@ impl MapStore {
         match self.load_map(id) {
             Ok((map, report)) => {
                 let map = Arc::new(map);
+                self.touch(&map);
                 tracing::info!(map = %id, replayed = report.replayed, bytes = map.bytes.load(Ordering::Relaxed),
                     from_dump = map.state.read().index.loaded_from_dump(), "map loaded on request");
                 self.held_back.write().remove(id);
@@ -569,6 +579,7 @@ impl MapStore {
         let log = self.backend.create(id, &data)?;
         let index = EmbeddingIndex::new(self.config.index);
         let map = Arc::new(Map::new(id, data, index, log, self.now()));
+        self.touch(&map);
         self.maps.write().insert(id.to_string(), Arc::clone(&map));
         if self.lazy {
             self.evict_beyond_budget(id);
@@ -837,6 +848,7 @@ impl MapStore {
         let mut index = EmbeddingIndex::new(self.config.index);
         index.sync(&data);
         let map = Arc::new(Map::new(id, data, index, log, self.now()));
+        self.touch(&map);
         self.maps.write().insert(id.to_string(), Arc::clone(&map));
         if self.lazy {
             self.evict_beyond_budget(id);
@@ -858,7 +870,9 @@ impl MapStore {
                 let mut maps = self.maps.write();
                 if still_registered(&maps) {
                     tracing::info!(map = %id, replayed = report.replayed, "reloaded after another writer's write");
-                    maps.insert(id.to_string(), Arc::new(map));
+                    let map = Arc::new(map);
+                    self.touch(&map);
+                    maps.insert(id.to_string(), map);
                 }
             }
             Err(MapError::UnknownMap { .. }) => {
