@@ -12,11 +12,12 @@ import os
 import sys
 import time
 
-import common
 import gevent
 import grpc
 import grpc.experimental.gevent as grpc_gevent
 from locust import User, task
+
+import common
 
 grpc_gevent.init_gevent()  # grpcio's completion queue cooperating with locust's gevent loop
 # In gevent mode every blocking call waits in a thread of gevent's hub threadpool, 10 threads by default: with

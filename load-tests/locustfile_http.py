@@ -17,9 +17,10 @@ A 429 is recorded under "<name> 429" (outcome "rejected") so its latency is repo
 import itertools
 import json
 
-import common
 from locust import task
 from locust.contrib.fasthttp import FastHttpUser
+
+import common
 
 _kf_ids = itertools.count(1)
 

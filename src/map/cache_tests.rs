@@ -140,6 +140,17 @@ fn a_map_made_on_one_replica_is_seen_written_and_deleted_through_another() {
     assert!(b.list().unwrap().is_empty());
     b.create("m").unwrap();
     assert_eq!(version(&a, "m"), 0, "A loads B's new map, not its old copy");
+    // Deleted and made again through B while A holds a copy: A's check finds another map under the id (a
+    // new map uid) and loads it, rather than applying B's records to its old copy.
+    add(&a, "m", 1, &frame(10, 10, 0, 5)).unwrap();
+    assert_eq!(version(&b, "m"), 1);
+    b.delete("m").unwrap();
+    b.create("m").unwrap();
+    add(&b, "m", 7, &frame(5, 5, 0, 6)).unwrap();
+    let loads = a.cache_stats().loads.load(Ordering::Relaxed);
+    let s = a.summary("m").unwrap();
+    assert_eq!((s.version, s.keyframes, s.landmarks), (1, 1, 25), "A serves B's new map");
+    assert_eq!(a.cache_stats().loads.load(Ordering::Relaxed), loads + 1);
 }
 
 #[test]
@@ -216,16 +227,39 @@ fn a_cold_replica_downloads_the_index_dump_instead_of_rebuilding() {
     let cold = bucket.replica("cold", always_check(), 3, 150);
     assert!(cold.summary("m").unwrap().approximate_index);
     assert!(loaded_from_dump(&cold), "the cold replica used the dump from the bucket");
-    // Without the dump in the bucket (an older writer), a cold replica rebuilds, with the same answer.
+    // When the dump cannot be downloaded (its objects are gone), a cold replica rebuilds the graph and serves
+    // the same map.
     let listed = bucket.mem.list(Some(&"replicas/maps/m/index".into()));
     let rt = tokio::runtime::Builder::new_current_thread().build().unwrap();
     let objects: Vec<_> = rt.block_on(futures_util::TryStreamExt::try_collect::<Vec<_>>(listed)).unwrap();
     assert_eq!(objects.len(), 3, "graph, data and the dump's manifest");
     let another = bucket.replica("another", always_check(), 3, 150);
-    std::fs::remove_dir_all(bucket.dir.join("cold")).unwrap();
     for o in &objects {
         rt.block_on(bucket.mem.delete(&o.location)).unwrap();
     }
     assert!(!loaded_from_dump(&another));
-    assert_eq!(another.summary("m").unwrap().observations, 300);
+    let (a_data, another_data) = (a.export("m").unwrap(), another.export("m").unwrap());
+    assert_eq!(a_data, another_data, "the same map");
+    assert!(another.summary("m").unwrap().approximate_index);
+}
+
+#[test]
+fn a_re_embedding_made_elsewhere_rebuilds_the_readers_index() {
+    let bucket = Bucket::new("cache-reembed");
+    let a = bucket.replica("a", always_check(), 0, 50);
+    let b = bucket.replica("b", always_check(), 0, 50);
+    a.create("m").unwrap();
+    add(&a, "m", 1, &frame(10, 10, 0, 1)).unwrap();
+    assert!(b.summary("m").unwrap().approximate_index, "B holds an HNSW graph of the old embeddings");
+    // A re-embeds every keyframe (here: the embeddings negated); B applies the record at its next read.
+    a.reembed("m", &|kf| Ok(kf.embeddings.iter().map(|x| -x).collect())).unwrap();
+    let query: Vec<f32> = frame(10, 10, 0, 1).embeddings[..DIM].iter().map(|x| -x).collect();
+    let (found, exact) = b.get("m").unwrap().read(|data, index| {
+        let found: Vec<usize> = index.search(data, &query, 5, None).iter().map(|h| h.observation).collect();
+        let exact: Vec<usize> =
+            crate::map::index::exact_search(data, &query, 5, None).iter().map(|h| h.observation).collect();
+        (found, exact)
+    });
+    assert_eq!(found[0], exact[0], "B searches the new embeddings");
+    assert_eq!(found[0], 0, "the query is observation 0's new embedding");
 }

@@ -168,6 +168,15 @@ struct IndexRef {
     version: u64,
 }
 
+impl Manifest {
+    /// Whether this manifest names the object (or index directory) `relative` to the map's prefix.
+    fn names(&self, relative: &str) -> bool {
+        self.snapshot.object == relative
+            || self.segments.iter().any(|s| s == relative)
+            || self.index.as_ref().is_some_and(|ix| ix.dir == relative || relative.starts_with(&format!("{}/", ix.dir)))
+    }
+}
+
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 struct SnapshotRef {
     object: String,
@@ -759,8 +768,12 @@ impl MapBackend for ObjectStorageBackend {
 /// How a conditional manifest PUT ended.
 enum Outcome {
     Written(UpdateVersion),
-    /// Someone else's manifest is there (or none: the map was deleted).
-    Conflict(String),
+    /// Someone else's manifest is there (or none: the map was deleted): its writer, and the manifest when it
+    /// could be read (it may name what this writer just wrote: another replica that followed this writer's
+    /// manifest, whose PUT answer was lost, and appended on top of it).
+    Conflict(String, Option<Manifest>),
+    /// The stored manifest could not be read back: as a conflict, but nothing written may be deleted.
+    Unknown(String),
     /// The PUT failed and the manifest is still the previous one: nothing changed.
     NotWritten(MapError),
 }
@@ -816,24 +829,25 @@ impl ObjectJournal {
             Ok((_, v)) if !precondition && v.e_tag.is_some() && v.e_tag == self.version.e_tag => {
                 Outcome::NotWritten(s.io(&path, err))
             }
-            Ok((current, _)) => {
-                let writer = serde_json::from_slice::<Manifest>(&current)
-                    .map(|m| m.writer)
-                    .unwrap_or_else(|_| "unknown (unreadable manifest)".into());
-                Outcome::Conflict(writer)
-            }
-            Err(object_store::Error::NotFound { .. }) => Outcome::Conflict("none (the map was deleted)".into()),
+            Ok((current, _)) => match serde_json::from_slice::<Manifest>(&current) {
+                Ok(m) => Outcome::Conflict(m.writer.clone(), Some(m)),
+                Err(_) => Outcome::Conflict("unknown (unreadable manifest)".into(), None),
+            },
+            Err(object_store::Error::NotFound { .. }) => Outcome::Conflict("none (the map was deleted)".into(), None),
             Err(e) => {
                 tracing::error!(map = %self.id, error = %e, put_error = %err, "manifest write outcome unknown");
-                Outcome::Conflict(format!("unknown (the manifest could not be read back: {e})"))
+                // Not knowing what the stored manifest names, nothing of this write may be deleted.
+                Outcome::Unknown(format!("unknown (the manifest could not be read back: {e})"))
             }
         }
     }
 
-    /// Applies an outcome: success updates the known manifest; anything else cleans up `written` (objects no
-    /// manifest names) and returns the error, fencing the writer on a conflict.
-    fn settle(&mut self, next: Manifest, outcome: Outcome, written: ObjectPath) -> Result<(), MapError> {
+    /// Applies an outcome: success updates the known manifest; anything else cleans up `written` (relative to
+    /// the map's prefix) unless the stored manifest names it, and returns the error, fencing the writer on a
+    /// conflict.
+    fn settle(&mut self, next: Manifest, outcome: Outcome, written: &str) -> Result<(), MapError> {
         let s = Arc::clone(&self.shared);
+        let path = s.object(&self.id, written);
         match outcome {
             Outcome::Written(v) => {
                 self.manifest = next;
@@ -841,12 +855,19 @@ impl ObjectJournal {
                 Ok(())
             }
             Outcome::NotWritten(e) => {
-                s.block_on(s.delete_quietly(vec![written]));
+                s.block_on(s.delete_quietly(vec![path]));
                 Err(e)
             }
-            Outcome::Conflict(writer) => {
-                s.block_on(s.delete_quietly(vec![written]));
+            Outcome::Conflict(writer, stored) => {
+                if !stored.as_ref().is_some_and(|m| m.names(written)) {
+                    s.block_on(s.delete_quietly(vec![path]));
+                }
                 tracing::error!(map = %self.id, other = %writer, "another writer replaced the manifest: fenced");
+                self.fenced = Some(writer.clone());
+                Err(MapError::WriterConflict { map: self.id.clone(), writer })
+            }
+            Outcome::Unknown(writer) => {
+                tracing::error!(map = %self.id, other = %writer, "manifest write outcome unknown: fenced");
                 self.fenced = Some(writer.clone());
                 Err(MapError::WriterConflict { map: self.id.clone(), writer })
             }
@@ -871,11 +892,11 @@ impl MapJournal for ObjectJournal {
         // The manifest names an object of this format from now on (objects carry their own versions).
         next.format_version = FORMAT_VERSION;
         next.writer = s.writer.clone();
-        next.segments.push(name);
+        next.segments.push(name.clone());
         next.next_seq += 1;
         next.stats = Some(after.clone());
         let outcome = self.replace_manifest(&next);
-        self.settle(next, outcome, path)?;
+        self.settle(next, outcome, &name)?;
         self.wrote = true;
         Ok(())
     }
@@ -919,13 +940,14 @@ impl MapJournal for ObjectJournal {
         next.stats = Some(data.stats());
         next.index = index.clone();
         let outcome = self.replace_manifest(&next);
-        if !matches!(outcome, Outcome::Written(_)) {
-            if let Some(ix) = &index {
+        if let (Some(ix), Outcome::NotWritten(_) | Outcome::Conflict(_, _)) = (&index, &outcome) {
+            let stored_names_it = matches!(&outcome, Outcome::Conflict(_, Some(m)) if m.names(&ix.dir));
+            if !stored_names_it {
                 let files = INDEX_FILES.iter().map(|f| s.object(&self.id, &format!("{}/{f}", ix.dir))).collect();
                 s.block_on(s.delete_quietly(files));
             }
         }
-        self.settle(next, outcome, path)?;
+        self.settle(next, outcome, &name)?;
         // The new manifest is in place: the replaced objects, and orphans it covers, are garbage. No valid
         // manifest can name a segment numbered <= data.version or a snapshot older than this one again.
         let prefix = s.map_prefix(&self.id);

@@ -406,7 +406,12 @@ impl MapStore {
             return Ok(map);
         }
         let next = match map.log.try_lock() {
-            None => Next::Keep,
+            None => {
+                // A writer holds the journal: its write makes the copy current or fails on a stale one. The
+                // check is owed: the next request makes it.
+                map.checked.store(last, Ordering::Relaxed);
+                Next::Keep
+            }
             Some(mut log) => {
                 self.cache_stats.checks.fetch_add(1, Ordering::Relaxed);
                 match log.refresh() {
@@ -447,12 +452,17 @@ impl MapStore {
         let mut s = map.state.write();
         for record in records {
             if let Err(reason) = s.data.check(record) {
+                // Part of the batch may be applied: the reload replaces this copy (or holds the map back).
                 tracing::error!(map = %map.id, %reason, "another writer's record does not apply; reloading");
                 return Next::Reload;
             }
             s.data.apply(record);
         }
         let MapState { data, index } = &mut *s;
+        if records.iter().any(|r| matches!(r, Record::Reembed { .. })) {
+            // Every embedding changed (another server re-embedded the map): the graph holds the old ones.
+            index.reset();
+        }
         index.sync(data);
         map.bytes.store(data.memory_bytes() as u64, Ordering::Relaxed);
         tracing::debug!(map = %map.id, records = records.len(), version = data.version, "applied other writes");
@@ -492,7 +502,13 @@ impl MapStore {
             }
         }
         self.cache_stats.misses.fetch_add(1, Ordering::Relaxed);
-        match self.load_map(id) {
+        // A load that read the manifest just before another server compacted finds the old objects gone
+        // ("named by the manifest but missing"): once more, from the new manifest.
+        let loaded = match self.load_map(id) {
+            Err(MapError::Corrupt { .. }) => self.load_map(id),
+            r => r,
+        };
+        match loaded {
             Ok((map, report)) => {
                 let map = Arc::new(map);
                 self.touch(&map);
@@ -506,6 +522,11 @@ impl MapStore {
             Err(e @ MapError::UnknownMap { .. }) => {
                 self.held_back.write().remove(id);
                 Err(e)
+            }
+            Err(e @ MapError::Io { .. }) => {
+                // Storage unreachable: this request fails; the next one tries again (nothing is held back).
+                tracing::warn!(map = %id, error = %e, "cannot load the map");
+                Err(MapError::Unavailable { map: id.to_string(), reason: held_back_reason(&e) })
             }
             Err(e) => {
                 tracing::error!(map = %id, error = %e, "map held back");
@@ -775,15 +796,23 @@ impl MapStore {
         }
         let mut s = map.state.write();
         s.data.apply(&record);
-        let MapState { data, index } = &mut *s;
-        index.sync(data);
-        map.bytes.store(data.memory_bytes() as u64, Ordering::Relaxed);
-        map.checked.store(self.now(), Ordering::Relaxed);
-        if log.wants_compaction() {
-            index.dump(log.index_dir(), &data.meta.model_id)?;
-            log.compact(data)?;
+        {
+            let MapState { data, index } = &mut *s;
+            index.sync(data);
+            map.bytes.store(data.memory_bytes() as u64, Ordering::Relaxed);
         }
-        Ok(data.version)
+        map.checked.store(self.now(), Ordering::Relaxed);
+        let version = s.data.version;
+        if log.wants_compaction() {
+            // Queries may read on while the snapshot (and the index dump) is written and uploaded. The record
+            // is durable and applied: a failed dump or compaction is logged, not this write's error (the log
+            // keeps the records, and the next write tries again).
+            let s = parking_lot::RwLockWriteGuard::downgrade(s);
+            if let Err(e) = s.index.dump(log.index_dir(), &s.data.meta.model_id).and_then(|()| log.compact(&s.data)) {
+                tracing::error!(map = %map.id, error = %e, "compaction failed; the records stay in the log");
+            }
+        }
+        Ok(version)
     }
 
     /// Localises a query against a map.
@@ -830,7 +859,10 @@ impl MapStore {
             true => match self.get(id) {
                 Ok(map) => Some(map),
                 Err(MapError::UnknownMap { .. }) => None,
-                Err(MapError::Unavailable { .. }) => return Err(MapError::MapExists { map: id.to_string() }),
+                // Stored but held back (corrupt): the id is taken. Unreachable storage stays an error.
+                Err(MapError::Unavailable { .. }) if self.held_back.read().contains_key(id) => {
+                    return Err(MapError::MapExists { map: id.to_string() })
+                }
                 Err(e) => return Err(e),
             },
             false => self.maps.read().get(id).cloned(),
@@ -861,10 +893,19 @@ impl MapStore {
     /// registry moved on meanwhile (deleted, already reloaded). The failed write is not retried here (it was
     /// planned against stale data); the client's retry is planned against the fresh copy. Queries in flight
     /// finish on the old copy.
+    ///
+    /// One load per map at a time (the loading gate): a request that finds the map reloaded meanwhile does
+    /// not load it again. A reload that fails takes the stale copy out (held back with the reason), so no
+    /// request is answered from a copy known to be wrong.
     fn reload_stale(&self, stale: &Map) {
         let id = stale.id.as_str();
         let still_registered =
             |maps: &HashMap<String, Arc<Map>>| maps.get(id).is_some_and(|m| std::ptr::eq(Arc::as_ptr(m), stale));
+        let gate = Arc::clone(self.loading.lock().entry(id.to_string()).or_default());
+        let _reloading = gate.lock();
+        if !still_registered(&self.maps.read()) {
+            return;
+        }
         match self.load_map(id) {
             Ok((map, report)) => {
                 let mut maps = self.maps.write();
@@ -882,7 +923,14 @@ impl MapStore {
                     maps.remove(id);
                 }
             }
-            Err(e) => tracing::error!(map = %id, error = %e, "cannot reload after another writer's write"),
+            Err(e) => {
+                tracing::error!(map = %id, error = %e, "cannot reload a stale copy; held back");
+                let mut maps = self.maps.write();
+                if still_registered(&maps) {
+                    maps.remove(id);
+                    self.held_back.write().insert(id.to_string(), (held_back_reason(&e), self.now()));
+                }
+            }
         }
     }
 

@@ -36,7 +36,7 @@ struct Replica {
 }
 
 impl Replica {
-    fn start(name: &'static str, moto: &Moto, bucket: &str, dir: &Path) -> Self {
+    fn start(name: &'static str, moto: &Moto, bucket: &str, dir: &Path, freshness_ms: u64) -> Self {
         let (http_port, grpc_port) = (free_port(), free_port());
         let mut child = Command::new(env!("CARGO_BIN_EXE_scone"))
             .current_dir(env!("CARGO_MANIFEST_DIR"))
@@ -49,7 +49,7 @@ impl Replica {
                 ("SCONE_STORE__BACKEND__PREFIX", PREFIX.into()),
                 ("SCONE_STORE__BACKEND__ENDPOINT", moto.endpoint.clone()),
                 ("SCONE_STORE__BACKEND__ALLOW_HTTP", "true".into()),
-                ("SCONE_STORE__CACHE__FRESHNESS_MS", FRESHNESS_MS.to_string()),
+                ("SCONE_STORE__CACHE__FRESHNESS_MS", freshness_ms.to_string()),
                 // About two of this test's maps fit: loading a third evicts one.
                 ("SCONE_STORE__CACHE__MEMORY_BUDGET_MB", "1".into()),
                 ("SCONE_WORKERS__THREADS", "1".into()),
@@ -195,13 +195,15 @@ async fn replicas_behind_nginx_share_maps_see_writes_survive_a_kill_and_evict() 
     assert!(r.status().is_success());
     let dir = temp_dir("replicas");
     let scene = Scene::load(&fixture("rendered")).unwrap();
-    let mut a = Replica::start("a", &moto, &bucket, &dir);
-    let mut b = Replica::start("b", &moto, &bucket, &dir);
+    let mut a = Replica::start("a", &moto, &bucket, &dir, FRESHNESS_MS);
+    let mut b = Replica::start("b", &moto, &bucket, &dir, FRESHNESS_MS);
+    // Not behind the proxy: a replica that checks its copies only every 10 minutes, to be stale on purpose.
+    let stale = Replica::start("c", &moto, &bucket, &dir, 600_000);
     let proxy = start_nginx(&dir, &[&a, &b]);
     let http = reqwest::Client::new();
     let started = Instant::now();
     let step = |what: &str| eprintln!("{:>6} ms  {what}", started.elapsed().as_millis());
-    for base in [a.http(), b.http(), proxy.http.clone()] {
+    for base in [a.http(), b.http(), stale.http(), proxy.http.clone()] {
         wait_ready(&http, &base).await;
     }
     step("replicas and proxy ready");
@@ -273,18 +275,18 @@ async fn replicas_behind_nginx_share_maps_see_writes_survive_a_kill_and_evict() 
 
     step("A's write seen on B");
 
-    // 4. A stale writer is refused cleanly: B checked just now, A writes, B writes at once (within its bound,
-    // so without a check): B's conditional write fails, nothing of it is stored, B reloads, the retry works.
-    tokio::time::sleep(Duration::from_millis(FRESHNESS_MS + 100)).await;
-    assert_eq!(map_json(&http, &b.http(), "direct").await.1["version"], 1);
+    // 4. A stale writer is refused cleanly: C loads the map, A writes, C writes on its copy (C's bound is 10
+    // minutes, so it does not check): C's conditional write fails, nothing of it is stored, C reloads, and the
+    // retry works.
+    assert_eq!(map_json(&http, &stale.http(), "direct").await.1["version"], 1);
     assert_eq!(add(a.http(), "direct", 2).await.unwrap().status(), 200);
-    let refused = add(b.http(), "direct", 4).await.unwrap();
+    let refused = add(stale.http(), "direct", 4).await.unwrap();
     assert_eq!(refused.status(), 503, "a stale replica's write");
     let body: serde_json::Value = refused.json().await.unwrap();
     assert!(body["error"]["message"].as_str().unwrap().contains("writer"), "{body}");
-    assert_eq!(add(b.http(), "direct", 4).await.unwrap().status(), 200, "the retry, on the reloaded copy");
-    assert_eq!(keyframe_ids(&http, &b.http(), "direct").await, vec![0, 2, 4]);
-
+    assert_eq!(keyframe_ids(&http, &a.http(), "direct").await, vec![0, 2], "the refused write stored nothing");
+    assert_eq!(add(stale.http(), "direct", 4).await.unwrap().status(), 200, "the retry, on the reloaded copy");
+    assert_eq!(keyframe_ids(&http, &stale.http(), "direct").await, vec![0, 2, 4]);
     step("stale writer refused");
 
     // 5. The replica that owns "m" is killed mid-stream; the stream finishes through the proxy on the other.
