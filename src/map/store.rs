@@ -366,9 +366,14 @@ impl MapStore {
     }
 
     /// Loads `id` if it is not loaded and checks its freshness: what [`MapStore::get`] does first, for the
-    /// server to run before it queues the request's CPU work.
-    pub fn prepare(&self, id: &str) -> Result<(), MapError> {
-        self.get(id).map(drop)
+    /// server to run before it queues the request's CPU work. Holding the map keeps it from being evicted.
+    pub fn prepare(&self, id: &str) -> Result<Arc<Map>, MapError> {
+        self.get(id)
+    }
+
+    /// Whether `id` is in memory now.
+    pub fn is_loaded(&self, id: &str) -> bool {
+        self.maps.read().contains_key(id)
     }
 
     pub fn model(&self) -> &ModelInfo {

@@ -53,6 +53,9 @@ pub struct App {
     pub metrics: metrics::Metrics,
     pub settings: Settings,
     shutting_down: AtomicBool,
+    /// Maps loaded at once (lazy mode): a burst of requests for cold maps loads them two at a time instead of
+    /// all together past the cache's budget.
+    map_loads: tokio::sync::Semaphore,
 }
 
 impl App {
@@ -100,12 +103,20 @@ impl App {
         F: FnOnce(&App) -> Result<R, ServiceError> + Send + 'static,
     {
         self.keys.check(key, access, operation)?;
+        // The map, held until the request is done so that it cannot be evicted in between.
+        let mut _held = None;
         if let Ok(store) = self.service.store() {
             if store.is_lazy() {
+                let _loading = match store.is_loaded(map) {
+                    true => None,
+                    false => Some(self.map_loads.acquire().await.map_err(|_| ServiceError::ShuttingDown)?),
+                };
                 let (store, id) = (Arc::clone(store), map.to_string());
-                tokio::task::spawn_blocking(move || store.prepare(&id))
-                    .await
-                    .map_err(|_| ServiceError::Internal(format!("{operation}: loading the map panicked")))??;
+                _held = Some(
+                    tokio::task::spawn_blocking(move || store.prepare(&id))
+                        .await
+                        .map_err(|_| ServiceError::Internal(format!("{operation}: loading the map panicked")))??,
+                );
             }
         }
         self.call(key, access, operation, f).await
@@ -226,6 +237,7 @@ pub async fn start(settings: Settings) -> anyhow::Result<Running> {
         metrics: metrics::Metrics::new(),
         settings: settings.clone(),
         shutting_down: AtomicBool::new(false),
+        map_loads: tokio::sync::Semaphore::new(2),
     });
 
     let (reporter, health_service) = tonic_health::server::health_reporter();

@@ -30,6 +30,13 @@ class MapsStub:
     Maps
     ---------------------------------------------------------------------------------------------------------
 
+    Consistency with several replicas on one bucket (store.backend kind = "s3"): every call sees maps created,
+    imported or deleted through any replica (existence is the bucket's). A read (GetMap, Localize, ExportMap,
+    ...) reflects every write acknowledged by any replica more than store.cache.freshness_ms (default 2000 ms)
+    plus one manifest round trip before the read began; a replica's own writes are visible to it at once. A
+    write planned on a copy that another replica changed within that bound fails with UNAVAILABLE naming the
+    other writer and stores nothing; retry it. Routers send calls about one map with `x-scone-map-id` metadata,
+    so a map has one writer and stays loaded in one replica (docs/object-storage.md).
     """
 
     def __init__(self, channel):
@@ -85,6 +92,13 @@ class MapsServicer:
     Maps
     ---------------------------------------------------------------------------------------------------------
 
+    Consistency with several replicas on one bucket (store.backend kind = "s3"): every call sees maps created,
+    imported or deleted through any replica (existence is the bucket's). A read (GetMap, Localize, ExportMap,
+    ...) reflects every write acknowledged by any replica more than store.cache.freshness_ms (default 2000 ms)
+    plus one manifest round trip before the read began; a replica's own writes are visible to it at once. A
+    write planned on a copy that another replica changed within that bound fails with UNAVAILABLE naming the
+    other writer and stores nothing; retry it. Routers send calls about one map with `x-scone-map-id` metadata,
+    so a map has one writer and stays loaded in one replica (docs/object-storage.md).
     """
 
     def CreateMap(self, request, context):
@@ -200,6 +214,13 @@ class Maps:
     Maps
     ---------------------------------------------------------------------------------------------------------
 
+    Consistency with several replicas on one bucket (store.backend kind = "s3"): every call sees maps created,
+    imported or deleted through any replica (existence is the bucket's). A read (GetMap, Localize, ExportMap,
+    ...) reflects every write acknowledged by any replica more than store.cache.freshness_ms (default 2000 ms)
+    plus one manifest round trip before the read began; a replica's own writes are visible to it at once. A
+    write planned on a copy that another replica changed within that bound fails with UNAVAILABLE naming the
+    other writer and stores nothing; retry it. Routers send calls about one map with `x-scone-map-id` metadata,
+    so a map has one writer and stays loaded in one replica (docs/object-storage.md).
     """
 
     @staticmethod
