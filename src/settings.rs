@@ -126,7 +126,7 @@ pub struct WorkerSettings {
 
 impl Default for WorkerSettings {
     fn default() -> Self {
-        Self { threads: 2, queue: 8, refusal_hold_ms: 100 }
+        Self { threads: 2, queue: 8, refusal_hold_ms: 250 }
     }
 }
 

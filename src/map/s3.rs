@@ -430,6 +430,25 @@ impl Shared {
         Ok(m)
     }
 
+    /// The objects a manifest names (relative to the map's prefix), fetched [`PARALLEL_GETS`] at a time, in
+    /// order; a missing one is corruption (the manifest names it).
+    fn fetch_all(&self, id: &str, names: &[String]) -> Result<Vec<(ObjectPath, Vec<u8>)>, MapError> {
+        let paths: Vec<ObjectPath> = names.iter().map(|name| self.object(id, name)).collect();
+        self.block_on(
+            futures_util::stream::iter(paths.into_iter().map(|p| async move {
+                match self.get(&p).await {
+                    Ok((bytes, _)) => Ok((p, bytes)),
+                    Err(object_store::Error::NotFound { .. }) => {
+                        Err(self.corrupt(&p, "named by the manifest but missing"))
+                    }
+                    Err(e) => Err(self.io(&p, e)),
+                }
+            }))
+            .buffered(PARALLEL_GETS)
+            .try_collect(),
+        )
+    }
+
     /// Puts the index dump the manifest names into the map's cache directory, unless the dump there is that
     /// one already (same `index.json`, which holds the files' checksums). The files are written atomically,
     /// `index.json` last; the index loader checks the checksums, so a dump that does not match is rebuilt.
@@ -667,20 +686,7 @@ impl MapBackend for ObjectStorageBackend {
                 format!("holds version {}, the manifest says {}", data.version, manifest.snapshot.version),
             ));
         }
-        let paths: Vec<ObjectPath> = manifest.segments.iter().map(|name| s.object(id, name)).collect();
-        let fetched: Vec<(ObjectPath, Vec<u8>)> = s.block_on(
-            futures_util::stream::iter(paths.into_iter().map(|p| async move {
-                match s.get(&p).await {
-                    Ok((bytes, _)) => Ok((p, bytes)),
-                    Err(object_store::Error::NotFound { .. }) => {
-                        Err(s.corrupt(&p, "named by the manifest but missing"))
-                    }
-                    Err(e) => Err(s.io(&p, e)),
-                }
-            }))
-            .buffered(PARALLEL_GETS)
-            .try_collect(),
-        )?;
+        let fetched = s.fetch_all(id, &manifest.segments)?;
         let mut report = LoadReport::default();
         for (path, bytes) in fetched {
             let (seq, record) = decode_segment(&bytes, &s.name(&path))?;
@@ -1017,24 +1023,7 @@ impl MapJournal for ObjectJournal {
             return Ok(Freshness::Replaced);
         }
         let first = known.next_seq;
-        let paths: Vec<ObjectPath> =
-            next.segments[known.segments.len()..].iter().map(|name| s.object(&self.id, name)).collect();
-        let fetched: Vec<(ObjectPath, Vec<u8>)> = s.block_on(
-            futures_util::stream::iter(paths.into_iter().map(|p| {
-                let s = &s;
-                async move {
-                    match s.get(&p).await {
-                        Ok((bytes, _)) => Ok((p, bytes)),
-                        Err(object_store::Error::NotFound { .. }) => {
-                            Err(s.corrupt(&p, "named by the manifest but missing"))
-                        }
-                        Err(e) => Err(s.io(&p, e)),
-                    }
-                }
-            }))
-            .buffered(PARALLEL_GETS)
-            .try_collect(),
-        )?;
+        let fetched = s.fetch_all(&self.id, &next.segments[known.segments.len()..])?;
         let mut records = Vec::with_capacity(fetched.len());
         for (i, (path, bytes)) in fetched.into_iter().enumerate() {
             let (seq, record) = decode_segment(&bytes, &s.name(&path))?;

@@ -1,0 +1,11 @@
+//! What the bench binaries share.
+
+/// Resident memory of this process, MB (`VmRSS` of `/proc/self/status`; 0 where there is none).
+pub fn rss_mb() -> f64 {
+    let s = std::fs::read_to_string("/proc/self/status").unwrap_or_default();
+    s.lines()
+        .find(|l| l.starts_with("VmRSS:"))
+        .and_then(|l| l.split_whitespace().nth(1))
+        .and_then(|v| v.parse::<f64>().ok())
+        .map_or(0.0, |kb| kb / 1024.0)
+}
