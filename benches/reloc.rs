@@ -8,7 +8,6 @@
 //! write-scene --repeat`); queries: the odd frames, JPEG-encoded (quality 90), not in the map.
 //! Run: `cargo bench --bench reloc` (needs `../shared/data` or `$SCONE_DATA`; prints a note without it).
 
-use std::path::PathBuf;
 use std::sync::Arc;
 use std::time::Instant;
 
@@ -36,9 +35,7 @@ fn main() {
     if std::env::args().any(|a| a == "--list") {
         return;
     }
-    let root = std::env::var_os("SCONE_DATA")
-        .map(PathBuf::from)
-        .unwrap_or_else(|| PathBuf::from(concat!(env!("CARGO_MANIFEST_DIR"), "/../shared/data")));
+    let root = common::shared_data();
     let Ok(scene) = Scene::load(&root.join("scenes/rgbd-slambook-5")) else {
         eprintln!("reloc bench: no shared data at {}; nothing measured", root.display());
         return;

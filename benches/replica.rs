@@ -81,9 +81,7 @@ fn main() {
     if std::env::args().any(|a| a == "--list") {
         return;
     }
-    let root = std::env::var_os("SCONE_DATA")
-        .map(PathBuf::from)
-        .unwrap_or_else(|| PathBuf::from(concat!(env!("CARGO_MANIFEST_DIR"), "/../shared/data")));
+    let root = common::shared_data();
     let (Ok(sun3d), Ok(kitchen)) =
         (Scene::load(&root.join("scenes/sun3d-studyroom")), Scene::load(&root.join("scenes/7scenes-redkitchen")))
     else {

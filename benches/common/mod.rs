@@ -9,3 +9,10 @@ pub fn rss_mb() -> f64 {
         .and_then(|v| v.parse::<f64>().ok())
         .map_or(0.0, |kb| kb / 1024.0)
 }
+
+/// The shared real data: `$SCONE_DATA`, else `../shared/data` beside the checkout.
+pub fn shared_data() -> std::path::PathBuf {
+    std::env::var_os("SCONE_DATA")
+        .map(std::path::PathBuf::from)
+        .unwrap_or_else(|| std::path::PathBuf::from(concat!(env!("CARGO_MANIFEST_DIR"), "/../shared/data")))
+}

@@ -16,6 +16,7 @@ use crate::map::builder::{ExternalObservation, KeyframeInput};
 use crate::map::journal::MapBackend;
 use crate::map::s3::ObjectStorageBackend;
 use crate::map::store::{CacheConfig, MapStore, ModelInfo, StoreConfig};
+use crate::map::tests::vectors;
 use crate::test_dir::{temp_dir, TestDir};
 
 const DIM: usize = 8;
@@ -25,7 +26,7 @@ fn camera() -> Camera {
 }
 
 /// A keyframe of `cols x rows` keypoints on a grid, each with an external landmark in front of the camera
-/// (ids from `first_landmark`), and pseudo-random embeddings.
+/// (ids from `first_landmark`), and pseudo-random unit embeddings.
 struct Frame {
     features: Features,
     embeddings: Vec<f32>,
@@ -50,15 +51,7 @@ fn frame(cols: usize, rows: usize, first_landmark: u64, seed: u64) -> Frame {
         }
     }
     let n = keypoints.len();
-    let mut s = seed.wrapping_mul(2654435761).wrapping_add(7);
-    let embeddings = (0..n * DIM)
-        .map(|_| {
-            s ^= s << 13;
-            s ^= s >> 7;
-            s ^= s << 17;
-            (s % 2001) as f32 / 1000.0 - 1.0
-        })
-        .collect();
+    let embeddings = vectors(n, DIM, seed);
     let features = Features { width: 640, height: 480, keypoints, descriptors: vec![[0u8; DESCRIPTOR_BYTES]; n] };
     Frame { features, embeddings, external }
 }

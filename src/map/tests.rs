@@ -17,7 +17,7 @@ fn meta(dim: usize) -> MapMeta {
 }
 
 /// Deterministic pseudo-random unit vectors.
-fn vectors(n: usize, dim: usize, seed: u64) -> Vec<f32> {
+pub(crate) fn vectors(n: usize, dim: usize, seed: u64) -> Vec<f32> {
     let mut s = seed.wrapping_mul(2654435761).wrapping_add(1);
     let mut out = Vec::with_capacity(n * dim);
     for _ in 0..n {

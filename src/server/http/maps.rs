@@ -37,7 +37,7 @@ pub async fn create_map(
     Ok((StatusCode::CREATED, Json(s.into())))
 }
 
-/// The loaded maps, and those held back with the reason (rpc Maps.ListMaps).
+/// The maps (with object storage every stored one) and those held back, with the reason (rpc Maps.ListMaps).
 #[utoipa::path(get, path = "/v1/maps", tag = "maps",
     responses((status = 200, description = "Every map", body = wire::MapList), ApiErrors))]
 pub async fn list_maps(State(app): State<Arc<App>>, headers: HeaderMap) -> ApiResult<Json<wire::MapList>> {
