@@ -1,34 +1,178 @@
-//! Relocalisation of a 640x480 JPEG query against maps of ~10k, ~100k (and ~1M with `SCONE_BENCH_1M=1`)
-//! observations, through the service's own path (`Service::localize`): time per stage and total, HNSW against
-//! exact search on the same map in the same run, time to ready after a restart (snapshot + index dump), and
-//! memory per observation.
+//! Relocalisation of a 640x480 JPEG query through the service's own path (`Service::localize`) against real
+//! maps of ~10k and ~100k observations, and with `SCONE_BENCH_1M=1` the largest the training scenes give
+//! (every frame below: 478,610 observations; they do not hold the 1M that level asks for, so it stops when
+//! they run out). Reported per level: time per stage and total, HNSW against exact search on the same map in
+//! the same run, recall@1/@2 of the index against exact search on the query's own embeddings, time to ready
+//! after a restart (snapshot + index dump), and memory per observation (RSS growth over the open; the exact row
+//! opens the map data without its graph while the HNSW row's map is still open, so the difference of the two
+//! rows is the graph's). Then a sweep of how many query keypoints are searched
+//! (`store.localize.max_query_keypoints`) over every query of the level.
 //!
-//! Map: the even frames of `rgbd-slambook-5` (640x480, depth) written as keyframes again and again with their
-//! ground-truth poses until the map holds the target number of observations (the same way as `scone map
-//! write-scene --repeat`); queries: the odd frames, JPEG-encoded (quality 90), not in the map.
-//! Run: `cargo bench --bench reloc` (needs `../shared/data` or `$SCONE_DATA`; prints a note without it).
+//! Map: real, different frames, never repeated. The posed frames of the training scenes of `../shared/data`,
+//! in this order: `7scenes-redkitchen` (every frame but the held-out ones, triangulated with its poses),
+//! `sun3d-studyroom` (with depth), `strecha-castle-P30`, `liberty-internet`, `middlebury-templeRing` (stamps
+//! 1-31, the ones in one world frame), each scene 10 km from the others
+//! so no landmark of one falls where another's are. A level's map is the shortest prefix of that order that
+//! holds its number of observations. Queries: the held-out frames of `7scenes-redkitchen` (every 10th,
+//! starting at the 5th) that lie inside the part of the scene the map covers, JPEG-encoded (quality 90).
+//!
+//! Maps are built once per model and kept under `$SCONE_PREFIX/bench/reloc` (default `~/.cache/scone`); an
+//! interrupted build resumes from the keyframes its write-ahead log holds. `SCONE_BENCH_REBUILD=1` builds
+//! again. Run: `cargo bench --bench reloc` (needs `../shared/data` or `$SCONE_DATA`; prints a note without it).
 
+use std::path::{Path, PathBuf};
 use std::sync::Arc;
 use std::time::Instant;
 
+use nalgebra::{Isometry3, Vector3};
 use opencv::core::Vector;
 use opencv::prelude::*;
-use scone::decode::{decode_depth_png, ImageLimits};
+use rayon::prelude::*;
+use scone::camera::Camera;
+use scone::decode::{decode_depth_png, ImageLimits, TUM_DEPTH_SCALE};
 use scone::embedding::{Embedder, EmbedderConfig};
 use scone::features::{ExtractorConfig, KeypointLimits};
 use scone::map::builder::{Depth, KeyframeInput};
-use scone::map::index::IndexParams;
+use scone::map::index::{exact_search, l2_squared, EmbeddingIndex, IndexParams};
+use scone::map::localize::{localize, LocalizeParams};
+use scone::map::model::MapData;
 use scone::map::store::{MapStore, ModelInfo, StoreConfig};
 use scone::offline::scene::Scene;
 use scone::pipeline::Describer;
+use scone::pose::rotation_error_deg;
 use scone::service::{FrameInput, FrameSource, Service};
 
 mod common;
 use common::rss_mb;
 
+/// Scenes the map is made of, in order: the training scenes.
+const MAP_SCENES: [&str; 5] =
+    ["7scenes-redkitchen", "sun3d-studyroom", "strecha-castle-P30", "liberty-internet", "middlebury-templeRing"];
+/// Distance between the scenes' worlds, scene units.
+const SCENE_OFFSET: f64 = 10_000.0;
+
 fn median(mut v: Vec<f64>) -> f64 {
     v.sort_by(f64::total_cmp);
     v[v.len() / 2]
+}
+
+/// Frame `f` of `redkitchen` is a query (held out of every map).
+fn is_query(f: usize) -> bool {
+    f % 10 == 5
+}
+
+struct MapFrame {
+    scene: usize,
+    frame: usize,
+}
+
+/// The map's frames in order.
+fn map_frames(scenes: &[Scene]) -> Vec<MapFrame> {
+    let mut out = Vec::new();
+    for (s, scene) in scenes.iter().enumerate() {
+        for (f, frame) in scene.frames.iter().enumerate() {
+            // templeRing's stamps 32-47 sit in another world frame than 1-31.
+            let other_frame =
+                MAP_SCENES[s] == "middlebury-templeRing" && frame.stamp.parse::<u32>().map_or(true, |t| t > 31);
+            if frame.pose.is_some() && !(s == 0 && is_query(f)) && !other_frame {
+                out.push(MapFrame { scene: s, frame: f });
+            }
+        }
+    }
+    out
+}
+
+fn prefix_dir() -> PathBuf {
+    std::env::var_os("SCONE_PREFIX")
+        .map(PathBuf::from)
+        .unwrap_or_else(|| PathBuf::from(std::env::var_os("HOME").unwrap()).join(".cache/scone"))
+        .join("bench/reloc")
+}
+
+fn config(dir: &Path, index: IndexParams) -> StoreConfig {
+    StoreConfig { data_dir: dir.to_path_buf(), compact_every: usize::MAX, index, ..StoreConfig::default() }
+}
+
+/// What a finished build wrote next to its map.
+#[derive(serde::Serialize, serde::Deserialize)]
+struct Built {
+    /// Map frames used (a prefix of [`map_frames`]).
+    frames: usize,
+    observations: usize,
+    build_seconds: f64,
+}
+
+/// Builds (or resumes, or reuses) the map of one level; returns its directory and what the build wrote.
+fn prepare(
+    target: usize,
+    scenes: &[Scene],
+    frames: &[MapFrame],
+    describer: &Describer,
+    info: &ModelInfo,
+) -> (PathBuf, Built, bool) {
+    let dir = prefix_dir().join(format!("{}-{target}", info.model_id));
+    let done = dir.join("built.json");
+    if std::env::var_os("SCONE_BENCH_REBUILD").is_some() {
+        let _ = std::fs::remove_dir_all(&dir);
+    }
+    if let Some(b) = std::fs::read(&done).ok().and_then(|b| serde_json::from_slice::<Built>(&b).ok()) {
+        return (dir, b, false);
+    }
+    std::fs::create_dir_all(&dir).unwrap();
+    let limits = ImageLimits::default();
+    let t = Instant::now();
+    let store = MapStore::open(config(&dir, IndexParams::default()), info.clone()).unwrap();
+    if store.summary("m").is_err() {
+        store.create("m").unwrap();
+    }
+    // Keyframe ids are positions in `frames`, written in order: the keyframes already there are a prefix.
+    let mut next = store.summary("m").unwrap().keyframes;
+    if next > 0 {
+        eprintln!("reloc bench: resuming the {target} map at frame {next}");
+    }
+    while store.summary("m").unwrap().observations < target {
+        let Some(mf) = frames.get(next) else {
+            eprintln!("reloc bench: the training scenes ran out of frames before {target} observations");
+            break;
+        };
+        let scene = &scenes[mf.scene];
+        let f = &scene.frames[mf.frame];
+        let d = describer.describe_image(&std::fs::read(&f.rgb).unwrap()).unwrap();
+        let depth = f.depth.as_ref().map(|p| decode_depth_png(&std::fs::read(p).unwrap(), &limits).unwrap());
+        let pose = f.pose.unwrap();
+        let offset = Vector3::new(SCENE_OFFSET * mf.scene as f64, 0.0, 0.0);
+        let input = KeyframeInput {
+            id: next as u64,
+            pose: Isometry3::from_parts((pose.translation.vector + offset).into(), pose.rotation),
+            camera: scene.camera,
+            features: &d.features,
+            embeddings: &d.embeddings,
+            depth: depth.as_ref().map(|m| Depth { image: m, scale: TUM_DEPTH_SCALE }),
+            external: None,
+        };
+        store.add_keyframe("m", &input).unwrap();
+        next += 1;
+        if next.is_multiple_of(100) {
+            eprintln!(
+                "reloc bench: {target} map: {next} frames, {} observations",
+                store.summary("m").unwrap().observations
+            );
+        }
+    }
+    store.flush().unwrap();
+    let s = store.summary("m").unwrap();
+    let built = Built { frames: next, observations: s.observations, build_seconds: t.elapsed().as_secs_f64() };
+    scone::map::format::write_atomic(&done, &serde_json::to_vec(&built).unwrap()).unwrap();
+    (dir, built, true)
+}
+
+fn jpeg(path: &Path) -> Vec<u8> {
+    let img = opencv::imgcodecs::imread(path.to_str().unwrap(), opencv::imgcodecs::IMREAD_COLOR).unwrap();
+    assert_eq!((img.cols(), img.rows()), (640, 480));
+    let mut buf = Vector::<u8>::new();
+    let params = Vector::<i32>::from_slice(&[opencv::imgcodecs::IMWRITE_JPEG_QUALITY, 90]);
+    opencv::imgcodecs::imencode(".jpg", &img, &mut buf, &params).unwrap();
+    buf.to_vec()
 }
 
 fn main() {
@@ -36,97 +180,121 @@ fn main() {
         return;
     }
     let root = common::shared_data();
-    let Ok(scene) = Scene::load(&root.join("scenes/rgbd-slambook-5")) else {
-        eprintln!("reloc bench: no shared data at {}; nothing measured", root.display());
-        return;
+    let scenes: Vec<Scene> = match MAP_SCENES.iter().map(|s| Scene::load(&root.join("scenes").join(s))).collect() {
+        Ok(s) => s,
+        Err(e) => {
+            eprintln!("reloc bench: no shared data at {} ({e}); nothing measured", root.display());
+            return;
+        }
     };
     scone::features::set_opencv_threads(1).unwrap();
     let embedder = Arc::new(Embedder::load(&EmbedderConfig::default()).unwrap());
     let info = ModelInfo { model_id: embedder.model_id().to_string(), k: embedder.k(), dim: embedder.dim() };
     let describer = Describer { extractor: ExtractorConfig::default(), limits: ImageLimits::default(), embedder };
-    let limits = ImageLimits::default();
-    let mapped: Vec<_> = scene
-        .frames
-        .iter()
-        .step_by(2)
-        .map(|f| {
-            let d = describer.describe_image(&std::fs::read(&f.rgb).unwrap()).unwrap();
-            let depth = decode_depth_png(&std::fs::read(f.depth.as_ref().unwrap()).unwrap(), &limits).unwrap();
-            (d, depth, f.pose.unwrap())
-        })
-        .collect();
-    let queries: Vec<Vec<u8>> = scene
-        .frames
-        .iter()
-        .skip(1)
-        .step_by(2)
-        .map(|f| {
-            let img = opencv::imgcodecs::imread(f.rgb.to_str().unwrap(), opencv::imgcodecs::IMREAD_COLOR).unwrap();
-            let mut buf = Vector::<u8>::new();
-            let params = Vector::<i32>::from_slice(&[opencv::imgcodecs::IMWRITE_JPEG_QUALITY, 90]);
-            opencv::imgcodecs::imencode(".jpg", &img, &mut buf, &params).unwrap();
-            assert_eq!((img.cols(), img.rows()), (640, 480));
-            buf.to_vec()
-        })
-        .collect();
-    let mut targets = vec![10_000usize, 100_000];
-    if std::env::var("SCONE_BENCH_SMALL").is_ok() {
-        targets = vec![10_000];
-    }
-    if std::env::var("SCONE_BENCH_1M").is_ok() {
-        targets.push(1_000_000);
-    }
-    println!("{} map frames, {} query frames (640x480 JPEG)", mapped.len(), queries.len());
-    println!(
-        "| observations | search | decode ms | extract ms | embed ms | search ms | PnP ms | total p50 ms | \
-         localised | build s | ready after restart s | RSS MB/1k obs |"
-    );
-    println!("|---|---|---|---|---|---|---|---|---|---|---|---|");
-    for target in targets {
-        let dir = std::env::temp_dir().join(format!("scone-bench-reloc-{target}-{}", std::process::id()));
-        let _ = std::fs::remove_dir_all(&dir);
-        let config = |index: IndexParams| StoreConfig {
-            data_dir: dir.clone(),
-            compact_every: usize::MAX,
-            index,
-            ..StoreConfig::default()
-        };
-        // Build once with the default (HNSW above the threshold) index, then snapshot + dump.
-        let rss0 = rss_mb();
-        let t = Instant::now();
-        {
-            let store = MapStore::open(config(IndexParams::default()), info.clone()).unwrap();
-            store.create("m").unwrap();
-            let mut id = 0u64;
-            while store.summary("m").unwrap().observations < target {
-                let (d, depth, pose) = &mapped[id as usize % mapped.len()];
-                let input = KeyframeInput {
-                    id,
-                    pose: *pose,
-                    camera: scene.camera,
-                    features: &d.features,
-                    embeddings: &d.embeddings,
-                    depth: Some(Depth { image: depth, scale: 1.0 / 5000.0 }),
-                    external: None,
-                };
-                store.add_keyframe("m", &input).unwrap();
-                id += 1;
-            }
-            store.flush().unwrap();
-        }
-        let build = t.elapsed().as_secs_f64();
+    let frames = map_frames(&scenes);
+    let kitchen = &scenes[0];
+    let camera: Camera = kitchen.camera;
+
+    let Some(target) = std::env::var("SCONE_BENCH_LEVEL").ok().and_then(|t| t.parse::<usize>().ok()) else {
+        return run_levels();
+    };
+    let mut rows = Vec::new();
+    let mut notes = Vec::new();
+    let mut sweeps = Vec::new();
+    let mut levers = Vec::new();
+    // Maps stay open until the level is done, so a later measurement does not reuse their freed memory.
+    let mut open_maps = Vec::new();
+    {
+        let (dir, built, fresh) = prepare(target, &scenes, &frames, &describer, &info);
+        // Queries: held-out kitchen frames inside the part of the kitchen the map holds.
+        let kitchen_frames = frames[..built.frames].iter().filter(|f| f.scene == 0).map(|f| f.frame).max().unwrap();
+        let query_frames: Vec<usize> = (0..kitchen.frames.len())
+            .filter(|&f| is_query(f) && f < kitchen_frames && kitchen.frames[f].pose.is_some())
+            .collect();
+        let queries: Vec<(Vec<u8>, Isometry3<f64>)> =
+            query_frames.iter().map(|&f| (jpeg(&kitchen.frames[f].rgb), kitchen.frames[f].pose.unwrap())).collect();
+        notes.push(format!(
+            "{target}: {} map frames ({} of the kitchen), {} observations, {} queries, build {:.0} s{}",
+            built.frames,
+            frames[..built.frames].iter().filter(|f| f.scene == 0).count(),
+            built.observations,
+            queries.len(),
+            built.build_seconds,
+            if fresh { " (this run)" } else { " (an earlier run; kept under the prefix)" },
+        ));
         for (label, index) in [
             ("HNSW", IndexParams::default()),
             ("exact", IndexParams { exact_below: usize::MAX, ..IndexParams::default() }),
         ] {
+            // The exact row opens the map without its graph (the dump set aside), so its time to ready is the
+            // map data's alone.
+            let manifest = dir.join("maps/m/index.json");
+            let aside = dir.join("maps/m/index.json.aside");
+            if label == "exact" {
+                std::fs::rename(&manifest, &aside).unwrap();
+            }
             let rss_before = rss_mb();
             let t = Instant::now();
-            let store = MapStore::open(config(index), info.clone()).unwrap();
+            let store = MapStore::open(config(&dir, index), info.clone()).unwrap();
             let ready = t.elapsed().as_secs_f64();
-            let observations = store.summary("m").unwrap().observations;
-            let rss_per_k = (rss_mb() - rss_before.min(rss0)) / observations as f64 * 1000.0;
+            if label == "exact" {
+                std::fs::rename(&aside, &manifest).unwrap();
+            }
+            let rss_per_obs_kb = (rss_mb() - rss_before) * 1024.0 / built.observations as f64;
+            let (observations, estimate_kb, payload_kb, from_dump) = store.get("m").unwrap().read(|data, index| {
+                let payload: usize = data
+                    .keyframes
+                    .values()
+                    .map(|k| {
+                        k.keypoints.len() * std::mem::size_of_val(&k.keypoints[0])
+                            + k.descriptors.len()
+                            + k.embeddings.len() * 4
+                    })
+                    .sum();
+                let n = data.observations.len() as f64;
+                (
+                    data.observations.len(),
+                    data.memory_bytes() as f64 / n / 1024.0,
+                    payload as f64 / n / 1024.0,
+                    index.loaded_from_dump(),
+                )
+            });
+            // Recall of the index against exact search, on the first queries' own embeddings (k = 2).
+            let recall = if label == "HNSW" {
+                let sample = if target >= 1_000_000 { 1 } else { 3 };
+                let mut embeddings = Vec::new();
+                for (jpg, _) in queries.iter().take(sample) {
+                    embeddings.extend(describer.describe_image(jpg).unwrap().embeddings);
+                }
+                let (r1, r2, n) = store.get("m").unwrap().read(|data, index| {
+                    let dim = data.meta.dim;
+                    let per: Vec<(usize, usize)> = embeddings
+                        .par_chunks_exact(dim)
+                        .map(|q| {
+                            let a = index.search(data, q, 2, None);
+                            let e = exact_search(data, q, 2, None);
+                            let top1 =
+                                usize::from(a.first().map(|h| h.observation) == e.first().map(|h| h.observation));
+                            let both = e.iter().filter(|h| a.iter().any(|x| x.observation == h.observation)).count();
+                            (top1, both)
+                        })
+                        .collect();
+                    let n = per.len();
+                    (per.iter().map(|p| p.0).sum::<usize>(), per.iter().map(|p| p.1).sum::<usize>(), n)
+                });
+                format!("{:.3} / {:.3}", r1 as f64 / n as f64, r2 as f64 / (2 * n) as f64)
+            } else {
+                "-".into()
+            };
+            if label == "HNSW" {
+                sweeps.push(sweep(&store, &describer, &queries, &camera, observations));
+                if target >= 1_000_000 || std::env::var_os("SCONE_BENCH_PER_LANDMARK").is_some() {
+                    levers.push(per_landmark(&store, &describer, &queries, &camera));
+                }
+            }
             let service = Service::new(describer.clone(), KeypointLimits::default(), Default::default());
-            service.attach_store(Arc::new(store));
+            let store = Arc::new(store);
+            service.attach_store(store.clone());
             let runs = match (label, target) {
                 ("HNSW", _) => 20,
                 (_, t) if t >= 1_000_000 => 2,
@@ -134,37 +302,253 @@ fn main() {
             };
             let mut stages: std::collections::BTreeMap<&str, Vec<f64>> = Default::default();
             let mut totals = Vec::new();
-            let mut localised = 0;
+            let (mut localised, mut within) = (0, 0);
             for i in 0..=runs {
-                let frame = FrameInput {
-                    source: FrameSource::Image(queries[i % queries.len()].clone()),
-                    camera: Some(scene.camera),
-                };
+                let (jpg, gt) = &queries[i % queries.len()];
+                let frame = FrameInput { source: FrameSource::Image(jpg.clone()), camera: Some(camera) };
                 let t = Instant::now();
                 let o = service.localize("m", frame, None).unwrap();
                 if i == 0 {
                     continue; // warm-up
                 }
                 totals.push(t.elapsed().as_secs_f64() * 1e3);
-                localised += o.pose.is_some() as usize;
+                if let Some(p) = &o.pose {
+                    localised += 1;
+                    let te = (p.camera_to_world.translation.vector - gt.translation.vector).norm();
+                    let re = rotation_error_deg(
+                        &p.camera_to_world.rotation.to_rotation_matrix(),
+                        &gt.rotation.to_rotation_matrix(),
+                    );
+                    within += usize::from(te <= 0.25 && re <= 2.0);
+                }
                 for (s, v) in o.times.0 {
                     stages.entry(s).or_default().push(v * 1e3);
                 }
             }
             let m = |s: &str| stages.get(s).map_or(0.0, |v| median(v.clone()));
-            println!(
-                "| {observations} | {label} | {:.1} | {:.1} | {:.1} | {:.1} | {:.1} | {:.1} | {localised}/{runs} | {} | {} | {} |",
+            rows.push(format!(
+                "| {observations} | {label} | {:.1} | {:.1} | {:.1} | {:.1} | {:.1} | {:.1} | {localised}/{runs} | {within}/{runs} | {recall} | {} | {} |",
                 m("decode"),
                 m("extract"),
                 m("embed"),
                 m("search"),
                 m("pnp"),
                 median(totals),
-                if label == "HNSW" { format!("{build:.1}") } else { "-".into() },
-                if label == "HNSW" { format!("{ready:.2}") } else { format!("{ready:.2} (no graph)") },
-                if label == "HNSW" { format!("{rss_per_k:.2}") } else { "-".into() },
-            );
+                if label == "HNSW" {
+                    format!("{ready:.2}{}", if from_dump { "" } else { " (graph rebuilt)" })
+                } else {
+                    format!("{ready:.2} (map data only)")
+                },
+                if label == "HNSW" {
+                    format!("{rss_per_obs_kb:.2} (estimate {estimate_kb:.2}; keyframe payload {payload_kb:.2})")
+                } else {
+                    format!("{rss_per_obs_kb:.2} (map data only)")
+                },
+            ));
+            open_maps.push(store);
         }
-        let _ = std::fs::remove_dir_all(&dir);
     }
+    // One level per process (see `run_levels`): hand the lines to the parent.
+    for (tag, lines) in [("row", rows), ("note", notes), ("sweep", sweeps.concat()), ("lever", levers.concat())] {
+        for l in lines {
+            println!("@{tag} {l}");
+        }
+    }
+}
+
+/// Runs every level in a process of its own (this binary again, with `SCONE_BENCH_LEVEL`), so no level's
+/// memory figures are lowered by memory an earlier level freed, then prints the tables.
+fn run_levels() {
+    let mut targets = vec![10_000usize, 100_000];
+    if std::env::var("SCONE_BENCH_SMALL").is_ok() {
+        targets = vec![10_000];
+    }
+    if std::env::var("SCONE_BENCH_1M").is_ok() {
+        targets.push(1_000_000);
+    }
+    let mut tagged: Vec<(String, String)> = Vec::new();
+    for target in targets {
+        let out = std::process::Command::new(std::env::current_exe().unwrap())
+            .args(std::env::args().skip(1))
+            .env("SCONE_BENCH_LEVEL", target.to_string())
+            .stderr(std::process::Stdio::inherit())
+            .output()
+            .unwrap();
+        assert!(out.status.success(), "reloc bench: the {target} level failed");
+        for line in String::from_utf8_lossy(&out.stdout).lines() {
+            if let Some((tag, rest)) = line.strip_prefix('@').and_then(|l| l.split_once(' ')) {
+                tagged.push((tag.to_string(), rest.to_string()));
+            } else {
+                println!("{line}");
+            }
+        }
+    }
+    let of = |tag: &str| tagged.iter().filter(|(t, _)| t == tag).map(|(_, l)| l.clone()).collect::<Vec<_>>();
+    let (rows, notes, sweeps, levers) = (of("row"), of("note"), of("sweep"), of("lever"));
+    println!();
+    for n in notes {
+        println!("{n}");
+    }
+    println!();
+    println!(
+        "| observations | search | decode ms | extract ms | embed ms | search ms | PnP ms | total p50 ms | \
+         localised | within (0.25 m, 2°) | recall@1 / @2 | ready after restart s | RSS KB/obs |"
+    );
+    println!("|---|---|---|---|---|---|---|---|---|---|---|---|---|");
+    for r in rows {
+        println!("{r}");
+    }
+    println!();
+    println!("Query keypoints searched (the strongest by response), every query of the level, HNSW:");
+    println!();
+    println!(
+        "| observations | query keypoints | queries | localised | within (0.25 m, 2°) | within (0.5 m, 5°) | \
+         matches (median) | search ms (median) | PnP ms (median) |"
+    );
+    println!("|---|---|---|---|---|---|---|---|---|");
+    for r in sweeps {
+        println!("{r}");
+    }
+    println!();
+    println!("Lever: one index point per landmark (its medoid observation) against one per observation, largest map:");
+    println!();
+    println!(
+        "| index | points | graph build s | graph RSS KB/obs of the map | search ms (median) | localised | \
+         within (0.25 m, 2°) | within (0.5 m, 5°) |"
+    );
+    println!("|---|---|---|---|---|---|---|---|");
+    for r in levers {
+        println!("{r}");
+    }
+}
+
+/// Outcome of every query against `data` with `index` (every keypoint searched): (search ms per query,
+/// localised, within (0.25 m, 2°), within (0.5 m, 5°)).
+fn score(
+    data: &MapData,
+    index: &EmbeddingIndex,
+    described: &[(scone::pipeline::Described, Isometry3<f64>)],
+    camera: &Camera,
+) -> (Vec<f64>, usize, usize, usize) {
+    let params = LocalizeParams::default();
+    let (mut search, mut localised, mut within, mut within5) = (Vec::new(), 0, 0, 0);
+    for (d, gt) in described {
+        let l = localize(data, index, &d.features, &d.embeddings, camera, None, &params).unwrap();
+        search.push(l.search_s * 1e3);
+        if let Some(p) = &l.pose {
+            localised += 1;
+            let te = (p.camera_to_world.translation.vector - gt.translation.vector).norm();
+            let re =
+                rotation_error_deg(&p.camera_to_world.rotation.to_rotation_matrix(), &gt.rotation.to_rotation_matrix());
+            within += usize::from(te <= 0.25 && re <= 2.0);
+            within5 += usize::from(te <= 0.5 && re <= 5.0);
+        }
+    }
+    (search, localised, within, within5)
+}
+
+/// The lever of indexing landmarks instead of observations, measured on a copy of the map: every observation
+/// but each landmark's medoid (the one nearest, in embedding space, to its landmark's others, as ORB-SLAM
+/// picks a map point's descriptor) is left out of the graph, which is then built from scratch beside one with
+/// every observation; both answer every query with every keypoint searched.
+fn per_landmark(
+    store: &MapStore,
+    describer: &Describer,
+    queries: &[(Vec<u8>, Isometry3<f64>)],
+    camera: &Camera,
+) -> Vec<String> {
+    let described: Vec<_> = queries.iter().map(|(jpg, gt)| (describer.describe_image(jpg).unwrap(), *gt)).collect();
+    let mut data = store.get("m").unwrap().read(|data, _| data.clone());
+    let n = data.observations.len();
+    let mut rows = Vec::new();
+    // Both graphs stay alive, so the second's RSS growth is not lowered by reusing the first's memory.
+    let mut kept = Vec::new();
+    for label in ["per observation", "per landmark (medoid)"] {
+        if label != "per observation" {
+            let medoids: Vec<usize> = data
+                .landmarks
+                .values()
+                .filter_map(|l| {
+                    let obs: Vec<usize> =
+                        l.observations.iter().map(|&o| o as usize).filter(|&o| data.observations[o].live).collect();
+                    obs.iter().copied().min_by(|&a, &b| {
+                        let cost = |i: usize| -> f32 {
+                            obs.iter().map(|&j| l2_squared(data.embedding(i), data.embedding(j)).sqrt()).sum()
+                        };
+                        cost(a).total_cmp(&cost(b))
+                    })
+                })
+                .collect();
+            for o in &mut data.observations {
+                o.live = false;
+            }
+            for m in medoids {
+                data.observations[m].live = true;
+            }
+        }
+        let points = data.live_observations();
+        let before = rss_mb();
+        let t = Instant::now();
+        let mut index = EmbeddingIndex::new(IndexParams::default());
+        index.sync(&data);
+        let build = t.elapsed().as_secs_f64();
+        let graph_kb = (rss_mb() - before) * 1024.0 / n as f64;
+        let (search, localised, within, within5) = score(&data, &index, &described, camera);
+        rows.push(format!(
+            "| {label} | {points} | {build:.0} | {graph_kb:.2} | {:.1} | {localised}/{q} | {within}/{q} | {within5}/{q} |",
+            median(search),
+            q = described.len(),
+        ));
+        eprintln!("{}", rows.last().unwrap());
+        kept.push(index);
+    }
+    rows
+}
+
+/// Query keypoint caps measured on one map: `usize::MAX` is every keypoint.
+const CAPS: [usize; 5] = [usize::MAX, 1000, 600, 400, 250];
+
+/// Search and PnP of every query with each cap of [`CAPS`] (the service's localisation, called on the map
+/// directly so one opened map serves every cap).
+fn sweep(
+    store: &MapStore,
+    describer: &Describer,
+    queries: &[(Vec<u8>, Isometry3<f64>)],
+    camera: &Camera,
+    observations: usize,
+) -> Vec<String> {
+    let described: Vec<_> = queries.iter().map(|(jpg, gt)| (describer.describe_image(jpg).unwrap(), *gt)).collect();
+    let map = store.get("m").unwrap();
+    let mut rows = Vec::new();
+    for cap in CAPS {
+        let params = LocalizeParams { max_query_keypoints: cap, ..LocalizeParams::default() };
+        let (mut localised, mut within, mut within5) = (0, 0, 0);
+        let (mut search, mut pnp, mut matches) = (Vec::new(), Vec::new(), Vec::new());
+        for (d, gt) in &described {
+            let l = map
+                .read(|data, index| localize(data, index, &d.features, &d.embeddings, camera, None, &params).unwrap());
+            search.push(l.search_s * 1e3);
+            pnp.push(l.pnp_s * 1e3);
+            matches.push(l.matches.len() as f64);
+            if let Some(p) = &l.pose {
+                localised += 1;
+                let te = (p.camera_to_world.translation.vector - gt.translation.vector).norm();
+                let re = rotation_error_deg(
+                    &p.camera_to_world.rotation.to_rotation_matrix(),
+                    &gt.rotation.to_rotation_matrix(),
+                );
+                within += usize::from(te <= 0.25 && re <= 2.0);
+                within5 += usize::from(te <= 0.5 && re <= 5.0);
+            }
+        }
+        let n = described.len();
+        rows.push(format!(
+            "| {observations} | {} | {n} | {localised} | {within} | {within5} | {:.0} | {:.1} | {:.1} |",
+            if cap == usize::MAX { "all".to_string() } else { cap.to_string() },
+            median(matches),
+            median(search),
+            median(pnp),
+        ));
+    }
+    rows
 }

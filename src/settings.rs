@@ -257,6 +257,7 @@ impl Settings {
         self.relative_pose.validate().map_err(|reason| SettingsError::Invalid { field: "relative_pose", reason })?;
         self.store.backend.validate().map_err(|reason| SettingsError::Invalid { field: "store.backend", reason })?;
         self.store.build.validate().map_err(|reason| SettingsError::Invalid { field: "store.build", reason })?;
+        self.store.localize.validate().map_err(|reason| SettingsError::Invalid { field: "store.localize", reason })?;
         let keys = self.keys()?;
         let loopback = self.server.grpc_addr.ip().is_loopback() && self.server.http_addr.ip().is_loopback();
         if keys.is_empty() && !loopback && !self.auth.allow_anonymous {
@@ -382,6 +383,15 @@ mod tests {
             jail.set_env("SCONE_WORKERS__THREADS", "0");
             let e = Settings::load(None, &Overrides::default()).unwrap_err().to_string();
             assert!(e.contains("workers.threads"), "{e}");
+            Ok(())
+        });
+        figment::Jail::expect_with(|jail| {
+            jail.set_env("SCONE_STORE__LOCALIZE__MAX_QUERY_KEYPOINTS", "400");
+            let s = Settings::load(None, &Overrides::default()).map_err(|e| e.to_string())?;
+            assert_eq!(s.store.localize.max_query_keypoints, 400);
+            jail.set_env("SCONE_STORE__LOCALIZE__MAX_QUERY_KEYPOINTS", "5");
+            let e = Settings::load(None, &Overrides::default()).unwrap_err().to_string();
+            assert!(e.contains("store.localize") && e.contains("min_inliers"), "{e}");
             Ok(())
         });
     }

@@ -1,4 +1,5 @@
-//! What the bench binaries share.
+//! What the bench binaries share (each uses part of it).
+#![allow(dead_code)]
 
 /// Resident memory of this process, MB (`VmRSS` of `/proc/self/status`; 0 where there is none).
 pub fn rss_mb() -> f64 {

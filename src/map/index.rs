@@ -139,6 +139,18 @@ impl EmbeddingIndex {
         self.from_dump && self.hnsw.is_some()
     }
 
+    /// Points of the HNSW graph and links between them over all layers (`None` without a graph): what the
+    /// graph's memory scales with (benchmarks).
+    pub fn graph_shape(&self) -> Option<(usize, usize)> {
+        let graph = self.hnsw.as_ref()?;
+        let (mut points, mut links) = (0usize, 0usize);
+        for p in graph.get_point_indexation() {
+            points += 1;
+            links += p.get_neighborhood_id().iter().map(Vec::len).sum::<usize>();
+        }
+        Some((points, links))
+    }
+
     /// Whether queries go through HNSW.
     pub fn is_approximate(&self) -> bool {
         self.hnsw.is_some()

@@ -435,3 +435,48 @@ mod external {
         assert_eq!(decode_snapshot(&encode_snapshot(&again).unwrap(), &PathBuf::from("x")).unwrap(), again);
     }
 }
+
+#[test]
+fn a_query_keypoint_cap_searches_the_strongest_keypoints_and_still_localises() {
+    use crate::features::Features;
+    use crate::map::localize::{localize, LocalizeParams};
+    let (n, dim) = (200usize, 48usize);
+    let cam = Camera { fx: 500.0, fy: 500.0, cx: 320.0, cy: 240.0, width: 640, height: 480 };
+    // Landmark i is seen at pixel (x_i, y_i) by a camera at the origin looking along +z.
+    let pixel = |i: usize| (((i * 37) % 600 + 20) as f32, ((i * 91) % 440 + 20) as f32);
+    let point = |i: usize| {
+        let (x, y) = pixel(i);
+        let z = 4.0 + (i % 7) as f64;
+        [(x as f64 - cam.cx) / cam.fx * z, (y as f64 - cam.cy) / cam.fy * z, z]
+    };
+    let Record::AddKeyframe { keyframe, observations, .. } = keyframe_record(0, n, 0, dim, 5) else { unreachable!() };
+    let new_landmarks = (0..n).map(|i| (i as u64, point(i))).collect();
+    let mut data = MapData::new(meta(dim));
+    data.apply(&Record::AddKeyframe { keyframe: keyframe.clone(), new_landmarks, observations });
+    let index = EmbeddingIndex::new(IndexParams::default());
+    // The query: the same embeddings at the landmarks' pixels; keypoint i has response i.
+    let features = Features {
+        width: 640,
+        height: 480,
+        keypoints: (0..n)
+            .map(|i| {
+                let (x, y) = pixel(i);
+                Keypoint { x, y, size: 7.0, angle: 0.0, response: i as f32, octave: 0 }
+            })
+            .collect(),
+        descriptors: vec![[0u8; DESCRIPTOR_BYTES]; n],
+    };
+    let all = localize(&data, &index, &features, &keyframe.embeddings, &cam, None, &LocalizeParams::default()).unwrap();
+    assert_eq!(all.matches.len(), n);
+    let capped = LocalizeParams { max_query_keypoints: 50, ..LocalizeParams::default() };
+    let l = localize(&data, &index, &features, &keyframe.embeddings, &cam, None, &capped).unwrap();
+    // Only the 50 strongest keypoints were searched, and matches name them by their index in the whole set.
+    assert_eq!(l.matches.len(), 50);
+    assert!(l.matches.iter().all(|m| m.keypoint >= n - 50 && m.landmark == m.keypoint as u64));
+    let pose = l.pose.expect("50 exact matches localise");
+    assert!(pose.camera_to_world.translation.vector.norm() < 1e-3);
+    // A cap below the inliers a pose needs is refused at configuration time.
+    let too_low = LocalizeParams { max_query_keypoints: 10, ..LocalizeParams::default() };
+    assert!(too_low.validate().unwrap_err().contains("min_inliers"));
+    assert!(LocalizeParams::default().validate().is_ok());
+}
