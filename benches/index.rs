@@ -2,7 +2,7 @@
 //! with `SCONE_BENCH_1M=1`) observations, in the same run. Embeddings: every image of `../shared/data/scenes`
 //! (or `$SCONE_DATA`; ~2M embeddings today, so the 1M set is real too; were there fewer, it would be topped up
 //! with noisy copies); queries are embeddings of three HPatches graffiti images, which are not in the indexed
-//! set.
+//! set (the first 1,500 embeddings: about one image's keypoints).
 //! Reports build time, the graph's links per point (over all layers; each is an `Arc` allocation in hnsw_rs,
 //! ~40 bytes with its pointer, the part of the graph's memory M sets), query time per
 //! query, and recall@1 / recall@2 against the exact answer, for M = 16 (the default) and M = 8.
@@ -86,11 +86,11 @@ fn main() {
     let embedder = Arc::new(Embedder::load(&EmbedderConfig::default()).unwrap());
     let d = Describer { extractor: ExtractorConfig::default(), limits: ImageLimits::default(), embedder };
     let dim = d.embedder.dim();
-    // Queries: three HPatches graffiti images, a scene no other image shows (the kitchen's neighbouring frames
-    // would be near copies of each other); the rest is the indexed set.
+    // Queries: HPatches graffiti, a scene left out of the indexed set (the kitchen's neighbouring frames would
+    // be near copies of each other); every other image is indexed.
     let is_query = |p: &&PathBuf| p.to_string_lossy().contains("hpatches-v_graffiti");
     let query_files: Vec<&PathBuf> = files.iter().filter(is_query).take(3).collect();
-    let map_files: Vec<&PathBuf> = files.iter().filter(|p| !query_files.contains(p)).collect();
+    let map_files: Vec<&PathBuf> = files.iter().filter(|p| !is_query(p)).collect();
     let mut pool = Vec::new();
     for f in &map_files {
         pool.extend(d.describe_image(&std::fs::read(f).unwrap()).unwrap().embeddings);
@@ -99,7 +99,9 @@ fn main() {
     for f in query_files {
         queries.extend(d.describe_image(&std::fs::read(f).unwrap()).unwrap().embeddings);
     }
+    // The first 1,500 query embeddings: about one image's keypoints.
     let queries: Vec<&[f32]> = queries.chunks_exact(dim).take(1500).collect();
+    assert!(!queries.is_empty(), "index bench: no HPatches graffiti images to query with");
     let batch: Vec<f32> = queries.concat();
     if std::env::var("SCONE_BENCH_1M").is_ok() {
         // 1M observations from the real ones: each copy perturbed with Gaussian noise (sigma 0.05 per
@@ -117,7 +119,7 @@ fn main() {
         }
     }
     println!(
-        "{} real embeddings from {} images; {} queries from 3 other images",
+        "{} real embeddings from {} images; {} queries from HPatches graffiti (not indexed)",
         pool.len() / dim,
         map_files.len(),
         queries.len()

@@ -99,7 +99,10 @@ struct Built {
     /// Map frames used (a prefix of [`map_frames`]).
     frames: usize,
     observations: usize,
+    /// Of the last build run (a resumed build counts only its own part).
     build_seconds: f64,
+    #[serde(default)]
+    resumed: bool,
 }
 
 /// Builds (or resumes, or reuses) the map of one level; returns its directory and what the build wrote.
@@ -110,7 +113,13 @@ fn prepare(
     describer: &Describer,
     info: &ModelInfo,
 ) -> (PathBuf, Built, bool) {
-    let dir = prefix_dir().join(format!("{}-{target}", info.model_id));
+    // Keyed by the model and by the frame list, so a changed list (scenes, held-out rule, data) never resumes
+    // or reuses a map built from another.
+    let list: String = frames
+        .iter()
+        .map(|f| format!("{}/{}\n", scenes[f.scene].name, scenes[f.scene].frames[f.frame].stamp))
+        .collect();
+    let dir = prefix_dir().join(format!("{}-{target}-{:08x}", info.model_id, crc32fast::hash(list.as_bytes())));
     let done = dir.join("built.json");
     if std::env::var_os("SCONE_BENCH_REBUILD").is_some() {
         let _ = std::fs::remove_dir_all(&dir);
@@ -119,6 +128,7 @@ fn prepare(
         return (dir, b, false);
     }
     std::fs::create_dir_all(&dir).unwrap();
+    eprintln!("reloc bench: building the {target} map in {}", dir.display());
     let limits = ImageLimits::default();
     let t = Instant::now();
     let store = MapStore::open(config(&dir, IndexParams::default()), info.clone()).unwrap();
@@ -127,6 +137,7 @@ fn prepare(
     }
     // Keyframe ids are positions in `frames`, written in order: the keyframes already there are a prefix.
     let mut next = store.summary("m").unwrap().keyframes;
+    let resumed = next > 0;
     if next > 0 {
         eprintln!("reloc bench: resuming the {target} map at frame {next}");
     }
@@ -161,7 +172,7 @@ fn prepare(
     }
     store.flush().unwrap();
     let s = store.summary("m").unwrap();
-    let built = Built { frames: next, observations: s.observations, build_seconds: t.elapsed().as_secs_f64() };
+    let built = Built { frames: next, observations: s.observations, build_seconds: t.elapsed().as_secs_f64(), resumed };
     scone::map::format::write_atomic(&done, &serde_json::to_vec(&built).unwrap()).unwrap();
     (dir, built, true)
 }
@@ -198,6 +209,12 @@ fn main() {
     let Some(target) = std::env::var("SCONE_BENCH_LEVEL").ok().and_then(|t| t.parse::<usize>().ok()) else {
         return run_levels();
     };
+    if std::env::var_os("SCONE_BENCH_BUILD_ONLY").is_some() {
+        // A map built in the measuring process would leave it pages and freed memory to reuse, flattering
+        // that level's memory and time to ready: the parent builds in a process of its own first.
+        prepare(target, &scenes, &frames, &describer, &info);
+        return;
+    }
     let mut rows = Vec::new();
     let mut notes = Vec::new();
     let mut sweeps = Vec::new();
@@ -206,6 +223,11 @@ fn main() {
     let mut open_maps = Vec::new();
     {
         let (dir, built, fresh) = prepare(target, &scenes, &frames, &describer, &info);
+        // A run that died while the exact row had the dump's manifest aside puts it back.
+        let (manifest, aside) = (dir.join("maps/m/index.json"), dir.join("maps/m/index.json.aside"));
+        if aside.exists() && !manifest.exists() {
+            std::fs::rename(&aside, &manifest).unwrap();
+        }
         // Queries: held-out kitchen frames inside the part of the kitchen the map holds.
         let kitchen_frames = frames[..built.frames].iter().filter(|f| f.scene == 0).map(|f| f.frame).max().unwrap();
         let query_frames: Vec<usize> = (0..kitchen.frames.len())
@@ -214,28 +236,32 @@ fn main() {
         let queries: Vec<(Vec<u8>, Isometry3<f64>)> =
             query_frames.iter().map(|&f| (jpeg(&kitchen.frames[f].rgb), kitchen.frames[f].pose.unwrap())).collect();
         notes.push(format!(
-            "{target}: {} map frames ({} of the kitchen), {} observations, {} queries, build {:.0} s{}",
+            "{target}: {} map frames ({} of the kitchen), {} observations, {} queries, build {:.0} s{}{}",
             built.frames,
             frames[..built.frames].iter().filter(|f| f.scene == 0).count(),
             built.observations,
             queries.len(),
             built.build_seconds,
+            if built.resumed { " (resumed; the last part)" } else { "" },
             if fresh { " (this run)" } else { " (an earlier run; kept under the prefix)" },
         ));
-        for (label, index) in [
-            ("HNSW", IndexParams::default()),
-            ("exact", IndexParams { exact_below: usize::MAX, ..IndexParams::default() }),
+        // The exact row comes right after the HNSW row, before anything allocates and frees much, so its RSS
+        // growth is the map data's. The capped row's open is not measured.
+        for (label, index, cap) in [
+            ("HNSW", IndexParams::default(), usize::MAX),
+            ("exact", IndexParams { exact_below: usize::MAX, ..IndexParams::default() }, usize::MAX),
+            ("HNSW, 400 query keypoints", IndexParams::default(), 400),
         ] {
             // The exact row opens the map without its graph (the dump set aside), so its time to ready is the
             // map data's alone.
-            let manifest = dir.join("maps/m/index.json");
-            let aside = dir.join("maps/m/index.json.aside");
             if label == "exact" {
                 std::fs::rename(&manifest, &aside).unwrap();
             }
             let rss_before = rss_mb();
             let t = Instant::now();
-            let store = MapStore::open(config(&dir, index), info.clone()).unwrap();
+            let mut cfg = config(&dir, index);
+            cfg.localize.max_query_keypoints = cap;
+            let store = MapStore::open(cfg, info.clone()).unwrap();
             let ready = t.elapsed().as_secs_f64();
             if label == "exact" {
                 std::fs::rename(&aside, &manifest).unwrap();
@@ -286,19 +312,13 @@ fn main() {
             } else {
                 "-".into()
             };
-            if label == "HNSW" {
-                sweeps.push(sweep(&store, &describer, &queries, &camera, observations));
-                if target >= 1_000_000 || std::env::var_os("SCONE_BENCH_PER_LANDMARK").is_some() {
-                    levers.push(per_landmark(&store, &describer, &queries, &camera));
-                }
-            }
             let service = Service::new(describer.clone(), KeypointLimits::default(), Default::default());
             let store = Arc::new(store);
             service.attach_store(store.clone());
             let runs = match (label, target) {
-                ("HNSW", _) => 20,
-                (_, t) if t >= 1_000_000 => 2,
-                _ => 6,
+                ("exact", t) if t >= 1_000_000 => 2,
+                ("exact", _) => 6,
+                _ => 20,
             };
             let mut stages: std::collections::BTreeMap<&str, Vec<f64>> = Default::default();
             let mut totals = Vec::new();
@@ -334,18 +354,26 @@ fn main() {
                 m("search"),
                 m("pnp"),
                 median(totals),
-                if label == "HNSW" {
-                    format!("{ready:.2}{}", if from_dump { "" } else { " (graph rebuilt)" })
-                } else {
-                    format!("{ready:.2} (map data only)")
+                match label {
+                    "HNSW" => format!("{ready:.2}{}", if from_dump { "" } else { " (graph rebuilt)" }),
+                    "exact" => format!("{ready:.2} (map data only)"),
+                    _ => "-".into(),
                 },
-                if label == "HNSW" {
-                    format!("{rss_per_obs_kb:.2} (estimate {estimate_kb:.2}; keyframe payload {payload_kb:.2})")
-                } else {
-                    format!("{rss_per_obs_kb:.2} (map data only)")
+                match label {
+                    "HNSW" => {
+                        format!("{rss_per_obs_kb:.2} (estimate {estimate_kb:.2}; keyframe payload {payload_kb:.2})")
+                    }
+                    "exact" => format!("{rss_per_obs_kb:.2} (map data only)"),
+                    _ => "-".into(),
                 },
             ));
             open_maps.push(store);
+        }
+        // Then the sweep and the lever, on the HNSW row's map.
+        let (store, observations) = (&open_maps[0], built.observations);
+        sweeps.push(sweep(store, &describer, &queries, &camera, observations));
+        if target >= 1_000_000 || std::env::var_os("SCONE_BENCH_PER_LANDMARK").is_some() {
+            levers.push(per_landmark(store, &describer, &queries, &camera));
         }
     }
     // One level per process (see `run_levels`): hand the lines to the parent.
@@ -368,13 +396,20 @@ fn run_levels() {
     }
     let mut tagged: Vec<(String, String)> = Vec::new();
     for target in targets {
-        let out = std::process::Command::new(std::env::current_exe().unwrap())
-            .args(std::env::args().skip(1))
-            .env("SCONE_BENCH_LEVEL", target.to_string())
-            .stderr(std::process::Stdio::inherit())
-            .output()
-            .unwrap();
-        assert!(out.status.success(), "reloc bench: the {target} level failed");
+        let child = |build_only: bool| {
+            let mut c = std::process::Command::new(std::env::current_exe().unwrap());
+            c.args(std::env::args().skip(1)).env("SCONE_BENCH_LEVEL", target.to_string());
+            if build_only {
+                c.env("SCONE_BENCH_BUILD_ONLY", "1");
+            }
+            c.stderr(std::process::Stdio::inherit()).output().unwrap()
+        };
+        let built = child(true);
+        let out = if built.status.success() { child(false) } else { built };
+        if !out.status.success() {
+            eprintln!("reloc bench: the {target} level failed; the tables below leave it out");
+            continue;
+        }
         for line in String::from_utf8_lossy(&out.stdout).lines() {
             if let Some((tag, rest)) = line.strip_prefix('@').and_then(|l| l.split_once(' ')) {
                 tagged.push((tag.to_string(), rest.to_string()));

@@ -29,10 +29,11 @@ pub struct LocalizeParams {
     /// Only this many of the query's keypoints, the strongest by detector response, are searched in the
     /// index (all of them are still embedded: a constellation is made of all keypoints). The search is the
     /// largest stage on a large map and grows with the number of queries: on the 479k-observation benchmark
-    /// map, 400 takes it from 73 to 19 ms with 97 of 100 near queries localised against 98. Off by default
-    /// (every keypoint is searched): on the validation scenes' far queries it costs successes (KITTI: SConE
-    /// 4 -> 1 of 25 within (0.25 m, 2°)), see BENCHMARKS.md. Keypoints of equal response keep their order,
-    /// so client keypoints without responses are searched in the order sent.
+    /// map, 400 takes a relocalisation from 92 to 48 ms (search 67 -> 25 ms) with 97 of 100 near queries within
+    /// (0.25 m, 2°) against 98. Off by default (every keypoint is searched): on the validation scenes' far
+    /// queries it costs successes (KITTI: SConE 4 -> 1 of 25 within (0.25 m, 2°)), see BENCHMARKS.md.
+    /// Keypoints of equal response keep their order, so client keypoints without responses are searched in
+    /// the order sent.
     pub max_query_keypoints: usize,
 }
 

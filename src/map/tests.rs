@@ -454,27 +454,40 @@ fn a_query_keypoint_cap_searches_the_strongest_keypoints_and_still_localises() {
     let mut data = MapData::new(meta(dim));
     data.apply(&Record::AddKeyframe { keyframe: keyframe.clone(), new_landmarks, observations });
     let index = EmbeddingIndex::new(IndexParams::default());
-    // The query: the same embeddings at the landmarks' pixels; keypoint i has response i.
-    let features = Features {
+    // The query: the same embeddings at the landmarks' pixels; responses a permutation of 0..n (73 is prime to
+    // 200), so the strongest keypoints are scattered over the index range.
+    let response = |i: usize| ((i * 73) % n) as f32;
+    let query = |response: &dyn Fn(usize) -> f32| Features {
         width: 640,
         height: 480,
         keypoints: (0..n)
             .map(|i| {
                 let (x, y) = pixel(i);
-                Keypoint { x, y, size: 7.0, angle: 0.0, response: i as f32, octave: 0 }
+                Keypoint { x, y, size: 7.0, angle: 0.0, response: response(i), octave: 0 }
             })
             .collect(),
         descriptors: vec![[0u8; DESCRIPTOR_BYTES]; n],
     };
+    let features = query(&response);
     let all = localize(&data, &index, &features, &keyframe.embeddings, &cam, None, &LocalizeParams::default()).unwrap();
     assert_eq!(all.matches.len(), n);
     let capped = LocalizeParams { max_query_keypoints: 50, ..LocalizeParams::default() };
     let l = localize(&data, &index, &features, &keyframe.embeddings, &cam, None, &capped).unwrap();
     // Only the 50 strongest keypoints were searched, and matches name them by their index in the whole set.
     assert_eq!(l.matches.len(), 50);
-    assert!(l.matches.iter().all(|m| m.keypoint >= n - 50 && m.landmark == m.keypoint as u64));
+    assert!(l.matches.iter().all(|m| response(m.keypoint) >= (n - 50) as f32 && m.landmark == m.keypoint as u64));
     let pose = l.pose.expect("50 exact matches localise");
     assert!(pose.camera_to_world.translation.vector.norm() < 1e-3);
+    // Equal responses (client keypoints without scores) keep the order sent: the first 50.
+    let flat = query(&|_| 0.0);
+    let l = localize(&data, &index, &flat, &keyframe.embeddings, &cam, None, &capped).unwrap();
+    let mut searched: Vec<usize> = l.matches.iter().map(|m| m.keypoint).collect();
+    searched.sort_unstable();
+    assert_eq!(searched, (0..50).collect::<Vec<_>>());
+    // A cap below min_inliers (possible only in code; settings refuse it) still searches min_inliers.
+    let tiny = LocalizeParams { max_query_keypoints: 3, ..LocalizeParams::default() };
+    let l = localize(&data, &index, &features, &keyframe.embeddings, &cam, None, &tiny).unwrap();
+    assert_eq!(l.matches.len(), LocalizeParams::default().min_inliers);
     // A cap below the inliers a pose needs is refused at configuration time.
     let too_low = LocalizeParams { max_query_keypoints: 10, ..LocalizeParams::default() };
     assert!(too_low.validate().unwrap_err().contains("min_inliers"));
