@@ -334,12 +334,7 @@ fn main() {
                 totals.push(t.elapsed().as_secs_f64() * 1e3);
                 if let Some(p) = &o.pose {
                     localised += 1;
-                    let te = (p.camera_to_world.translation.vector - gt.translation.vector).norm();
-                    let re = rotation_error_deg(
-                        &p.camera_to_world.rotation.to_rotation_matrix(),
-                        &gt.rotation.to_rotation_matrix(),
-                    );
-                    within += usize::from(te <= 0.25 && re <= 2.0);
+                    within += usize::from(is_within(&p.camera_to_world, gt).0);
                 }
                 for (s, v) in o.times.0 {
                     stages.entry(s).or_default().push(v * 1e3);
@@ -457,29 +452,46 @@ fn run_levels() {
     }
 }
 
-/// Outcome of every query against `data` with `index` (every keypoint searched): (search ms per query,
-/// localised, within (0.25 m, 2°), within (0.5 m, 5°)).
+/// Whether `pose` is within (0.25 m, 2°) and within (0.5 m, 5°) of the ground truth `gt`.
+fn is_within(pose: &Isometry3<f64>, gt: &Isometry3<f64>) -> (bool, bool) {
+    let te = (pose.translation.vector - gt.translation.vector).norm();
+    let re = rotation_error_deg(&pose.rotation.to_rotation_matrix(), &gt.rotation.to_rotation_matrix());
+    (te <= 0.25 && re <= 2.0, te <= 0.5 && re <= 5.0)
+}
+
+/// Every query's outcome against one map and index.
+#[derive(Default)]
+struct Scored {
+    search_ms: Vec<f64>,
+    pnp_ms: Vec<f64>,
+    matches: Vec<f64>,
+    localised: usize,
+    within: usize,
+    within5: usize,
+}
+
+/// Localises every described query against `data` with `index` (the service's localisation, called directly).
 fn score(
     data: &MapData,
     index: &EmbeddingIndex,
     described: &[(scone::pipeline::Described, Isometry3<f64>)],
     camera: &Camera,
-) -> (Vec<f64>, usize, usize, usize) {
-    let params = LocalizeParams::default();
-    let (mut search, mut localised, mut within, mut within5) = (Vec::new(), 0, 0, 0);
+    params: &LocalizeParams,
+) -> Scored {
+    let mut out = Scored::default();
     for (d, gt) in described {
-        let l = localize(data, index, &d.features, &d.embeddings, camera, None, &params).unwrap();
-        search.push(l.search_s * 1e3);
+        let l = localize(data, index, &d.features, &d.embeddings, camera, None, params).unwrap();
+        out.search_ms.push(l.search_s * 1e3);
+        out.pnp_ms.push(l.pnp_s * 1e3);
+        out.matches.push(l.matches.len() as f64);
         if let Some(p) = &l.pose {
-            localised += 1;
-            let te = (p.camera_to_world.translation.vector - gt.translation.vector).norm();
-            let re =
-                rotation_error_deg(&p.camera_to_world.rotation.to_rotation_matrix(), &gt.rotation.to_rotation_matrix());
-            within += usize::from(te <= 0.25 && re <= 2.0);
-            within5 += usize::from(te <= 0.5 && re <= 5.0);
+            let (w, w5) = is_within(&p.camera_to_world, gt);
+            out.localised += 1;
+            out.within += usize::from(w);
+            out.within5 += usize::from(w5);
         }
     }
-    (search, localised, within, within5)
+    out
 }
 
 /// The lever of indexing landmarks instead of observations, measured on a copy of the map: every observation
@@ -528,10 +540,11 @@ fn per_landmark(
         index.sync(&data);
         let build = t.elapsed().as_secs_f64();
         let graph_kb = (rss_mb() - before) * 1024.0 / n as f64;
-        let (search, localised, within, within5) = score(&data, &index, &described, camera);
+        let Scored { search_ms, localised, within, within5, .. } =
+            score(&data, &index, &described, camera, &LocalizeParams::default());
         rows.push(format!(
             "| {label} | {points} | {build:.0} | {graph_kb:.2} | {:.1} | {localised}/{q} | {within}/{q} | {within5}/{q} |",
-            median(search),
+            median(search_ms),
             q = described.len(),
         ));
         eprintln!("{}", rows.last().unwrap());
@@ -557,32 +570,15 @@ fn sweep(
     let mut rows = Vec::new();
     for cap in CAPS {
         let params = LocalizeParams { max_query_keypoints: cap, ..LocalizeParams::default() };
-        let (mut localised, mut within, mut within5) = (0, 0, 0);
-        let (mut search, mut pnp, mut matches) = (Vec::new(), Vec::new(), Vec::new());
-        for (d, gt) in &described {
-            let l = map
-                .read(|data, index| localize(data, index, &d.features, &d.embeddings, camera, None, &params).unwrap());
-            search.push(l.search_s * 1e3);
-            pnp.push(l.pnp_s * 1e3);
-            matches.push(l.matches.len() as f64);
-            if let Some(p) = &l.pose {
-                localised += 1;
-                let te = (p.camera_to_world.translation.vector - gt.translation.vector).norm();
-                let re = rotation_error_deg(
-                    &p.camera_to_world.rotation.to_rotation_matrix(),
-                    &gt.rotation.to_rotation_matrix(),
-                );
-                within += usize::from(te <= 0.25 && re <= 2.0);
-                within5 += usize::from(te <= 0.5 && re <= 5.0);
-            }
-        }
+        let Scored { search_ms, pnp_ms, matches, localised, within, within5 } =
+            map.read(|data, index| score(data, index, &described, camera, &params));
         let n = described.len();
         rows.push(format!(
             "| {observations} | {} | {n} | {localised} | {within} | {within5} | {:.0} | {:.1} | {:.1} |",
             if cap == usize::MAX { "all".to_string() } else { cap.to_string() },
             median(matches),
-            median(search),
-            median(pnp),
+            median(search_ms),
+            median(pnp_ms),
         ));
     }
     rows
