@@ -72,6 +72,15 @@ impl App {
         F: FnOnce(&App) -> Result<R, ServiceError> + Send + 'static,
     {
         self.keys.check(key, access, operation)?;
+        self.run_on_pool(operation, f).await
+    }
+
+    /// Runs `f` on the CPU pool under the request deadline; the key was checked by the caller.
+    async fn run_on_pool<R, F>(self: &Arc<Self>, operation: &str, f: F) -> Result<R, ServiceError>
+    where
+        R: Send + 'static,
+        F: FnOnce(&App) -> Result<R, ServiceError> + Send + 'static,
+    {
         let timeout = self.settings.server.request_timeout_ms;
         let deadline = Instant::now() + Duration::from_millis(timeout);
         let app = Arc::clone(self);
@@ -119,7 +128,7 @@ impl App {
                 );
             }
         }
-        self.call(key, access, operation, f).await
+        self.run_on_pool(operation, f).await
     }
 
     /// Refuses with [`ServiceError::Overloaded`] when every slot of the CPU pool is taken. The transports
