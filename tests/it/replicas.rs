@@ -19,7 +19,7 @@ use tonic::transport::Channel;
 
 use crate::common::{fixture, temp_dir};
 use crate::object_store::{Moto, KEY_ID, PREFIX, SECRET};
-use crate::service::{image_frame, keyframe_requests, multipart_keyframe};
+use crate::service::{add_keyframes_http, image_frame, keyframe_requests, multipart_keyframe};
 
 /// The freshness bound the replicas run with (`store.cache.freshness_ms`).
 const FRESHNESS_MS: u64 = 2000;
@@ -218,15 +218,7 @@ async fn replicas_behind_nginx_share_maps_see_writes_survive_a_kill_and_evict() 
     };
     assert_eq!(create(&proxy.http, "m", false).await.unwrap().status(), 400, "the proxy needs the header");
     assert_eq!(create(&proxy.http, "m", true).await.unwrap().status(), 201);
-    for i in [0, 2, 4] {
-        let r = http
-            .post(format!("{}/v1/maps/m/keyframes", proxy.http))
-            .multipart(multipart_keyframe(&scene, i))
-            .send()
-            .await
-            .unwrap();
-        assert_eq!(r.status(), 200, "{}", r.text().await.unwrap());
-    }
+    add_keyframes_http(&http, &proxy.http, "m", &scene, &[0, 2, 4]).await;
     let c = scene.camera;
     let r = http
         .post(format!("{}/v1/maps/m/localize?fx={}&fy={}&cx={}&cy={}", proxy.http, c.fx, c.fy, c.cx, c.cy))

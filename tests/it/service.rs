@@ -239,6 +239,20 @@ pub(crate) fn multipart_keyframe(scene: &Scene, i: usize) -> reqwest::multipart:
     form
 }
 
+/// Adds frames `frames` of `scene` to map `map` over HTTP (`base` is the server's or a proxy's URL), each
+/// answered 200.
+pub(crate) async fn add_keyframes_http(http: &reqwest::Client, base: &str, map: &str, scene: &Scene, frames: &[usize]) {
+    for &i in frames {
+        let r = http
+            .post(format!("{base}/v1/maps/{map}/keyframes"))
+            .multipart(multipart_keyframe(scene, i))
+            .send()
+            .await
+            .unwrap();
+        assert_eq!(r.status(), 200, "{}", r.text().await.unwrap());
+    }
+}
+
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn http_mirror_builds_a_map_and_localises_a_raw_image() {
     let data = temp_dir("http");
@@ -248,15 +262,7 @@ async fn http_mirror_builds_a_map_and_localises_a_raw_image() {
     let base = format!("http://{}", server.http_addr);
     let r = http.post(format!("{base}/v1/maps")).json(&serde_json::json!({"map_id": "h"})).send().await.unwrap();
     assert_eq!(r.status(), 201);
-    for i in [1, 3, 5, 7, 9] {
-        let r = http
-            .post(format!("{base}/v1/maps/h/keyframes"))
-            .multipart(multipart_keyframe(&scene, i))
-            .send()
-            .await
-            .unwrap();
-        assert_eq!(r.status(), 200, "{}", r.text().await.unwrap());
-    }
+    add_keyframes_http(&http, &base, "h", &scene, &[1, 3, 5, 7, 9]).await;
     let c = scene.camera;
     let r: serde_json::Value = http
         .post(format!("{base}/v1/maps/h/localize?fx={}&fy={}&cx={}&cy={}", c.fx, c.fy, c.cx, c.cy))
