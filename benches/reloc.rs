@@ -82,13 +82,6 @@ fn map_frames(scenes: &[Scene]) -> Vec<MapFrame> {
     out
 }
 
-fn prefix_dir() -> PathBuf {
-    std::env::var_os("SCONE_PREFIX")
-        .map(PathBuf::from)
-        .unwrap_or_else(|| PathBuf::from(std::env::var_os("HOME").unwrap()).join(".cache/scone"))
-        .join("bench/reloc")
-}
-
 fn config(dir: &Path, index: IndexParams) -> StoreConfig {
     StoreConfig { data_dir: dir.to_path_buf(), compact_every: usize::MAX, index, ..StoreConfig::default() }
 }
@@ -119,7 +112,11 @@ fn prepare(
         .iter()
         .map(|f| format!("{}/{}\n", scenes[f.scene].name, scenes[f.scene].frames[f.frame].stamp))
         .collect();
-    let dir = prefix_dir().join(format!("{}-{target}-{:08x}", info.model_id, crc32fast::hash(list.as_bytes())));
+    let dir = common::prefix().join("bench/reloc").join(format!(
+        "{}-{target}-{:08x}",
+        info.model_id,
+        crc32fast::hash(list.as_bytes())
+    ));
     let done = dir.join("built.json");
     if std::env::var_os("SCONE_BENCH_REBUILD").is_some() {
         let _ = std::fs::remove_dir_all(&dir);
@@ -235,6 +232,9 @@ fn main() {
             .collect();
         let queries: Vec<(Vec<u8>, Isometry3<f64>)> =
             query_frames.iter().map(|&f| (jpeg(&kitchen.frames[f].rgb), kitchen.frames[f].pose.unwrap())).collect();
+        // Described once, before any measurement, for the recall, the sweep and the lever.
+        let described: Vec<Described> =
+            queries.iter().map(|(jpg, gt)| (describer.describe_image(jpg).unwrap(), *gt)).collect();
         notes.push(format!(
             "{target}: {} map frames ({} of the kitchen), {} observations, {} queries, build {:.0} s{}{}",
             built.frames,
@@ -288,10 +288,8 @@ fn main() {
             // Recall of the index against exact search, on the first queries' own embeddings (k = 2).
             let recall = if label == "HNSW" {
                 let sample = if target >= 1_000_000 { 1 } else { 3 };
-                let mut embeddings = Vec::new();
-                for (jpg, _) in queries.iter().take(sample) {
-                    embeddings.extend(describer.describe_image(jpg).unwrap().embeddings);
-                }
+                let embeddings: Vec<f32> =
+                    described.iter().take(sample).flat_map(|(d, _)| d.embeddings.iter().copied()).collect();
                 let (r1, r2, n) = store.get("m").unwrap().read(|data, index| {
                     let dim = data.meta.dim;
                     let per: Vec<(usize, usize)> = embeddings
@@ -366,9 +364,9 @@ fn main() {
         }
         // Then the sweep and the lever, on the HNSW row's map.
         let (store, observations) = (&open_maps[0], built.observations);
-        sweeps.push(sweep(store, &describer, &queries, &camera, observations));
+        sweeps.push(sweep(store, &described, &camera, observations));
         if target >= 1_000_000 || std::env::var_os("SCONE_BENCH_PER_LANDMARK").is_some() {
-            levers.push(per_landmark(store, &describer, &queries, &camera));
+            levers.push(per_landmark(store, &described, &camera));
         }
     }
     // One level per process (see `run_levels`): hand the lines to the parent.
@@ -452,6 +450,9 @@ fn run_levels() {
     }
 }
 
+/// A query's features and embeddings with its ground-truth pose.
+type Described = (scone::pipeline::Described, Isometry3<f64>);
+
 /// Whether `pose` is within (0.25 m, 2°) and within (0.5 m, 5°) of the ground truth `gt`.
 fn is_within(pose: &Isometry3<f64>, gt: &Isometry3<f64>) -> (bool, bool) {
     let te = (pose.translation.vector - gt.translation.vector).norm();
@@ -474,7 +475,7 @@ struct Scored {
 fn score(
     data: &MapData,
     index: &EmbeddingIndex,
-    described: &[(scone::pipeline::Described, Isometry3<f64>)],
+    described: &[Described],
     camera: &Camera,
     params: &LocalizeParams,
 ) -> Scored {
@@ -498,13 +499,7 @@ fn score(
 /// but each landmark's medoid (the one nearest, in embedding space, to its landmark's others, as ORB-SLAM
 /// picks a map point's descriptor) is left out of the graph, which is then built from scratch beside one with
 /// every observation; both answer every query with every keypoint searched.
-fn per_landmark(
-    store: &MapStore,
-    describer: &Describer,
-    queries: &[(Vec<u8>, Isometry3<f64>)],
-    camera: &Camera,
-) -> Vec<String> {
-    let described: Vec<_> = queries.iter().map(|(jpg, gt)| (describer.describe_image(jpg).unwrap(), *gt)).collect();
+fn per_landmark(store: &MapStore, described: &[Described], camera: &Camera) -> Vec<String> {
     let mut data = store.get("m").unwrap().read(|data, _| data.clone());
     let n = data.observations.len();
     let mut rows = Vec::new();
@@ -541,7 +536,7 @@ fn per_landmark(
         let build = t.elapsed().as_secs_f64();
         let graph_kb = (rss_mb() - before) * 1024.0 / n as f64;
         let Scored { search_ms, localised, within, within5, .. } =
-            score(&data, &index, &described, camera, &LocalizeParams::default());
+            score(&data, &index, described, camera, &LocalizeParams::default());
         rows.push(format!(
             "| {label} | {points} | {build:.0} | {graph_kb:.2} | {:.1} | {localised}/{q} | {within}/{q} | {within5}/{q} |",
             median(search_ms),
@@ -558,20 +553,13 @@ const CAPS: [usize; 5] = [usize::MAX, 1000, 600, 400, 250];
 
 /// Search and PnP of every query with each cap of [`CAPS`] (the service's localisation, called on the map
 /// directly so one opened map serves every cap).
-fn sweep(
-    store: &MapStore,
-    describer: &Describer,
-    queries: &[(Vec<u8>, Isometry3<f64>)],
-    camera: &Camera,
-    observations: usize,
-) -> Vec<String> {
-    let described: Vec<_> = queries.iter().map(|(jpg, gt)| (describer.describe_image(jpg).unwrap(), *gt)).collect();
+fn sweep(store: &MapStore, described: &[Described], camera: &Camera, observations: usize) -> Vec<String> {
     let map = store.get("m").unwrap();
     let mut rows = Vec::new();
     for cap in CAPS {
         let params = LocalizeParams { max_query_keypoints: cap, ..LocalizeParams::default() };
         let Scored { search_ms, pnp_ms, matches, localised, within, within5 } =
-            map.read(|data, index| score(data, index, &described, camera, &params));
+            map.read(|data, index| score(data, index, described, camera, &params));
         let n = described.len();
         rows.push(format!(
             "| {observations} | {} | {n} | {localised} | {within} | {within5} | {:.0} | {:.1} | {:.1} |",

@@ -43,10 +43,7 @@ fn start_moto(port: u16) -> Moto {
     let root = PathBuf::from(env!("CARGO_MANIFEST_DIR"));
     let ok = Command::new("bash").arg(root.join("scripts/setup-s3-test")).status().map(|s| s.success());
     assert!(ok.unwrap_or(false), "scripts/setup-s3-test failed");
-    let prefix = std::env::var_os("SCONE_PREFIX")
-        .map(PathBuf::from)
-        .unwrap_or_else(|| PathBuf::from(std::env::var_os("HOME").unwrap()).join(".cache/scone"));
-    let child = Command::new(prefix.join("venv-s3/bin/moto_server"))
+    let child = Command::new(common::prefix().join("venv-s3/bin/moto_server"))
         .args(["-H", "127.0.0.1", "-p", &port.to_string()])
         .stdout(Stdio::null())
         .stderr(Stdio::null())

@@ -17,3 +17,10 @@ pub fn shared_data() -> std::path::PathBuf {
         .map(std::path::PathBuf::from)
         .unwrap_or_else(|| std::path::PathBuf::from(concat!(env!("CARGO_MANIFEST_DIR"), "/../shared/data")))
 }
+
+/// The prefix outside the clone where heavy things live: `$SCONE_PREFIX`, else `~/.cache/scone`.
+pub fn prefix() -> std::path::PathBuf {
+    std::env::var_os("SCONE_PREFIX")
+        .map(std::path::PathBuf::from)
+        .unwrap_or_else(|| std::path::PathBuf::from(std::env::var_os("HOME").unwrap()).join(".cache/scone"))
+}
