@@ -167,7 +167,7 @@ fn prepare(
             );
         }
     }
-    store.flush().unwrap();
+    assert!(store.flush().is_empty(), "the map was not snapshotted");
     let s = store.summary("m").unwrap();
     let built = Built { frames: next, observations: s.observations, build_seconds: t.elapsed().as_secs_f64(), resumed };
     scone::map::format::write_atomic(&done, &serde_json::to_vec(&built).unwrap()).unwrap();

@@ -30,22 +30,33 @@ impl Camera {
     }
 }
 
-/// Checks intrinsics a client or a file gave: positive finite focal lengths, a finite principal point, a
-/// non-empty image.
+/// Largest focal length accepted, pixels (a 100-megapixel sensor behind a long lens stays far below).
+pub const MAX_FOCAL_PX: f64 = 1e6;
+/// Largest absolute coordinate of a position (pose translation, prior), map units: 10^8 m holds geocentric
+/// coordinates with room to spare; beyond it a value is a client's bug, and squares of it lose precision.
+pub const MAX_COORDINATE: f64 = 1e8;
+
+/// Checks intrinsics a client or a file gave: finite focal lengths in (0, [`MAX_FOCAL_PX`]], a non-empty
+/// image, and a principal point within one image size of the image (`cx` in [-width, 2 width], `cy` alike).
 pub fn validate_camera(cam: &Camera) -> Result<(), PoseError> {
     let bad = |reason: String| Err(PoseError::Intrinsics { reason });
     for (name, v) in [("fx", cam.fx), ("fy", cam.fy)] {
-        if !(v.is_finite() && v > 0.0) {
-            return bad(format!("{name} must be finite and positive (got {v})"));
-        }
-    }
-    for (name, v) in [("cx", cam.cx), ("cy", cam.cy)] {
-        if !v.is_finite() {
-            return bad(format!("{name} must be finite (got {v})"));
+        if !(v.is_finite() && v > 0.0 && v <= MAX_FOCAL_PX) {
+            return bad(format!("{name} must be finite, positive and at most {MAX_FOCAL_PX} (got {v})"));
         }
     }
     if cam.width == 0 || cam.height == 0 {
         return bad(format!("width and height must be positive (got {}x{})", cam.width, cam.height));
+    }
+    for (name, v, size) in [("cx", cam.cx, cam.width), ("cy", cam.cy, cam.height)] {
+        let size = f64::from(size);
+        if !(v.is_finite() && (-size..=2.0 * size).contains(&v)) {
+            return bad(format!(
+                "{name} must be finite and within [{}, {}] for this image size (got {v})",
+                -size,
+                2.0 * size
+            ));
+        }
     }
     Ok(())
 }
@@ -71,10 +82,14 @@ impl Pose {
         )
     }
 
-    /// Finite values and a quaternion of unit length (within 1e-3).
+    /// Finite values, a translation within [`MAX_COORDINATE`] on each axis, and a quaternion of unit length
+    /// (within 1e-3).
     pub fn validate(&self) -> Result<(), String> {
         if !self.translation.iter().chain(self.rotation.iter()).all(|v| v.is_finite()) {
             return Err("pose has a non-finite value".into());
+        }
+        if let Some(t) = self.translation.iter().find(|t| t.abs() > MAX_COORDINATE) {
+            return Err(format!("pose translation {t} is beyond {MAX_COORDINATE} map units"));
         }
         let n = self.rotation.iter().map(|v| v * v).sum::<f64>().sqrt();
         if (n - 1.0).abs() > 1e-3 {

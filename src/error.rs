@@ -92,6 +92,10 @@ pub enum MapError {
     Corrupt { path: std::path::PathBuf, reason: String },
     #[error("{path}: {source}")]
     Io { path: std::path::PathBuf, source: std::io::Error },
+    /// The volume that holds the maps (or their index dumps) has no space left (ENOSPC, or a quota). The write
+    /// that met it was undone: nothing of it is stored.
+    #[error("no space left on the data volume: {path} could not be written")]
+    StorageFull { path: std::path::PathBuf },
     #[error(transparent)]
     Feature(#[from] FeatureError),
     #[error(transparent)]

@@ -206,6 +206,8 @@ pub enum ErrorKind {
     FailedPrecondition,
     Unavailable,
     ResourceExhausted,
+    /// The data volume is full: the write was not made (gRPC RESOURCE_EXHAUSTED, HTTP 507).
+    InsufficientStorage,
     PayloadTooLarge,
     DeadlineExceeded,
     Unauthenticated,
@@ -251,6 +253,7 @@ fn map_kind(e: &MapError) -> ErrorKind {
         MapError::ModelMismatch { .. } => ErrorKind::FailedPrecondition,
         MapError::Unavailable { .. } | MapError::WriterConflict { .. } => ErrorKind::Unavailable,
         MapError::Corrupt { .. } | MapError::Io { .. } => ErrorKind::Internal,
+        MapError::StorageFull { .. } => ErrorKind::InsufficientStorage,
         MapError::Feature(f) => feature_kind(f),
         MapError::Embedding(e) => embedding_kind(e),
         MapError::Pose(p) => pose_kind(p),
@@ -286,6 +289,10 @@ impl ServiceError {
     pub fn client_message(&self) -> String {
         match self.kind() {
             ErrorKind::Internal => "internal error; the server log has the details".to_string(),
+            ErrorKind::InsufficientStorage => "insufficient storage: the data volume (store.data_dir) is full; \
+                                               nothing of this write was stored, and writes resume once space \
+                                               is freed"
+                .to_string(),
             _ => self.to_string(),
         }
     }
@@ -313,7 +320,8 @@ pub struct Holdings {
     pub observations: usize,
     /// Estimated memory of the loaded maps.
     pub loaded_bytes: u64,
-    /// The map cache's counts since start, by event (hit, miss, load, eviction, check, change, check_error).
+    /// The map cache's counts since start, by event (hit, miss, load, eviction, check, change, check_error,
+    /// log_cut).
     pub cache_events: Vec<(&'static str, u64)>,
     pub cache_load_seconds: f64,
     /// Calls to the storage service (object storage) since start.
@@ -614,18 +622,17 @@ impl Service {
                 ("check", n(&c.checks)),
                 ("change", n(&c.changed)),
                 ("check_error", n(&c.check_errors)),
+                ("log_cut", n(&c.logs_cut)),
             ],
             cache_load_seconds: n(&c.load_nanos) as f64 * 1e-9,
             storage: store.operation_stats(),
         }
     }
 
-    /// Snapshots every map and dumps its index.
-    pub fn flush(&self) -> Result<(), ServiceError> {
-        match self.store.get() {
-            Some(s) => Ok(s.flush()?),
-            None => Ok(()),
-        }
+    /// Snapshots every map and dumps its index; returns the maps that could not be (their acknowledged writes
+    /// are in their logs), with the error.
+    pub fn flush(&self) -> Vec<(String, MapError)> {
+        self.store.get().map(|s| s.flush()).unwrap_or_default()
     }
 }
 

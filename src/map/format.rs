@@ -6,6 +6,10 @@
 //! * log (`log.bin`): magic `SCONELOG`, format version, then records `[len u32][crc u32][version u64][payload]`
 //!   (CRC over version and payload), read back one frame at a time by [`read_frame`].
 //! * segment (an S3 object): one framed record behind the magic `SCONESEG` and the format version.
+//! * export (ExportMap, ImportMap): a snapshot, followed, when the map has an HNSW graph, by an index section
+//!   (magic `SCONEIDX`, its own version, lengths and CRC-32) carrying the graph's dump ([`encode_export`]), so
+//!   an import answers exactly as the exported map. A build before this section refuses such an export
+//!   (bytes after the snapshot); an export without it reads everywhere.
 //!
 //! Format versions. Every file (snapshot, log, segment; the object-storage manifest too) carries the version
 //! it was written in. This build writes [`FORMAT_VERSION`] 2 and reads 1 and 2:
@@ -43,8 +47,31 @@ pub(crate) const LOG_HEADER: u64 = 12;
 /// Largest record accepted when reading (a guard against a corrupt length field).
 const MAX_RECORD: u32 = 1 << 30;
 
+/// The error of an I/O call on `path`: [`MapError::StorageFull`] when the volume is full (or over a quota), so
+/// the transports can answer "insufficient storage" instead of an internal error; [`MapError::Io`] otherwise.
+pub(crate) fn io_error(path: &Path, source: std::io::Error) -> MapError {
+    use std::io::ErrorKind::{QuotaExceeded, StorageFull};
+    match source.kind() {
+        StorageFull | QuotaExceeded => MapError::StorageFull { path: path.to_path_buf() },
+        _ => MapError::Io { path: path.to_path_buf(), source },
+    }
+}
+
 pub(crate) fn io_err(path: &Path) -> impl FnOnce(std::io::Error) -> MapError + '_ {
-    move |source| MapError::Io { path: path.to_path_buf(), source }
+    move |source| io_error(path, source)
+}
+
+/// Fault injection for the durability tests: whether the `fail` point `site` is configured to `return` for
+/// `path` (with an argument, only for paths that contain each of its comma-separated parts). Inert unless a
+/// test configures the point (`fail::cfg`); the server never reads fail points from its environment.
+pub(crate) fn injected(site: &str, path: &Path) -> bool {
+    let path = path.to_string_lossy();
+    fail::eval(site, |arg| arg.is_none_or(|a| a.split(',').all(|part| path.contains(part)))).unwrap_or(false)
+}
+
+/// The error an injected fault raises: the volume is full.
+pub(crate) fn injected_full(path: &Path) -> MapError {
+    io_error(path, std::io::Error::new(std::io::ErrorKind::StorageFull, "injected fault: no space left"))
 }
 
 pub(crate) fn corrupt(path: &Path, reason: impl Into<String>) -> MapError {
@@ -139,15 +166,100 @@ pub fn decode_snapshot(bytes: &[u8], path: &Path) -> Result<MapData, MapError> {
     decoded.map_err(|e| corrupt(path, format!("cannot decode (format {version}): {e}")))
 }
 
-/// Writes `bytes` to `path` atomically (temporary file, fsync, rename, fsync of the directory).
+/// An index dump as bytes (to upload it, or to carry it in an export): `index.json` and hnsw_rs's two files
+/// ([`crate::map::index`] writes and reads them).
+#[derive(Debug, Clone, PartialEq)]
+pub struct DumpBytes {
+    pub manifest: Vec<u8>,
+    pub graph: Vec<u8>,
+    pub data: Vec<u8>,
+}
+
+const INDEX_SECTION_MAGIC: &[u8; 8] = b"SCONEIDX";
+const INDEX_SECTION_VERSION: u32 = 1;
+
+/// Encodes an export: the map's snapshot, followed (when `dump` is given) by the index section: magic
+/// `SCONEIDX`, section version (u32), the lengths of the manifest, the graph and the data file (u64 each),
+/// a CRC-32 of the three, then the three. An import loads that graph instead of building another (hnsw_rs
+/// inserts in parallel, so two builds of one map differ, and so would their answers).
+pub fn encode_export(data: &MapData, dump: Option<&DumpBytes>) -> Result<Vec<u8>, MapError> {
+    let mut out = encode_snapshot(data)?;
+    if let Some(d) = dump {
+        let parts = [&d.manifest, &d.graph, &d.data];
+        let mut crc = crc32fast::Hasher::new();
+        out.extend_from_slice(INDEX_SECTION_MAGIC);
+        out.extend_from_slice(&INDEX_SECTION_VERSION.to_le_bytes());
+        for p in parts {
+            out.extend_from_slice(&(p.len() as u64).to_le_bytes());
+            crc.update(p);
+        }
+        out.extend_from_slice(&crc.finalize().to_le_bytes());
+        for p in parts {
+            out.extend_from_slice(p);
+        }
+    }
+    Ok(out)
+}
+
+/// Decodes an export ([`encode_export`]): the map, and the index dump when the file carries one.
+pub fn decode_export(bytes: &[u8], path: &Path) -> Result<(MapData, Option<DumpBytes>), MapError> {
+    let declared = bytes.get(12..20).map_or(0, |b| u64::from_le_bytes(b.try_into().expect("8 bytes")));
+    let end = usize::try_from(declared).ok().and_then(|n| n.checked_add(24)).filter(|&e| e <= bytes.len());
+    let Some(end) = end else {
+        // Let the snapshot decoder say what is wrong.
+        return decode_snapshot(bytes, path).map(|d| (d, None));
+    };
+    let data = decode_snapshot(&bytes[..end], path)?;
+    let rest = &bytes[end..];
+    if rest.is_empty() {
+        return Ok((data, None));
+    }
+    let bad = |reason: &str| corrupt(path, format!("index section: {reason}"));
+    if rest.len() < 40 || &rest[..8] != INDEX_SECTION_MAGIC {
+        return Err(bad("bad magic after the map"));
+    }
+    let version = u32::from_le_bytes(rest[8..12].try_into().expect("4 bytes"));
+    if version != INDEX_SECTION_VERSION {
+        return Err(bad(&format!("version {version}, this build reads {INDEX_SECTION_VERSION}")));
+    }
+    let len = |at: usize| u64::from_le_bytes(rest[at..at + 8].try_into().expect("8 bytes"));
+    let lens = [len(12), len(20), len(28)];
+    let crc = u32::from_le_bytes(rest[36..40].try_into().expect("4 bytes"));
+    let body = &rest[40..];
+    if lens.iter().try_fold(0u64, |a, &n| a.checked_add(n)) != Some(body.len() as u64) {
+        return Err(bad("its lengths do not add up to its size"));
+    }
+    let (manifest, tail) = body.split_at(lens[0] as usize);
+    let (graph, file) = tail.split_at(lens[1] as usize);
+    let mut h = crc32fast::Hasher::new();
+    for p in [manifest, graph, file] {
+        h.update(p);
+    }
+    if h.finalize() != crc {
+        return Err(bad("checksum mismatch"));
+    }
+    Ok((data, Some(DumpBytes { manifest: manifest.to_vec(), graph: graph.to_vec(), data: file.to_vec() })))
+}
+
+/// Writes `bytes` to `path` atomically (temporary file, fsync, rename, fsync of the directory). On failure
+/// the temporary file is removed and `path` is as it was. Fail point `map-write` (argument: part of the path).
 pub fn write_atomic(path: &Path, bytes: &[u8]) -> Result<(), MapError> {
     let tmp = path.with_extension("tmp");
-    {
+    let written = (|| {
         let mut f = File::create(&tmp).map_err(io_err(&tmp))?;
+        if injected("map-write", path) {
+            // Half the bytes, then the volume is full: what a real ENOSPC leaves behind.
+            let _ = f.write_all(&bytes[..bytes.len() / 2]);
+            return Err(injected_full(&tmp));
+        }
         f.write_all(bytes).map_err(io_err(&tmp))?;
         f.sync_all().map_err(io_err(&tmp))?;
+        std::fs::rename(&tmp, path).map_err(io_err(path))
+    })();
+    if let Err(e) = written {
+        let _ = std::fs::remove_file(&tmp);
+        return Err(e);
     }
-    std::fs::rename(&tmp, path).map_err(io_err(path))?;
     sync_dir(path.parent().unwrap_or(Path::new(".")))
 }
 

@@ -5,11 +5,16 @@
 //! tombstones (`live = false`) that are filtered at query time, since HNSW cannot delete points. When
 //! tombstones exceed `rebuild_dead_share` of the points the graph is rebuilt from the live observations.
 //!
-//! Persistence: `hnsw_rs`'s dump (graph + data files) plus `index.json` with the number of points, the model
-//! id and CRC-32s of both files. A restart loads the dump when it matches and inserts only the observations
-//! added after it; anything else (missing, wrong model, checksum mismatch) rebuilds from the map data.
-//! Building is the slow part (11-18 s for 100k observations on this machine, `cargo bench --bench replica`), so a dump is written at compaction
-//! and at shutdown.
+//! Persistence: `hnsw_rs`'s dump (a graph and a data file under one base name) plus `index.json`, which
+//! names that base and records the model id, CRC-32s of both files, how many observations were offered to
+//! the graph and how many it holds, and a CRC-32 of their embeddings. Each dump goes under a new base name
+//! (hnsw_rs will not overwrite the files a loaded graph came from, and picks another name itself: the name it
+//! returns is the one recorded); the manifest is replaced atomically, and only then are the replaced files
+//! deleted. A restart loads the dump only when it holds exactly the map's observations: the manifest matches
+//! the map (model, counts, embeddings), the files match their checksums, and, point by point, the graph holds
+//! each observation it should with the map's embedding. It then inserts only the observations added after
+//! it; anything else rebuilds from the map data. Building is the slow part (11-18 s for 100k observations on
+//! this machine, `cargo bench --bench replica`), so a dump is written at compaction and at shutdown.
 
 use std::path::Path;
 
@@ -18,6 +23,8 @@ use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
 use crate::error::MapError;
+use crate::map::format::io_error;
+pub use crate::map::format::DumpBytes;
 use crate::map::model::MapData;
 
 /// Settings of the index.
@@ -43,13 +50,20 @@ impl Default for IndexParams {
 /// hnsw_rs's dump only reloads with 16 layers.
 const MAX_LAYER: usize = 16;
 
+/// `index.json`: which files hold the dump, and what it was built from.
 #[derive(Debug, Serialize, Deserialize, PartialEq)]
 struct DumpManifest {
+    /// Base name of the two files (`<base>.hnsw.graph`, `<base>.hnsw.data`), as hnsw_rs wrote them.
+    base: String,
+    /// Observations `[0, points)` were offered to the graph...
     points: usize,
+    /// ...of which this many (the live ones then) are in it.
     in_graph: usize,
     model_id: String,
     graph_crc: u32,
     data_crc: u32,
+    /// CRC-32 of the embeddings of observations `[0, points)` at the dump.
+    embeddings_crc: u32,
 }
 
 /// A neighbour: observation id and L2 distance.
@@ -253,61 +267,219 @@ impl EmbeddingIndex {
         queries.par_chunks_exact(dim).with_min_len(64).map(|q| self.search(data, q, k, accept)).collect()
     }
 
-    /// Writes the HNSW graph (if any) with a manifest into `dir`.
-    pub fn dump(&self, dir: &Path, model_id: &str) -> Result<(), MapError> {
-        let manifest_path = dir.join("index.json");
+    /// Writes the HNSW graph (if any) of `data` with its manifest into `dir`: hnsw_rs's two files under a
+    /// new base name, then `index.json` naming them (atomically), then the dumps it replaces are deleted. A
+    /// failed dump removes its partial files and leaves the previous dump (and its manifest) as they were.
+    /// Without a graph, every dump in `dir` is removed. Fail point `index-dump`.
+    pub fn dump(&self, dir: &Path, data: &MapData) -> Result<(), MapError> {
+        let manifest_path = dir.join(DUMP_MANIFEST);
         let Some(graph) = &self.hnsw else {
             let _ = std::fs::remove_file(&manifest_path);
+            remove_dumps_except(dir, None);
             return Ok(());
         };
-        let _ = std::fs::remove_file(&manifest_path);
-        let base = "index";
-        graph
-            .file_dump(dir, base)
-            .map_err(|e| MapError::Io { path: dir.join(base), source: std::io::Error::other(e.to_string()) })?;
-        let crc = |name: &str| -> Result<u32, MapError> {
-            let p = dir.join(name);
-            let bytes = std::fs::read(&p).map_err(|source| MapError::Io { path: p.clone(), source })?;
-            Ok(crc32fast::hash(&bytes))
+        let base = format!("index-{:016x}", rand::random::<u64>());
+        let written = if crate::map::format::injected("index-dump", dir) {
+            let _ = std::fs::write(dir.join(format!("{base}{GRAPH_SUFFIX}")), b"partial");
+            Err(crate::map::format::injected_full(&dir.join(&base)))
+        } else {
+            // hnsw_rs panics on some I/O failures (a file it cannot create): a failed dump, not a crash.
+            let dumped = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| graph.file_dump(dir, &base)));
+            match dumped {
+                Ok(Ok(name)) => Ok(name),
+                Ok(Err(e)) => {
+                    let kind = e
+                        .chain()
+                        .find_map(|c| c.downcast_ref::<std::io::Error>())
+                        .map_or(std::io::ErrorKind::Other, std::io::Error::kind);
+                    Err(io_error(&dir.join(&base), std::io::Error::new(kind, format!("{e:#}"))))
+                }
+                Err(_) => Err(io_error(&dir.join(&base), std::io::Error::other("hnsw_rs panicked while dumping"))),
+            }
         };
-        let manifest = DumpManifest {
-            points: self.indexed,
-            in_graph: self.in_graph,
-            model_id: model_id.to_string(),
-            graph_crc: crc("index.hnsw.graph")?,
-            data_crc: crc("index.hnsw.data")?,
+        let name = match written {
+            Ok(name) => name,
+            Err(e) => {
+                remove_dump(dir, &base);
+                return Err(e);
+            }
         };
-        let json = serde_json::to_vec(&manifest).expect("manifest serialises");
-        crate::map::format::write_atomic(&manifest_path, &json)
+        let finished = (|| {
+            let manifest = DumpManifest {
+                base: name.clone(),
+                points: self.indexed,
+                in_graph: self.in_graph,
+                model_id: data.meta.model_id.clone(),
+                graph_crc: file_crc(&dir.join(format!("{name}{GRAPH_SUFFIX}")))?,
+                data_crc: file_crc(&dir.join(format!("{name}{DATA_SUFFIX}")))?,
+                embeddings_crc: embeddings_crc(data, self.indexed),
+            };
+            let json = serde_json::to_vec(&manifest).expect("manifest serialises");
+            crate::map::format::write_atomic(&manifest_path, &json)
+        })();
+        if let Err(e) = finished {
+            remove_dump(dir, &name);
+            return Err(e);
+        }
+        remove_dumps_except(dir, Some(&name));
+        Ok(())
     }
 
-    /// Loads a dump from `dir` when it matches `data` (model, size, checksums); then syncs the rest.
-    /// Returns whether the dump was used.
+    /// Loads a dump from `dir` when it holds exactly what `data` says it should (model, files' checksums,
+    /// the embeddings it was built from, and, point by point, the observations in the graph); then syncs the
+    /// rest. Anything else rebuilds from the map data.
     pub fn load_or_build(params: IndexParams, dir: &Path, data: &MapData) -> Self {
         let mut index = Self::new(params);
-        if let Some((graph, points, in_graph)) = Self::try_load(dir, data) {
-            index.hnsw = Some(graph);
-            index.indexed = points;
-            index.in_graph = in_graph;
-            index.from_dump = true;
+        match Self::try_load(dir, data) {
+            Ok(Some((graph, points, in_graph))) => {
+                index.hnsw = Some(graph);
+                index.indexed = points;
+                index.in_graph = in_graph;
+                index.from_dump = true;
+            }
+            Ok(None) => {}
+            Err(reason) => tracing::warn!(dir = %dir.display(), %reason, "index dump not used: rebuilding"),
         }
         index.sync(data);
         index
     }
 
-    fn try_load(dir: &Path, data: &MapData) -> Option<(Hnsw<'static, f32, DistL2>, usize, usize)> {
-        let manifest: DumpManifest = serde_json::from_slice(&std::fs::read(dir.join("index.json")).ok()?).ok()?;
-        if manifest.model_id != data.meta.model_id || manifest.points > data.observations.len() {
-            return None;
+    /// The dump in `dir` if it matches `data`; `Ok(None)` when there is none, `Err` with the reason when it
+    /// does not match.
+    fn try_load(dir: &Path, data: &MapData) -> Result<Option<(Hnsw<'static, f32, DistL2>, usize, usize)>, String> {
+        let Ok(bytes) = std::fs::read(dir.join(DUMP_MANIFEST)) else { return Ok(None) };
+        let manifest: DumpManifest =
+            serde_json::from_slice(&bytes).map_err(|e| format!("{DUMP_MANIFEST} does not read: {e}"))?;
+        if manifest.model_id != data.meta.model_id {
+            return Err(format!("dumped for model {}", manifest.model_id));
         }
-        let crc = |name: &str| std::fs::read(dir.join(name)).ok().map(|b| crc32fast::hash(&b));
-        if crc("index.hnsw.graph")? != manifest.graph_crc || crc("index.hnsw.data")? != manifest.data_crc {
-            tracing::warn!(dir = %dir.display(), "index dump checksum mismatch: rebuilding");
-            return None;
+        if manifest.points > data.observations.len() {
+            return Err(format!("holds {} observations, the map {}", manifest.points, data.observations.len()));
         }
-        // The loader borrows from its HnswIo for the graph's lifetime; one small HnswIo per load is kept.
-        let io: &'static mut HnswIo = Box::leak(Box::new(HnswIo::new(dir, "index")));
-        let graph: Hnsw<'static, f32, DistL2> = io.load_hnsw().ok()?;
-        Some((graph, manifest.points, manifest.in_graph))
+        if !valid_base(&manifest.base) {
+            return Err(format!("names the files '{}'", manifest.base));
+        }
+        let crc = |suffix: &str| file_crc(&dir.join(format!("{}{suffix}", manifest.base))).ok();
+        if crc(GRAPH_SUFFIX) != Some(manifest.graph_crc) || crc(DATA_SUFFIX) != Some(manifest.data_crc) {
+            return Err("the files' checksums do not match the manifest".into());
+        }
+        if embeddings_crc(data, manifest.points) != manifest.embeddings_crc {
+            return Err("built from other embeddings than the map's".into());
+        }
+        let load = || {
+            // The loader borrows from its HnswIo for the graph's lifetime; one small HnswIo per load is kept.
+            let io: &'static mut HnswIo = Box::leak(Box::new(HnswIo::new(dir, &manifest.base)));
+            io.load_hnsw()
+        };
+        // hnsw_rs asserts on what it reads (magic numbers, dimensions): a bad file is a rebuild, not a crash.
+        let graph: Hnsw<'static, f32, DistL2> = match std::panic::catch_unwind(std::panic::AssertUnwindSafe(load)) {
+            Ok(Ok(g)) => g,
+            Ok(Err(e)) => return Err(format!("hnsw_rs cannot load it: {e}")),
+            Err(_) => return Err("hnsw_rs panicked loading it".into()),
+        };
+        check_graph(&graph, data, manifest.points, manifest.in_graph)?;
+        Ok(Some((graph, manifest.points, manifest.in_graph)))
+    }
+}
+
+/// The manifest of a dump, and the suffixes hnsw_rs gives its two files.
+pub const DUMP_MANIFEST: &str = "index.json";
+const GRAPH_SUFFIX: &str = ".hnsw.graph";
+const DATA_SUFFIX: &str = ".hnsw.data";
+
+/// The dump in `dir`, read (`None` when there is none or it cannot be read whole).
+pub fn read_dump(dir: &Path) -> Option<DumpBytes> {
+    let manifest = std::fs::read(dir.join(DUMP_MANIFEST)).ok()?;
+    let base = serde_json::from_slice::<DumpManifest>(&manifest).ok()?.base;
+    if !valid_base(&base) {
+        return None;
+    }
+    let graph = std::fs::read(dir.join(format!("{base}{GRAPH_SUFFIX}"))).ok()?;
+    let data = std::fs::read(dir.join(format!("{base}{DATA_SUFFIX}"))).ok()?;
+    Some(DumpBytes { manifest, graph, data })
+}
+
+/// Writes a dump read elsewhere ([`read_dump`]) into `dir`: the two files under the manifest's base name, the
+/// manifest last, then the other dumps there are deleted. The loader checks it against the map, so a dump
+/// that does not match is rebuilt, not used.
+pub fn install_dump(dir: &Path, dump: &DumpBytes) -> Result<(), MapError> {
+    let base = serde_json::from_slice::<DumpManifest>(&dump.manifest)
+        .ok()
+        .map(|m| m.base)
+        .filter(|b| valid_base(b))
+        .ok_or_else(|| crate::map::format::corrupt(&dir.join(DUMP_MANIFEST), "not an index manifest"))?;
+    let write = crate::map::format::write_atomic;
+    write(&dir.join(format!("{base}{GRAPH_SUFFIX}")), &dump.graph)?;
+    write(&dir.join(format!("{base}{DATA_SUFFIX}")), &dump.data)?;
+    write(&dir.join(DUMP_MANIFEST), &dump.manifest)?;
+    remove_dumps_except(dir, Some(&base));
+    Ok(())
+}
+
+/// A base name this module writes (`index-<hex>`, or `index-<n>` as hnsw_rs may pick): no path, no dots.
+fn valid_base(base: &str) -> bool {
+    !base.is_empty() && base.len() <= 64 && base.bytes().all(|b| b.is_ascii_alphanumeric() || b == b'-' || b == b'_')
+}
+
+fn file_crc(path: &Path) -> Result<u32, MapError> {
+    std::fs::read(path).map(|b| crc32fast::hash(&b)).map_err(|e| io_error(path, e))
+}
+
+/// CRC-32 of the embeddings of observations `[0, points)`: what the graph was built from.
+fn embeddings_crc(data: &MapData, points: usize) -> u32 {
+    let mut h = crc32fast::Hasher::new();
+    for v in &data.embeddings[..(points * data.meta.dim).min(data.embeddings.len())] {
+        h.update(&v.to_le_bytes());
+    }
+    h.finalize()
+}
+
+/// Whether a loaded graph holds exactly what the map says it should: `in_graph` points, each an observation
+/// below `points` (once) with the map's embedding, and every observation below `points` that is still live
+/// (a removed keyframe's observations may stay as tombstones; a live one never went missing).
+fn check_graph(
+    graph: &Hnsw<'static, f32, DistL2>,
+    data: &MapData,
+    points: usize,
+    in_graph: usize,
+) -> Result<(), String> {
+    let mut seen = vec![false; points];
+    let mut count = 0usize;
+    for p in graph.get_point_indexation() {
+        let id = p.get_origin_id();
+        if id >= points || seen[id] {
+            return Err(format!("observation {id} is out of range or in the graph twice"));
+        }
+        if p.get_v() != data.embedding(id) {
+            return Err(format!("observation {id} has another embedding in the graph"));
+        }
+        seen[id] = true;
+        count += 1;
+    }
+    if count != in_graph {
+        return Err(format!("the graph holds {count} points, the manifest says {in_graph}"));
+    }
+    if let Some(missing) = (0..points).find(|&i| data.observations[i].live && !seen[i]) {
+        return Err(format!("live observation {missing} is not in the graph"));
+    }
+    Ok(())
+}
+
+/// Removes the two files of the dump `base` in `dir`.
+fn remove_dump(dir: &Path, base: &str) {
+    for suffix in [GRAPH_SUFFIX, DATA_SUFFIX] {
+        let _ = std::fs::remove_file(dir.join(format!("{base}{suffix}")));
+    }
+}
+
+/// Removes every dump file in `dir` but those of `keep` (replaced dumps, and any a crash left behind).
+fn remove_dumps_except(dir: &Path, keep: Option<&str>) {
+    let Ok(entries) = std::fs::read_dir(dir) else { return };
+    for entry in entries.flatten() {
+        let name = entry.file_name().to_string_lossy().into_owned();
+        let base = name.strip_suffix(GRAPH_SUFFIX).or_else(|| name.strip_suffix(DATA_SUFFIX));
+        if base.is_some_and(|b| Some(b) != keep) {
+            let _ = std::fs::remove_file(entry.path());
+        }
     }
 }

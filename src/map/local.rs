@@ -8,6 +8,13 @@
 //! corruption: the map is reported and held back; the caller keeps serving the others. After
 //! `compact_every` records the map is snapshotted and the log restarted.
 //!
+//! **A failed write leaves the files as they were.** An append that fails (a full volume: `ENOSPC` in the
+//! middle of the record, or a failed `fdatasync`) is cut back off the log before the error is returned, so
+//! later records follow good data; if even the cut fails, the log refuses appends until a later one manages
+//! it. A map is created in a hidden directory that is renamed into place once its snapshot and log are
+//! durable; a failed create removes it, and one interrupted by a crash is removed at the next start (as are
+//! the remains of an interrupted delete).
+//!
 //! A format-1 log is folded into a current-format snapshot with a fresh log as soon as it is opened (the
 //! same crash-safe steps as compaction), so a record of a new kind never lands in a file whose header
 //! promises the old format.
@@ -18,8 +25,8 @@ use std::path::{Path, PathBuf};
 
 use crate::error::MapError;
 use crate::map::format::{
-    corrupt, decode_snapshot, encode_record, encode_snapshot, io_err, read_frame, readable_version, sync_dir,
-    unreadable, write_atomic, Frame, FORMAT_VERSION, LOG_HEADER, LOG_MAGIC,
+    corrupt, decode_snapshot, encode_record, encode_snapshot, injected, injected_full, io_err, io_error, read_frame,
+    readable_version, sync_dir, unreadable, write_atomic, Frame, FORMAT_VERSION, LOG_HEADER, LOG_MAGIC,
 };
 use crate::map::journal::{LoadReport, MapBackend, MapJournal};
 use crate::map::model::{validate_map_id, MapData, MapStats, Record};
@@ -29,6 +36,10 @@ use crate::map::model::{validate_map_id, MapData, MapStats, Record};
 pub struct MapLog {
     dir: PathBuf,
     file: File,
+    /// Bytes of the log that hold whole, durable records (and the header): where the next record goes.
+    len: u64,
+    /// A failed append could not be cut back off: the file is longer than `len` until a later cut succeeds.
+    torn_tail: bool,
     records: usize,
     compact_every: usize,
 }
@@ -42,20 +53,19 @@ impl MapLog {
         dir.join("snapshot.bin")
     }
 
+    /// Replaces the log with an empty one (header only), atomically.
     fn fresh_log(dir: &Path) -> Result<File, MapError> {
         let path = Self::log_path(dir);
-        let tmp = path.with_extension("tmp");
-        {
-            let mut f = File::create(&tmp).map_err(io_err(&tmp))?;
-            f.write_all(LOG_MAGIC).map_err(io_err(&tmp))?;
-            f.write_all(&FORMAT_VERSION.to_le_bytes()).map_err(io_err(&tmp))?;
-            f.sync_all().map_err(io_err(&tmp))?;
-        }
-        std::fs::rename(&tmp, &path).map_err(io_err(&path))?;
-        sync_dir(dir)?;
+        let mut header = LOG_MAGIC.to_vec();
+        header.extend_from_slice(&FORMAT_VERSION.to_le_bytes());
+        write_atomic(&path, &header)?;
         let mut f = OpenOptions::new().read(true).append(true).open(&path).map_err(io_err(&path))?;
         f.seek(SeekFrom::End(0)).map_err(io_err(&path))?;
         Ok(f)
+    }
+
+    fn new(dir: &Path, file: File, len: u64, records: usize, compact_every: usize) -> Self {
+        Self { dir: dir.to_path_buf(), file, len, torn_tail: false, records, compact_every }
     }
 
     /// Creates the directory, a snapshot of `data` and an empty log.
@@ -66,7 +76,7 @@ impl MapLog {
         if let Some(parent) = dir.parent() {
             sync_dir(parent)?;
         }
-        Ok(Self { dir: dir.to_path_buf(), file, records: 0, compact_every })
+        Ok(Self::new(dir, file, LOG_HEADER, 0, compact_every))
     }
 
     /// Loads snapshot + log, cutting a torn tail.
@@ -78,7 +88,7 @@ impl MapLog {
         let mut report = LoadReport::default();
         if !log_path.exists() {
             let file = Self::fresh_log(dir)?;
-            return Ok((data, Self { dir: dir.to_path_buf(), file, records: 0, compact_every }, report));
+            return Ok((data, Self::new(dir, file, LOG_HEADER, 0, compact_every), report));
         }
         let mut file = OpenOptions::new().read(true).append(true).open(&log_path).map_err(io_err(&log_path))?;
         let mut buf = Vec::new();
@@ -122,7 +132,7 @@ impl MapLog {
             tracing::warn!(log = %log_path.display(), bytes = report.truncated_bytes, "cut a torn record off the log");
         }
         file.seek(SeekFrom::End(0)).map_err(io_err(&log_path))?;
-        let mut log = Self { dir: dir.to_path_buf(), file, records, compact_every };
+        let mut log = Self::new(dir, file, pos as u64, records, compact_every);
         if version < FORMAT_VERSION {
             // New kinds of record must not go into a file whose header promises the old format.
             log.compact(&data)?;
@@ -131,13 +141,39 @@ impl MapLog {
         Ok((data, log, report))
     }
 
-    /// Appends the record that takes `data` to version `seq` and waits until it is on disk.
+    /// Appends the record that takes `data` to version `seq` and waits until it is on disk. On failure the
+    /// log is cut back to the records before it (fail point `map-append`: half the record, then a full volume).
     pub fn append(&mut self, seq: u64, record: &Record) -> Result<(), MapError> {
         let path = Self::log_path(&self.dir);
         let frame = encode_record(seq, record)?;
-        self.file.write_all(&frame).map_err(io_err(&path))?;
-        self.file.sync_data().map_err(io_err(&path))?;
+        if self.torn_tail {
+            self.cut_back()?;
+        }
+        let written = if injected("map-append", &path) {
+            let _ = self.file.write_all(&frame[..frame.len() / 2]);
+            Err(injected_full(&path))
+        } else {
+            self.file.write_all(&frame).and_then(|()| self.file.sync_data()).map_err(io_err(&path))
+        };
+        if let Err(e) = written {
+            // Whatever reached the file of this record goes, so the next record follows good data.
+            self.torn_tail = true;
+            if let Err(cut) = self.cut_back() {
+                tracing::error!(log = %path.display(), error = %cut, "cannot cut a failed append off the log; appends wait for the cut");
+            }
+            return Err(e);
+        }
+        self.len += frame.len() as u64;
         self.records += 1;
+        Ok(())
+    }
+
+    /// Truncates the log to its last whole record (after a failed append) and makes that durable.
+    fn cut_back(&mut self) -> Result<(), MapError> {
+        let path = Self::log_path(&self.dir);
+        self.file.set_len(self.len).map_err(io_err(&path))?;
+        self.file.sync_all().map_err(io_err(&path))?;
+        self.torn_tail = false;
         Ok(())
     }
 
@@ -151,6 +187,8 @@ impl MapLog {
     pub fn compact(&mut self, data: &MapData) -> Result<(), MapError> {
         write_atomic(&Self::snapshot_path(&self.dir), &encode_snapshot(data)?)?;
         self.file = Self::fresh_log(&self.dir)?;
+        self.len = LOG_HEADER;
+        self.torn_tail = false;
         self.records = 0;
         Ok(())
     }
@@ -158,6 +196,14 @@ impl MapLog {
     pub fn dir(&self) -> &Path {
         &self.dir
     }
+}
+
+/// Prefixes of the hidden directories of an unfinished create and an unfinished delete.
+const CREATING: &str = ".creating-";
+const DELETED: &str = ".deleted-";
+
+fn unique_suffix(id: &str) -> String {
+    format!("{id}-{:016x}", rand::random::<u64>())
 }
 
 /// Maps in `data_dir/maps/<id>/`, each a [`MapLog`].
@@ -168,10 +214,24 @@ pub struct LocalBackend {
 }
 
 impl LocalBackend {
-    /// Creates `data_dir/maps` if needed.
+    /// Creates `data_dir/maps` if needed, and removes what an interrupted create or delete left there.
     pub fn new(data_dir: &Path, compact_every: usize) -> Result<Self, MapError> {
         let root = data_dir.join("maps");
-        std::fs::create_dir_all(&root).map_err(|source| MapError::Io { path: root.clone(), source })?;
+        std::fs::create_dir_all(&root).map_err(io_err(&root))?;
+        for entry in std::fs::read_dir(&root).map_err(io_err(&root))? {
+            let path = entry.map_err(io_err(&root))?.path();
+            let name = path.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_default();
+            if path.is_dir() && (name.starts_with(CREATING) || name.starts_with(DELETED)) {
+                match std::fs::remove_dir_all(&path) {
+                    Ok(()) => {
+                        tracing::info!(dir = %path.display(), "removed what an interrupted create or delete left")
+                    }
+                    Err(e) => {
+                        tracing::warn!(dir = %path.display(), error = %e, "cannot remove an unfinished create or delete")
+                    }
+                }
+            }
+        }
         Ok(Self { root, compact_every })
     }
 
@@ -204,10 +264,10 @@ impl MapBackend for LocalBackend {
     }
 
     fn list(&self) -> Result<Vec<String>, MapError> {
-        let io = |source| MapError::Io { path: self.root.clone(), source };
+        let io = io_err(&self.root);
         let mut ids = Vec::new();
         for entry in std::fs::read_dir(&self.root).map_err(io)? {
-            let entry = entry.map_err(io)?;
+            let entry = entry.map_err(|e| io_error(&self.root, e))?;
             let name = entry.file_name().to_string_lossy().into_owned();
             // Skips the `.deleted-*` directories of an interrupted delete, among others.
             if entry.path().is_dir() && validate_map_id(&name).is_ok() {
@@ -222,11 +282,35 @@ impl MapBackend for LocalBackend {
         Ok(self.dir(id).exists())
     }
 
+    /// Writes the map in a hidden directory and renames it into place: a map directory is whole or absent.
     fn create(&self, id: &str, data: &MapData) -> Result<Box<dyn MapJournal>, MapError> {
-        if self.dir(id).exists() {
+        let dir = self.dir(id);
+        if dir.exists() {
             return Err(MapError::MapExists { map: id.to_string() });
         }
-        Ok(Box::new(MapLog::create(&self.dir(id), data, self.compact_every)?))
+        let staging = self.root.join(format!("{CREATING}{}", unique_suffix(id)));
+        let created = MapLog::create(&staging, data, self.compact_every).and_then(|mut log| {
+            if dir.exists() {
+                return Err(MapError::MapExists { map: id.to_string() });
+            }
+            std::fs::rename(&staging, &dir).map_err(io_err(&dir))?;
+            log.dir = dir.clone();
+            Ok(log)
+        });
+        match created {
+            Ok(log) => match sync_dir(&self.root) {
+                Ok(()) => Ok(Box::new(log)),
+                Err(e) => {
+                    // Not known to be durable: not acknowledged, and not left half there.
+                    let _ = std::fs::remove_dir_all(&dir);
+                    Err(e)
+                }
+            },
+            Err(e) => {
+                let _ = std::fs::remove_dir_all(&staging);
+                Err(e)
+            }
+        }
     }
 
     fn open(&self, id: &str) -> Result<(MapData, Box<dyn MapJournal>, LoadReport), MapError> {
@@ -241,9 +325,9 @@ impl MapBackend for LocalBackend {
             .duration_since(std::time::UNIX_EPOCH)
             .map(|d| d.as_millis() as u64)
             .unwrap_or(0);
-        let trash = self.root.join(format!(".deleted-{id}-{millis}"));
-        std::fs::rename(&dir, &trash).map_err(|source| MapError::Io { path: dir.clone(), source })?;
+        let trash = self.root.join(format!("{DELETED}{id}-{millis}"));
+        std::fs::rename(&dir, &trash).map_err(io_err(&dir))?;
         sync_dir(&self.root)?;
-        std::fs::remove_dir_all(&trash).map_err(|source| MapError::Io { path: trash, source })
+        std::fs::remove_dir_all(&trash).map_err(io_err(&trash))
     }
 }

@@ -167,10 +167,11 @@ pub fn localize(
         });
     }
     if let Some(p) = prior {
-        if !(p.position.iter().all(|v| v.is_finite()) && p.radius.is_finite() && p.radius > 0.0) {
+        let bound = crate::camera::MAX_COORDINATE;
+        if !(p.position.iter().all(|v| v.is_finite() && v.abs() <= bound) && p.radius.is_finite() && p.radius > 0.0) {
             return Err(MapError::InvalidInput {
                 field: "prior".into(),
-                reason: "needs a finite position and a positive radius".into(),
+                reason: format!("needs a finite position within {bound} map units and a positive radius"),
             });
         }
     }

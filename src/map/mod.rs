@@ -1,10 +1,10 @@
 //! Maps: keyframes, landmarks and their SConE observations, stored durably with a nearest-neighbour index per
 //! map.
 //!
-//! Who imports whom, top to bottom (nothing imports back up): [`store`] -> [`journal`] (the storage traits)
-//! -> [`local`] / [`s3`] (the two backends) -> [`format`](mod@format) (their shared bytes) -> [`model`]; beside them
-//! [`index`], [`localize`] and [`builder`], which the store calls and which import only the model (and the
-//! index its dump's atomic write from [`format`](mod@format)).
+//! Who imports whom, top to bottom (nothing imports back up): [`store`] -> [`local`] / [`s3`] (the two
+//! backends, which implement the traits of [`journal`]) -> [`index`] (the object-storage backend moves its
+//! dumps) -> [`format`](mod@format) (the shared bytes) -> [`model`]; beside them [`localize`] and [`builder`],
+//! which the store calls and which import only the model and the index.
 //!
 //! - [`store`]: the registry of maps that commands (and the service) write and query through; it opens the
 //!   backend that `[store.backend]` names ([`store::BackendConfig`]);
@@ -20,6 +20,8 @@
 pub mod builder;
 #[cfg(test)]
 mod cache_tests;
+#[cfg(test)]
+mod fault_tests;
 pub mod format;
 pub mod index;
 pub mod journal;

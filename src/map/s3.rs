@@ -81,9 +81,10 @@ use serde::{Deserialize, Serialize};
 
 use crate::error::MapError;
 use crate::map::format::{
-    decode_segment, decode_snapshot, encode_segment, encode_snapshot, readable_version, write_atomic, FORMAT_VERSION,
-    OLDEST_FORMAT_VERSION,
+    decode_segment, decode_snapshot, encode_segment, encode_snapshot, io_err, io_error, readable_version, write_atomic,
+    FORMAT_VERSION, OLDEST_FORMAT_VERSION,
 };
+use crate::map::index::{install_dump, read_dump, DumpBytes, DUMP_MANIFEST};
 use crate::map::journal::{Freshness, LoadReport, MapBackend, MapJournal, OperationStats};
 use crate::map::model::{validate_map_id, MapData, MapStats, Record};
 
@@ -93,8 +94,9 @@ const MAX_MANIFEST_BYTES: u64 = 16 << 20;
 const PARALLEL_GETS: usize = 16;
 const MANIFEST: &str = "manifest.json";
 const CACHE_MARKER: &str = "map.json";
-/// The files of an index dump ([`EmbeddingIndex::dump`](crate::map::index::EmbeddingIndex::dump)), uploaded
-/// under `index/<version>-<nonce>/`; the manifest file goes last on upload and is compared first on download.
+/// The objects of an index dump ([`EmbeddingIndex::dump`](crate::map::index::EmbeddingIndex::dump)) under
+/// `index/<version>-<nonce>/`: the graph file, the data file and the manifest (which names the base the files
+/// take in a local directory). The manifest goes last on upload and is compared first on download.
 const INDEX_FILES: [&str; 3] = ["index.hnsw.graph", "index.hnsw.data", "index.json"];
 
 /// Settings of the S3 backend.
@@ -334,6 +336,11 @@ impl Shared {
         bytes: Vec<u8>,
         mode: PutMode,
     ) -> Result<UpdateVersion, object_store::Error> {
+        // Fault injection for the durability tests (fail point `s3-put`, argument: part of the key).
+        if crate::map::format::injected("s3-put", Path::new(path.as_ref())) {
+            let source = Box::new(std::io::Error::other(format!("injected fault: PUT {path} failed")));
+            return Err(object_store::Error::Generic { store: "S3", source });
+        }
         let r = self.timed(Op::Put, self.store.put_opts(path, PutPayload::from(bytes), PutOptions::from(mode))).await?;
         Ok(UpdateVersion { e_tag: r.e_tag, version: r.version })
     }
@@ -451,32 +458,33 @@ impl Shared {
 
     /// Puts the index dump the manifest names into the map's cache directory, unless the dump there is that
     /// one already (same `index.json`, which holds the files' checksums). The files are written atomically,
-    /// `index.json` last; the index loader checks the checksums, so a dump that does not match is rebuilt.
+    /// `index.json` last ([`install_dump`]); the index loader checks the dump against the map, so one that
+    /// does not match is rebuilt.
     async fn fetch_index(&self, id: &str, index: &IndexRef, cache_dir: &Path) -> Result<(), MapError> {
         let remote = |file: &str| self.object(id, &format!("{}/{file}", index.dir));
-        let manifest_path = remote("index.json");
+        let manifest_path = remote(INDEX_FILES[2]);
         let (manifest, _) = self.get(&manifest_path).await.map_err(|e| self.io(&manifest_path, e))?;
-        if std::fs::read(cache_dir.join("index.json")).ok().as_deref() == Some(manifest.as_slice()) {
+        if std::fs::read(cache_dir.join(DUMP_MANIFEST)).ok().as_deref() == Some(manifest.as_slice()) {
             return Ok(());
         }
-        let _ = std::fs::remove_file(cache_dir.join("index.json"));
+        let mut files = Vec::with_capacity(2);
         for file in &INDEX_FILES[..2] {
             let path = remote(file);
-            let (bytes, _) = self.get(&path).await.map_err(|e| self.io(&path, e))?;
-            write_atomic(&cache_dir.join(file), &bytes)?;
+            files.push(self.get(&path).await.map_err(|e| self.io(&path, e))?.0);
         }
-        write_atomic(&cache_dir.join("index.json"), &manifest)
+        let data = files.pop().expect("two files");
+        let graph = files.pop().expect("two files");
+        install_dump(cache_dir, &DumpBytes { manifest, graph, data })
     }
 
-    /// Uploads the index dump in `cache_dir` (when there is one) under a new `index/<version>-<nonce>/`.
+    /// Uploads the index dump in `cache_dir` (when there is one) under a new `index/<version>-<nonce>/`, the
+    /// manifest last.
     async fn upload_index(&self, id: &str, version: u64, cache_dir: &Path) -> Result<Option<IndexRef>, MapError> {
-        if !cache_dir.join("index.json").exists() {
+        let Some(dump) = read_dump(cache_dir) else {
             return Ok(None);
-        }
+        };
         let dir = format!("index/{version:020}-{}", nonce());
-        for file in INDEX_FILES {
-            let local = cache_dir.join(file);
-            let bytes = std::fs::read(&local).map_err(|source| MapError::Io { path: local.clone(), source })?;
+        for (file, bytes) in INDEX_FILES.into_iter().zip([dump.graph, dump.data, dump.manifest]) {
             let path = self.object(id, &format!("{dir}/{file}"));
             self.put(&path, bytes, PutMode::Create).await.map_err(|e| self.io(&path, e))?;
         }
@@ -486,7 +494,7 @@ impl Shared {
     /// Makes the cache directory of a map belong to this incarnation of it (`map_uid`), emptying it otherwise.
     fn claim_cache(&self, id: &str, map_uid: &str) -> Result<PathBuf, MapError> {
         let dir = self.cache_dir(id);
-        let io = |source| MapError::Io { path: dir.clone(), source };
+        let io = |source| io_error(&dir, source);
         let marker = dir.join(CACHE_MARKER);
         let current = std::fs::read(&marker).ok();
         if current.as_deref() != Some(map_uid.as_bytes()) {
@@ -562,8 +570,7 @@ impl ObjectStorageBackend {
     ) -> Result<Self, MapError> {
         let prefix = ObjectPath::parse(prefix)
             .map_err(|e| MapError::InvalidInput { field: "store.backend.prefix".into(), reason: e.to_string() })?;
-        std::fs::create_dir_all(cache_root)
-            .map_err(|source| MapError::Io { path: cache_root.to_path_buf(), source })?;
+        std::fs::create_dir_all(cache_root).map_err(io_err(cache_root))?;
         let runtime = tokio::runtime::Builder::new_multi_thread()
             .worker_threads(1)
             .thread_name("scone-objects")
@@ -729,7 +736,7 @@ impl MapBackend for ObjectStorageBackend {
         s.block_on(s.delete_quietly(rest));
         let cache = s.cache_dir(id);
         if cache.exists() {
-            std::fs::remove_dir_all(&cache).map_err(|source| MapError::Io { path: cache, source })?;
+            std::fs::remove_dir_all(&cache).map_err(io_err(&cache))?;
         }
         Ok(())
     }

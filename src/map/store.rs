@@ -43,8 +43,8 @@ use crate::camera::Camera;
 use crate::error::MapError;
 use crate::features::Features;
 use crate::map::builder::{plan, BuildParams, ExternalCounts, KeyframeInput};
-use crate::map::format::{decode_snapshot, encode_snapshot, write_atomic};
-use crate::map::index::{EmbeddingIndex, IndexParams};
+use crate::map::format::{decode_export, encode_export, write_atomic};
+use crate::map::index::{install_dump, read_dump, EmbeddingIndex, IndexParams};
 use crate::map::journal::{Freshness, LoadReport, MapBackend, MapJournal, OperationStats};
 use crate::map::local::LocalBackend;
 use crate::map::localize::{localize, Localization, LocalizeParams, Prior};
@@ -114,6 +114,8 @@ pub struct CacheStats {
     pub checks: AtomicU64,
     pub changed: AtomicU64,
     pub check_errors: AtomicU64,
+    /// Map loads that cut bytes off the end of a log (a record torn by a crash, or a damaged file).
+    pub logs_cut: AtomicU64,
 }
 
 impl Default for StoreConfig {
@@ -151,6 +153,10 @@ pub struct MapSummary {
     pub approximate_index: bool,
     /// Whether this server holds the map in memory (lazy mode lists stored maps it has not loaded).
     pub loaded: bool,
+    /// What loading the map found that a client should know: the log ended inside a record and its bytes
+    /// were cut off ([`LoadReport::truncated_bytes`]). After a crash that is the one write in flight, never
+    /// acknowledged; a longer loss means damage to the file.
+    pub load_note: Option<String>,
 }
 
 /// A map's contents for viewers (see [`MapStore::contents`]).
@@ -199,6 +205,8 @@ pub struct Map {
     checked: AtomicU64,
     /// Estimated memory of the map and its index ([`MapData::memory_bytes`]).
     bytes: AtomicU64,
+    /// [`MapSummary::load_note`].
+    load_note: Option<String>,
 }
 
 impl Map {
@@ -211,6 +219,7 @@ impl Map {
             last_used: AtomicU64::new(0),
             checked: AtomicU64::new(now),
             bytes: AtomicU64::new(bytes),
+            load_note: None,
         }
     }
 
@@ -226,6 +235,7 @@ impl Map {
             version: s.data.version,
             approximate_index: s.index.is_approximate(),
             loaded: true,
+            load_note: self.load_note.clone(),
         }
     }
 
@@ -245,6 +255,7 @@ fn held_back_reason(e: &MapError) -> String {
     match e {
         MapError::Corrupt { path, reason } => format!("{} is corrupt: {reason}", file(path)),
         MapError::Io { path, source } => format!("{} cannot be read ({})", file(path), source.kind()),
+        MapError::StorageFull { path } => format!("{} cannot be written: the data volume is full", file(path)),
         MapError::ModelMismatch { .. }
         | MapError::Unavailable { .. }
         | MapError::WriterConflict { .. }
@@ -343,7 +354,17 @@ impl MapStore {
         let index = EmbeddingIndex::load_or_build(self.config.index, log.index_dir(), &data);
         self.cache_stats.loads.fetch_add(1, Ordering::Relaxed);
         self.cache_stats.load_nanos.fetch_add(t.elapsed().as_nanos() as u64, Ordering::Relaxed);
-        Ok((Map::new(id, data, index, log, self.now()), report))
+        let mut map = Map::new(id, data, index, log, self.now());
+        if report.truncated_bytes > 0 {
+            self.cache_stats.logs_cut.fetch_add(1, Ordering::Relaxed);
+            map.load_note = Some(format!(
+                "the log ended inside a record: its last {} bytes were cut off at load. After a crash this is the \
+                 one write in flight, which was never acknowledged; otherwise the file was damaged and \
+                 acknowledged writes may be missing",
+                report.truncated_bytes
+            ));
+        }
+        Ok((map, report))
     }
 
     /// Marks `map` as the most recently used.
@@ -665,6 +686,7 @@ impl MapStore {
             version: stats.version,
             approximate_index: stats.observations >= self.config.index.exact_below,
             loaded: false,
+            load_note: None,
         }
     }
 
@@ -813,7 +835,7 @@ impl MapStore {
             // is durable and applied: a failed dump or compaction is logged, not this write's error (the log
             // keeps the records, and the next write tries again).
             let s = parking_lot::RwLockWriteGuard::downgrade(s);
-            if let Err(e) = s.index.dump(log.index_dir(), &s.data.meta.model_id).and_then(|()| log.compact(&s.data)) {
+            if let Err(e) = s.index.dump(log.index_dir(), &s.data).and_then(|()| log.compact(&s.data)) {
                 tracing::error!(map = %map.id, error = %e, "compaction failed; the records stay in the log");
             }
         }
@@ -834,11 +856,25 @@ impl MapStore {
         map.read(|data, index| localize(data, index, features, embeddings, camera, prior, &self.config.localize))
     }
 
-    /// The whole map in the versioned, checksummed export format.
+    /// The whole map in the versioned, checksummed export format, with its index dump when it has an HNSW
+    /// graph ([`encode_export`]: an import then answers exactly as this map). The dump is written into the
+    /// map's index directory first (as a compaction would); if that fails the export goes without it.
     pub fn export(&self, id: &str) -> Result<Vec<u8>, MapError> {
         let map = self.get(id)?;
+        let log = map.log.lock();
         let s = map.state.read();
-        encode_snapshot(&s.data)
+        let dump = if s.index.is_approximate() {
+            match s.index.dump(log.index_dir(), &s.data) {
+                Ok(()) => read_dump(log.index_dir()),
+                Err(e) => {
+                    tracing::warn!(map = %id, error = %e, "export without the index dump: an import rebuilds it");
+                    None
+                }
+            }
+        } else {
+            None
+        };
+        encode_export(&s.data, dump.as_ref())
     }
 
     /// Imports an exported map under `id` (refused if it was embedded by another model).
@@ -849,7 +885,7 @@ impl MapStore {
     /// [`MapError::MapExists`].
     pub fn import(&self, id: &str, bytes: &[u8]) -> Result<MapSummary, MapError> {
         validate_map_id(id)?;
-        let mut data = decode_snapshot(bytes, Path::new("import"))?;
+        let (mut data, dump) = decode_export(bytes, Path::new("import"))?;
         if data.meta.model_id != self.model.model_id {
             return Err(MapError::ModelMismatch {
                 map: id.to_string(),
@@ -882,8 +918,12 @@ impl MapStore {
             return Err(MapError::MapExists { map: id.to_string() });
         }
         let log = self.backend.create(id, &data)?;
-        let mut index = EmbeddingIndex::new(self.config.index);
-        index.sync(&data);
+        let installed = dump.map(|d| install_dump(log.index_dir(), &d));
+        if let Some(Err(e)) = &installed {
+            tracing::warn!(map = %id, error = %e, "cannot install the exported index dump; it is rebuilt");
+        }
+        // The loader checks the dump against the map, and builds the graph itself when it does not match.
+        let index = EmbeddingIndex::load_or_build(self.config.index, log.index_dir(), &data);
         let map = Arc::new(Map::new(id, data, index, log, self.now()));
         self.touch(&map);
         self.maps.write().insert(id.to_string(), Arc::clone(&map));
@@ -940,23 +980,29 @@ impl MapStore {
     }
 
     /// Snapshots every map and dumps its index (at shutdown, so the next start loads instead of rebuilding).
-    /// A map another writer took over (object storage) is left to that writer.
-    pub fn flush(&self) -> Result<(), MapError> {
+    /// A map another writer took over (object storage) is left to that writer. Every map is tried; those that
+    /// could not be flushed (a full volume, say) are returned with the error: their acknowledged writes are
+    /// in their logs, so the next start replays them (and rebuilds an index it has no dump of).
+    pub fn flush(&self) -> Vec<(String, MapError)> {
         let maps: Vec<Arc<Map>> = self.maps.read().values().cloned().collect();
+        let mut failed = Vec::new();
         for map in maps {
             let mut log = map.log.lock();
             let s = map.state.read();
-            s.index.dump(log.index_dir(), &s.data.meta.model_id)?;
-            match log.compact(&s.data) {
+            let dumped = s.index.dump(log.index_dir(), &s.data);
+            match dumped.and_then(|()| log.compact(&s.data)) {
                 Ok(()) => {}
                 Err(e @ MapError::WriterConflict { .. }) => {
                     tracing::warn!(map = %map.id, error = %e, "not flushed");
-                    continue;
                 }
-                Err(e) => return Err(e),
+                Err(e) => {
+                    tracing::error!(map = %map.id, error = %e,
+                        "not flushed: its acknowledged writes are in its log and are replayed at the next start");
+                    failed.push((map.id.clone(), e));
+                }
             }
         }
-        Ok(())
+        failed
     }
 
     /// Writes an export file atomically.

@@ -12,7 +12,7 @@ use crate::map::model::{Keyframe, MapData, MapMeta, NewObservation, Record};
 
 use crate::test_dir::{temp_dir, TestDir};
 
-fn meta(dim: usize) -> MapMeta {
+pub(crate) fn meta(dim: usize) -> MapMeta {
     MapMeta { id: "m".into(), model_id: "sha256:test".into(), k: 20, dim, created_unix_ms: 1 }
 }
 
@@ -56,7 +56,7 @@ pub(crate) fn keyframe_record(id: u64, n: usize, first_landmark: u64, dim: usize
     }
 }
 
-fn write(log: &mut MapLog, data: &mut MapData, r: Record) {
+pub(crate) fn write(log: &mut MapLog, data: &mut MapData, r: Record) {
     data.check(&r).unwrap();
     log.append(data.version + 1, &r).unwrap();
     data.apply(&r);
@@ -190,7 +190,7 @@ fn exact_search_equals_brute_force_and_skips_tombstones() {
 }
 
 /// A map of `keyframes` x 250 observations with an HNSW index (exact search only below 1,000).
-fn hnsw_map(keyframes: u64, seed: u64) -> (MapData, IndexParams, EmbeddingIndex) {
+pub(crate) fn hnsw_map(keyframes: u64, seed: u64) -> (MapData, IndexParams, EmbeddingIndex) {
     let mut data = MapData::new(meta(48));
     for k in 0..keyframes {
         data.apply(&keyframe_record(k, 250, k * 250, 48, k + seed));
@@ -215,7 +215,7 @@ fn hnsw_index_finds_near_duplicates_and_survives_a_dump() {
     }
     let total = data.observations.len().div_ceil(7);
     assert!(found as f64 >= 0.95 * total as f64, "recall {found}/{total}");
-    index.dump(&dir, &data.meta.model_id).unwrap();
+    index.dump(&dir, &data).unwrap();
     let reloaded = EmbeddingIndex::load_or_build(params, &dir, &data);
     assert!(reloaded.is_approximate() && reloaded.loaded_from_dump());
     let q = data.embedding(3).to_vec();
@@ -234,12 +234,14 @@ fn hnsw_index_finds_near_duplicates_and_survives_a_dump() {
 fn a_dump_from_another_model_or_damaged_is_rebuilt() {
     let dir = temp_dir("hnsw-model");
     let (data, params, index) = hnsw_map(5, 1);
-    index.dump(&dir, "sha256:other").unwrap();
+    let mut other = data.clone();
+    other.meta.model_id = "sha256:other".into();
+    index.dump(&dir, &other).unwrap();
     let reloaded = EmbeddingIndex::load_or_build(params, &dir, &data);
     assert!(reloaded.is_approximate() && !reloaded.loaded_from_dump(), "another model's dump was used");
     // A dump of the right model with a damaged graph file is rebuilt too.
-    index.dump(&dir, &data.meta.model_id).unwrap();
-    let graph = dir.join("index.hnsw.graph");
+    index.dump(&dir, &data).unwrap();
+    let graph = crate::map::fault_tests::dump_file(&dir, ".hnsw.graph");
     let mut bytes = std::fs::read(&graph).unwrap();
     let mid = bytes.len() / 2;
     bytes[mid] ^= 0x55;

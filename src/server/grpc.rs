@@ -41,7 +41,7 @@ pub fn to_status(e: &ServiceError) -> Status {
         ErrorKind::AlreadyExists => Code::AlreadyExists,
         ErrorKind::FailedPrecondition => Code::FailedPrecondition,
         ErrorKind::Unavailable => Code::Unavailable,
-        ErrorKind::ResourceExhausted => Code::ResourceExhausted,
+        ErrorKind::ResourceExhausted | ErrorKind::InsufficientStorage => Code::ResourceExhausted,
         ErrorKind::PayloadTooLarge => Code::OutOfRange,
         ErrorKind::DeadlineExceeded => Code::DeadlineExceeded,
         ErrorKind::Unauthenticated => Code::Unauthenticated,
@@ -117,6 +117,7 @@ fn map_info(s: MapSummary) -> proto::MapInfo {
         version: s.version,
         approximate_index: s.approximate_index,
         loaded: s.loaded,
+        load_note: s.load_note.unwrap_or_default(),
     }
 }
 

@@ -138,7 +138,8 @@ impl Metrics {
         let cache_events = Family::<EventLabels, Counter>::default();
         registry.register(
             "map_cache_events",
-            "Map cache: hit, miss, load, eviction, check (freshness), change (found changed), check_error",
+            "Map cache: hit, miss, load, eviction, check (freshness), change (found changed), check_error, log_cut \
+             (a load cut bytes off the end of a map's log: see GetMap's load_note)",
             cache_events.clone(),
         );
         let cache_load_seconds = Seconds::default();

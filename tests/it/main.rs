@@ -6,11 +6,14 @@ mod common;
 mod console;
 mod durability;
 mod embedding;
+mod full_disk;
 mod hostile;
+mod input_bounds;
 mod object_store;
 
 mod pipeline;
 mod replicas;
+mod restarts;
 mod service;
 #[path = "../../src/test_dir.rs"]
 mod test_dir;

@@ -113,7 +113,7 @@ pub fn run(cmd: MapCommand) -> anyhow::Result<()> {
                 }
             }
             // A clean exit snapshots the map and dumps its index, as the service does at shutdown.
-            store.flush()?;
+            flush(&store)?;
         }
         MapCommand::ImportColmap { data_dir, map, model_dir, images, radius_px, model } => {
             let build = BuildParams { external_radius_px: radius_px, ..BuildParams::default() };
@@ -143,7 +143,7 @@ pub fn run(cmd: MapCommand) -> anyhow::Result<()> {
                 return Err(e.into());
             }
             writeln!(stdout, "{}", serde_json::to_string_pretty(&summary)?)?;
-            store.flush()?;
+            flush(&store)?;
         }
         MapCommand::Info { data_dir, model } => {
             let (store, _) = open_store(data_dir, model)?;
@@ -156,4 +156,15 @@ pub fn run(cmd: MapCommand) -> anyhow::Result<()> {
         }
     }
     Ok(())
+}
+
+/// Snapshots the maps at the end of a command; one that could not be snapshotted fails the command (its
+/// acknowledged writes are in its log all the same).
+fn flush(store: &MapStore) -> anyhow::Result<()> {
+    match store.flush().into_iter().next() {
+        None => Ok(()),
+        Some((map, e)) => {
+            Err(anyhow::anyhow!("map {map} was not snapshotted ({e}); its log holds every acknowledged write"))
+        }
+    }
 }

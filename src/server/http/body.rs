@@ -6,6 +6,8 @@ use axum::extract::{FromRequest, FromRequestParts, Multipart, Path, Query, Reque
 use axum::http::request::Parts;
 use axum::http::{header, HeaderMap, StatusCode};
 use base64::Engine;
+use serde::de::DeserializeOwned;
+use serde::Serialize;
 
 use super::error::{invalid, ApiError, ApiResult};
 use super::wire::{Frame, Intrinsics};
@@ -51,6 +53,14 @@ pub fn body_error(e: &(dyn std::error::Error + 'static), too_large: ApiError) ->
 /// The media type of the request body, if the route takes it. A request without `Content-Type` passes only
 /// when it has no body.
 pub fn media_type(headers: &HeaderMap, accepted: &'static [&'static str]) -> ApiResult<String> {
+    // A compressed body would be read as the image or JSON it is not: refused (images are compressed
+    // already, and a decompressed body could outgrow the limits its compressed size passed).
+    if let Some(encoding) = headers.get(header::CONTENT_ENCODING) {
+        let encoding = encoding.to_str().unwrap_or("(not text)").trim().to_ascii_lowercase();
+        if encoding != "identity" {
+            return Err(ApiError::UnsupportedEncoding { got: encoding });
+        }
+    }
     let raw = headers.get(header::CONTENT_TYPE).map(|v| v.to_str().unwrap_or("(not text)"));
     let mime = raw.map(|ct| ct.split(';').next().unwrap_or("").trim().to_ascii_lowercase()).unwrap_or_default();
     if accepted.contains(&mime.as_str()) {
@@ -132,10 +142,109 @@ pub fn multipart_error(e: axum::extract::multipart::MultipartError, limit: usize
     }
 }
 
-pub fn parse_json<T: serde::de::DeserializeOwned + Default>(bytes: &Option<Bytes>) -> Result<T, ServiceError> {
+/// The request's JSON as `T`, or `T::default()` without one ([`json_body`]).
+pub fn parse_json<T: DeserializeOwned + Serialize + Default>(bytes: &Option<Bytes>) -> Result<T, ServiceError> {
     match bytes {
         None => Ok(T::default()),
-        Some(b) => serde_json::from_slice(b).map_err(|e| ServiceError::invalid("request JSON", e.to_string())),
+        Some(b) => json_body(b),
+    }
+}
+
+/// A JSON request body as `T`. A JSON array where `T` has an object is refused, naming the field: serde reads
+/// a struct from an array by position, so `["office"]` would otherwise create the map `office`, and a pose
+/// sent as `[qx, qy, qz, qw, tx, ty, tz]` would be read in the wrong order without a word.
+pub fn json_body<T: DeserializeOwned + Serialize>(bytes: &[u8]) -> Result<T, ServiceError> {
+    let bad = |e: serde_json::Error| ServiceError::invalid("request JSON", e.to_string());
+    let typed: T = serde_json::from_slice(bytes).map_err(bad)?;
+    let shape: Shape = serde_json::from_slice(bytes).map_err(bad)?;
+    // The typed value is only written out (a copy of its strings) when the body holds an array at all.
+    if shape.has_array() {
+        let expected = serde_json::to_value(&typed).map_err(bad)?;
+        if let Some(path) = shape.array_for_object(&expected, "") {
+            let field = if path.is_empty() { "request JSON".to_string() } else { path };
+            return Err(ServiceError::invalid(field, "must be a JSON object, not an array"));
+        }
+    }
+    Ok(typed)
+}
+
+/// The structure of a JSON document without its strings and numbers (so big base64 fields are not copied).
+enum Shape {
+    Object(Vec<(String, Shape)>),
+    Array(Vec<Shape>),
+    Scalar,
+}
+
+impl Shape {
+    fn has_array(&self) -> bool {
+        match self {
+            Shape::Array(_) => true,
+            Shape::Object(fields) => fields.iter().any(|(_, v)| v.has_array()),
+            Shape::Scalar => false,
+        }
+    }
+
+    /// The path of the first array that stands where `expected` (the typed value written out) has an object.
+    fn array_for_object(&self, expected: &serde_json::Value, path: &str) -> Option<String> {
+        use serde_json::Value;
+        match (self, expected) {
+            (Shape::Array(_), Value::Object(_)) => Some(path.to_string()),
+            (Shape::Object(fields), Value::Object(map)) => fields.iter().find_map(|(k, v)| {
+                let sub = if path.is_empty() { k.clone() } else { format!("{path}.{k}") };
+                map.get(k).and_then(|e| v.array_for_object(e, &sub))
+            }),
+            (Shape::Array(items), Value::Array(values)) => items
+                .iter()
+                .zip(values)
+                .enumerate()
+                .find_map(|(i, (v, e))| v.array_for_object(e, &format!("{path}[{i}]"))),
+            _ => None,
+        }
+    }
+}
+
+impl<'de> serde::Deserialize<'de> for Shape {
+    fn deserialize<D: serde::Deserializer<'de>>(d: D) -> Result<Self, D::Error> {
+        struct V;
+        impl<'de> serde::de::Visitor<'de> for V {
+            type Value = Shape;
+            fn expecting(&self, f: &mut std::fmt::Formatter) -> std::fmt::Result {
+                f.write_str("JSON")
+            }
+            fn visit_map<A: serde::de::MapAccess<'de>>(self, mut a: A) -> Result<Shape, A::Error> {
+                let mut fields = Vec::new();
+                while let Some((k, v)) = a.next_entry::<String, Shape>()? {
+                    fields.push((k, v));
+                }
+                Ok(Shape::Object(fields))
+            }
+            fn visit_seq<A: serde::de::SeqAccess<'de>>(self, mut a: A) -> Result<Shape, A::Error> {
+                let mut items = Vec::new();
+                while let Some(v) = a.next_element::<Shape>()? {
+                    items.push(v);
+                }
+                Ok(Shape::Array(items))
+            }
+            fn visit_bool<E>(self, _: bool) -> Result<Shape, E> {
+                Ok(Shape::Scalar)
+            }
+            fn visit_i64<E>(self, _: i64) -> Result<Shape, E> {
+                Ok(Shape::Scalar)
+            }
+            fn visit_u64<E>(self, _: u64) -> Result<Shape, E> {
+                Ok(Shape::Scalar)
+            }
+            fn visit_f64<E>(self, _: f64) -> Result<Shape, E> {
+                Ok(Shape::Scalar)
+            }
+            fn visit_str<E>(self, _: &str) -> Result<Shape, E> {
+                Ok(Shape::Scalar)
+            }
+            fn visit_unit<E>(self) -> Result<Shape, E> {
+                Ok(Shape::Scalar)
+            }
+        }
+        d.deserialize_any(V)
     }
 }
 

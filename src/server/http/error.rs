@@ -39,9 +39,10 @@ impl IntoResponses for ApiErrors {
             ("408", "The request body did not arrive within server.body_read_timeout_ms"),
             ("409", "Already exists, or model mismatch"),
             ("413", "Body larger than the limit"),
-            ("415", "Content-Type not accepted by this route"),
+            ("415", "Content-Type not accepted by this route, or a compressed body (Content-Encoding)"),
             ("429", "Saturated: retry after the Retry-After header (seconds)"),
             ("500", "Internal error (details in the server's log)"),
+            ("507", "The data volume is full: nothing of the write was stored; retry once space is freed"),
             ("503", "Maps loading, map held back, or shutting down"),
             ("504", "Request deadline exceeded"),
         ]
@@ -67,6 +68,10 @@ pub enum ApiError {
     UnsupportedMediaType {
         got: String,
         accepted: &'static [&'static str],
+    },
+    /// A body sent with a `Content-Encoding` (gzip, ...): bodies are taken uncompressed only (415).
+    UnsupportedEncoding {
+        got: String,
     },
     /// A write (or a CORS preflight) from a browser page of another origin (403).
     ForeignOrigin {
@@ -99,6 +104,7 @@ fn code_name(kind: ErrorKind) -> &'static str {
         ErrorKind::FailedPrecondition => "FAILED_PRECONDITION",
         ErrorKind::Unavailable => "UNAVAILABLE",
         ErrorKind::ResourceExhausted => "RESOURCE_EXHAUSTED",
+        ErrorKind::InsufficientStorage => "RESOURCE_EXHAUSTED",
         ErrorKind::PayloadTooLarge => "PAYLOAD_TOO_LARGE",
         ErrorKind::DeadlineExceeded => "DEADLINE_EXCEEDED",
         ErrorKind::Unauthenticated => "UNAUTHENTICATED",
@@ -115,6 +121,7 @@ fn service_status(kind: ErrorKind) -> StatusCode {
         ErrorKind::FailedPrecondition => StatusCode::CONFLICT,
         ErrorKind::Unavailable => StatusCode::SERVICE_UNAVAILABLE,
         ErrorKind::ResourceExhausted => StatusCode::TOO_MANY_REQUESTS,
+        ErrorKind::InsufficientStorage => StatusCode::INSUFFICIENT_STORAGE,
         ErrorKind::PayloadTooLarge => StatusCode::PAYLOAD_TOO_LARGE,
         ErrorKind::DeadlineExceeded => StatusCode::GATEWAY_TIMEOUT,
         ErrorKind::Unauthenticated => StatusCode::UNAUTHORIZED,
@@ -138,6 +145,12 @@ impl IntoResponse for ApiError {
                     if got.is_empty() { "(none)".to_string() } else { format!("'{got}'") },
                     accepted.join(", ")
                 ),
+                None,
+            ),
+            Self::UnsupportedEncoding { got } => (
+                StatusCode::UNSUPPORTED_MEDIA_TYPE,
+                "UNSUPPORTED_MEDIA_TYPE",
+                format!("content-encoding '{got}' is not accepted: send the body uncompressed"),
                 None,
             ),
             Self::ForeignOrigin { origin } => (

@@ -9,7 +9,8 @@ use axum::response::{IntoResponse, Response};
 use axum::Json;
 
 use super::body::{
-    base64, bytes_within, frame, media_type, read_body, too_large, ApiPath, JSON_ONLY, JSON_OR_MULTIPART, MAP_FILE,
+    base64, bytes_within, frame, json_body, media_type, read_body, too_large, ApiPath, JSON_ONLY, JSON_OR_MULTIPART,
+    MAP_FILE,
 };
 use super::error::{invalid, ApiError, ApiErrors, ApiResult};
 use super::wire::{self, examples};
@@ -31,8 +32,7 @@ pub async fn create_map(
     media_type(&headers, JSON_ONLY)?;
     let limit = app.settings.server.max_request_bytes;
     let body = bytes_within(req, limit, too_large(limit)).await?;
-    let j: wire::CreateMapRequest =
-        serde_json::from_slice(&body).map_err(|e| invalid("request JSON", e.to_string()))?;
+    let j: wire::CreateMapRequest = json_body(&body)?;
     let s = call(&app, &headers, Access::Write, "CreateMap", move |a| a.service.create_map(&j.map_id)).await?;
     Ok((StatusCode::CREATED, Json(s.into())))
 }
@@ -143,8 +143,7 @@ pub async fn add_keyframe(
                 "a keyframe needs JSON (keyframe_id, pose, intrinsics): send application/json or a multipart part 'request'",
             ));
         };
-        let j: wire::KeyframeRequest =
-            serde_json::from_slice(json).map_err(|e| ServiceError::invalid("request JSON", e.to_string()))?;
+        let j: wire::KeyframeRequest = json_body(json)?;
         let f = frame(j.frame, body.image, &[("intrinsics", j.intrinsics)], "frame")?;
         let depth_png = match (body.depth, j.depth_png_base64) {
             (Some(d), None) => Some(d.to_vec()),

@@ -57,7 +57,7 @@ impl From<&Keypoint> for crate::features::Keypoint {
 }
 
 /// Keypoints computed on a device (FAST + FREAK by the client contract) instead of an image.
-#[derive(Debug, Clone, Deserialize, ToSchema)]
+#[derive(Debug, Clone, Deserialize, Serialize, ToSchema)]
 #[serde(deny_unknown_fields)]
 pub struct KeypointSet {
     /// Size of the image the keypoints were detected in.
@@ -72,7 +72,7 @@ pub struct KeypointSet {
 }
 
 /// One frame: exactly one of `image_base64` or `keypoints` (or, in multipart requests, a binary image part).
-#[derive(Debug, Clone, Default, Deserialize, ToSchema)]
+#[derive(Debug, Clone, Default, Deserialize, Serialize, ToSchema)]
 #[serde(deny_unknown_fields)]
 pub struct Frame {
     /// A PNG or JPEG image, base64.
@@ -111,7 +111,7 @@ impl Pose {
 }
 
 /// Where the camera is believed to be: only landmarks within `radius` of (x, y, z) are matched.
-#[derive(Debug, Clone, Copy, Deserialize, ToSchema)]
+#[derive(Debug, Clone, Copy, Deserialize, Serialize, ToSchema)]
 #[serde(deny_unknown_fields)]
 pub struct Prior {
     pub x: f64,
@@ -121,7 +121,7 @@ pub struct Prior {
 }
 
 /// Describe: keypoints, FREAK descriptors and SConE embeddings of one frame.
-#[derive(Debug, Default, Deserialize, ToSchema)]
+#[derive(Debug, Default, Deserialize, Serialize, ToSchema)]
 #[serde(deny_unknown_fields)]
 pub struct DescribeRequest {
     /// Absent when the image comes as a raw body or a multipart `image` part.
@@ -130,7 +130,7 @@ pub struct DescribeRequest {
 }
 
 /// How MatchPair picks its matches.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Deserialize, ToSchema)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Deserialize, Serialize, ToSchema)]
 #[serde(rename_all = "lowercase")]
 pub enum Matcher {
     /// The SConE embedding alone: L2 nearest neighbour with the ratio test.
@@ -155,7 +155,7 @@ impl From<Matcher> for crate::matching::SconeMatcher {
 }
 
 /// MatchPair: matches between two frames and their relative pose.
-#[derive(Debug, Default, Deserialize, ToSchema)]
+#[derive(Debug, Default, Deserialize, Serialize, ToSchema)]
 #[serde(deny_unknown_fields)]
 pub struct MatchRequest {
     /// Absent when its image is the multipart part `image1` (or `image`).
@@ -176,7 +176,7 @@ pub struct MatchRequest {
 }
 
 /// Localize: the camera-to-world pose of a frame against a map.
-#[derive(Debug, Default, Deserialize, ToSchema)]
+#[derive(Debug, Default, Deserialize, Serialize, ToSchema)]
 #[serde(deny_unknown_fields)]
 pub struct LocalizeRequest {
     /// Absent when the image comes as a raw body or a multipart `image` part.
@@ -199,7 +199,7 @@ pub struct Point3 {
 }
 
 /// A landmark an external SfM (COLMAP and the like) gives for a pixel of the keyframe.
-#[derive(Debug, Clone, Copy, Deserialize, ToSchema)]
+#[derive(Debug, Clone, Copy, Deserialize, Serialize, ToSchema)]
 #[serde(deny_unknown_fields)]
 pub struct ExternalObservation {
     pub x: f64,
@@ -210,7 +210,7 @@ pub struct ExternalObservation {
 }
 
 /// AddKeyframes (one keyframe): a posed frame added to a map, acknowledged once durable.
-#[derive(Debug, Deserialize, ToSchema)]
+#[derive(Debug, Deserialize, Serialize, ToSchema)]
 #[serde(deny_unknown_fields)]
 pub struct KeyframeRequest {
     pub keyframe_id: u64,
@@ -232,7 +232,7 @@ pub struct KeyframeRequest {
 }
 
 /// CreateMap.
-#[derive(Debug, Deserialize, ToSchema)]
+#[derive(Debug, Deserialize, Serialize, ToSchema)]
 #[serde(deny_unknown_fields)]
 #[schema(example = json!({"map_id": "office"}))]
 pub struct CreateMapRequest {
@@ -332,6 +332,10 @@ pub struct MapInfo {
     /// Whether the answering server holds the map in memory (with object storage, maps are loaded on
     /// demand and listings name every stored map; the counts of one not loaded are its manifest's).
     pub loaded: bool,
+    /// Present when loading the map found something to tell: its log ended inside a record and those bytes
+    /// were cut off (after a crash, the one write in flight, never acknowledged; otherwise damage).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub load_note: Option<String>,
 }
 
 impl From<MapSummary> for MapInfo {
@@ -346,6 +350,7 @@ impl From<MapSummary> for MapInfo {
             version: s.version,
             approximate_index: s.approximate_index,
             loaded: s.loaded,
+            load_note: s.load_note,
         }
     }
 }

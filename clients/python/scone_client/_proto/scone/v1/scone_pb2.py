@@ -24,15 +24,15 @@ _sym_db = _symbol_database.Default()
 
 
 
-DESCRIPTOR = _descriptor_pool.Default().AddSerializedFile(b'\n(scone_client/_proto/scone/v1/scone.proto\x12\x08scone.v1\"[\n\nIntrinsics\x12\n\n\x02\x66x\x18\x01 \x01(\x01\x12\n\n\x02\x66y\x18\x02 \x01(\x01\x12\n\n\x02\x63x\x18\x03 \x01(\x01\x12\n\n\x02\x63y\x18\x04 \x01(\x01\x12\r\n\x05width\x18\x05 \x01(\r\x12\x0e\n\x06height\x18\x06 \x01(\r\"Z\n\x04Pose\x12\n\n\x02tx\x18\x01 \x01(\x01\x12\n\n\x02ty\x18\x02 \x01(\x01\x12\n\n\x02tz\x18\x03 \x01(\x01\x12\n\n\x02qx\x18\x04 \x01(\x01\x12\n\n\x02qy\x18\x05 \x01(\x01\x12\n\n\x02qz\x18\x06 \x01(\x01\x12\n\n\x02qw\x18\x07 \x01(\x01\"\x15\n\x05Image\x12\x0c\n\x04\x64\x61ta\x18\x01 \x01(\x0c\"_\n\x08Keypoint\x12\t\n\x01x\x18\x01 \x01(\x02\x12\t\n\x01y\x18\x02 \x01(\x02\x12\x0c\n\x04size\x18\x03 \x01(\x02\x12\r\n\x05\x61ngle\x18\x04 \x01(\x02\x12\x10\n\x08response\x18\x05 \x01(\x02\x12\x0e\n\x06octave\x18\x06 \x01(\x05\"z\n\x0bKeypointSet\x12%\n\tkeypoints\x18\x01 \x03(\x0b\x32\x12.scone.v1.Keypoint\x12\x13\n\x0b\x64\x65scriptors\x18\x02 \x01(\x0c\x12\r\n\x05width\x18\x03 \x01(\r\x12\x0e\n\x06height\x18\x04 \x01(\r\x12\x10\n\x08model_id\x18\x05 \x01(\t\"\x89\x01\n\x05\x46rame\x12 \n\x05image\x18\x01 \x01(\x0b\x32\x0f.scone.v1.ImageH\x00\x12*\n\tkeypoints\x18\x02 \x01(\x0b\x32\x15.scone.v1.KeypointSetH\x00\x12(\n\nintrinsics\x18\x03 \x01(\x0b\x32\x14.scone.v1.IntrinsicsB\x08\n\x06source\"\"\n\x10\x43reateMapRequest\x12\x0e\n\x06map_id\x18\x01 \x01(\t\"\x1f\n\rGetMapRequest\x12\x0e\n\x06map_id\x18\x01 \x01(\t\"\xbe\x01\n\x07MapInfo\x12\x0e\n\x06map_id\x18\x01 \x01(\t\x12\x10\n\x08model_id\x18\x02 \x01(\t\x12\x11\n\tkeyframes\x18\x03 \x01(\x04\x12\x11\n\tlandmarks\x18\x04 \x01(\x04\x12\x14\n\x0cobservations\x18\x05 \x01(\x04\x12\x19\n\x11live_observations\x18\x06 \x01(\x04\x12\x0f\n\x07version\x18\x07 \x01(\x04\x12\x19\n\x11\x61pproximate_index\x18\x08 \x01(\x08\x12\x0e\n\x06loaded\x18\t \x01(\x08\"\x11\n\x0fListMapsRequest\"]\n\x10ListMapsResponse\x12\x1f\n\x04maps\x18\x01 \x03(\x0b\x32\x11.scone.v1.MapInfo\x12(\n\theld_back\x18\x02 \x03(\x0b\x32\x15.scone.v1.HeldBackMap\"-\n\x0bHeldBackMap\x12\x0e\n\x06map_id\x18\x01 \x01(\t\x12\x0e\n\x06reason\x18\x02 \x01(\t\"\"\n\x10\x44\x65leteMapRequest\x12\x0e\n\x06map_id\x18\x01 \x01(\t\"\x13\n\x11\x44\x65leteMapResponse\"\xda\x01\n\x12\x41\x64\x64KeyframeRequest\x12\x0e\n\x06map_id\x18\x01 \x01(\t\x12\x13\n\x0bkeyframe_id\x18\x02 \x01(\x04\x12\x1e\n\x05\x66rame\x18\x03 \x01(\x0b\x32\x0f.scone.v1.Frame\x12\x1c\n\x04pose\x18\x04 \x01(\x0b\x32\x0e.scone.v1.Pose\x12\x11\n\tdepth_png\x18\x05 \x01(\x0c\x12\x13\n\x0b\x64\x65pth_scale\x18\x06 \x01(\x01\x12\x39\n\x12\x65xternal_landmarks\x18\x07 \x03(\x0b\x32\x1d.scone.v1.ExternalObservation\")\n\x06Point3\x12\t\n\x01x\x18\x01 \x01(\x01\x12\t\n\x01y\x18\x02 \x01(\x01\x12\t\n\x01z\x18\x03 \x01(\x01\"a\n\x13\x45xternalObservation\x12\t\n\x01x\x18\x01 \x01(\x01\x12\t\n\x01y\x18\x02 \x01(\x01\x12\x13\n\x0blandmark_id\x18\x03 \x01(\x04\x12\x1f\n\x05point\x18\x04 \x01(\x0b\x32\x10.scone.v1.Point3\"\x9e\x01\n\x0bKeyframeAck\x12\x13\n\x0bkeyframe_id\x18\x01 \x01(\x04\x12\x15\n\rnew_landmarks\x18\x02 \x01(\x04\x12\x14\n\x0cobservations\x18\x03 \x01(\x04\x12\x13\n\x0bmap_version\x18\x04 \x01(\x04\x12\x19\n\x11\x65xternal_rejected\x18\x05 \x01(\x04\x12\x1d\n\x15\x65xternal_unassociated\x18\x06 \x01(\x04\"<\n\x15RemoveKeyframeRequest\x12\x0e\n\x06map_id\x18\x01 \x01(\t\x12\x13\n\x0bkeyframe_id\x18\x02 \x01(\x04\"\"\n\x10\x45xportMapRequest\x12\x0e\n\x06map_id\x18\x01 \x01(\t\"(\n\x08MapChunk\x12\x0e\n\x06map_id\x18\x01 \x01(\t\x12\x0c\n\x04\x64\x61ta\x18\x02 \x01(\x0c\"1\n\x0f\x44\x65scribeRequest\x12\x1e\n\x05\x66rame\x18\x01 \x01(\x0b\x32\x0f.scone.v1.Frame\"\x81\x01\n\x10\x44\x65scribeResponse\x12%\n\tkeypoints\x18\x01 \x03(\x0b\x32\x12.scone.v1.Keypoint\x12\x13\n\x0b\x64\x65scriptors\x18\x02 \x01(\x0c\x12\x12\n\nembeddings\x18\x03 \x03(\x02\x12\x0b\n\x03\x64im\x18\x04 \x01(\r\x12\x10\n\x08model_id\x18\x05 \x01(\t\"I\n\x05Match\x12\x0e\n\x06index1\x18\x01 \x01(\r\x12\x0e\n\x06index2\x18\x02 \x01(\r\x12\x10\n\x08\x64istance\x18\x03 \x01(\x02\x12\x0e\n\x06inlier\x18\x04 \x01(\x08\"\x9b\x01\n\x10MatchPairRequest\x12\x1f\n\x06\x66rame1\x18\x01 \x01(\x0b\x32\x0f.scone.v1.Frame\x12\x1f\n\x06\x66rame2\x18\x02 \x01(\x0b\x32\x0f.scone.v1.Frame\x12\r\n\x05ratio\x18\x03 \x01(\x02\x12\x0e\n\x06mutual\x18\x04 \x01(\x08\x12&\n\x07matcher\x18\x05 \x01(\x0e\x32\x15.scone.v1.PairMatcher\"b\n\x0cRelativePose\x12\n\n\x02qx\x18\x01 \x01(\x01\x12\n\n\x02qy\x18\x02 \x01(\x01\x12\n\n\x02qz\x18\x03 \x01(\x01\x12\n\n\x02qw\x18\x04 \x01(\x01\x12\n\n\x02tx\x18\x05 \x01(\x01\x12\n\n\x02ty\x18\x06 \x01(\x01\x12\n\n\x02tz\x18\x07 \x01(\x01\"l\n\x11MatchPairResponse\x12 \n\x07matches\x18\x01 \x03(\x0b\x32\x0f.scone.v1.Match\x12$\n\x04pose\x18\x02 \x01(\x0b\x32\x16.scone.v1.RelativePose\x12\x0f\n\x07inliers\x18\x03 \x01(\r\"<\n\tPosePrior\x12\t\n\x01x\x18\x01 \x01(\x01\x12\t\n\x01y\x18\x02 \x01(\x01\x12\t\n\x01z\x18\x03 \x01(\x01\x12\x0e\n\x06radius\x18\x04 \x01(\x01\"e\n\x0fLocalizeRequest\x12\x0e\n\x06map_id\x18\x01 \x01(\t\x12\x1e\n\x05\x66rame\x18\x02 \x01(\x0b\x32\x0f.scone.v1.Frame\x12\"\n\x05prior\x18\x03 \x01(\x0b\x32\x13.scone.v1.PosePrior\"\x95\x01\n\x10LocalizeResponse\x12\x11\n\tlocalized\x18\x01 \x01(\x08\x12\x1c\n\x04pose\x18\x02 \x01(\x0b\x32\x0e.scone.v1.Pose\x12\x0f\n\x07matches\x18\x03 \x01(\r\x12\x0f\n\x07inliers\x18\x04 \x01(\r\x12\x1a\n\x12reprojection_error\x18\x05 \x01(\x01\x12\x12\n\nconfidence\x18\x06 \x01(\x01*\x88\x01\n\x0bPairMatcher\x12\x18\n\x14PAIR_MATCHER_DEFAULT\x10\x00\x12\x16\n\x12PAIR_MATCHER_PLAIN\x10\x01\x12\x16\n\x12PAIR_MATCHER_UNION\x10\x02\x12\x17\n\x13PAIR_MATCHER_RERANK\x10\x03\x12\x16\n\x12PAIR_MATCHER_FREAK\x10\x04\x32\x85\x04\n\x04Maps\x12:\n\tCreateMap\x12\x1a.scone.v1.CreateMapRequest\x1a\x11.scone.v1.MapInfo\x12\x34\n\x06GetMap\x12\x17.scone.v1.GetMapRequest\x1a\x11.scone.v1.MapInfo\x12\x41\n\x08ListMaps\x12\x19.scone.v1.ListMapsRequest\x1a\x1a.scone.v1.ListMapsResponse\x12\x44\n\tDeleteMap\x12\x1a.scone.v1.DeleteMapRequest\x1a\x1b.scone.v1.DeleteMapResponse\x12G\n\x0c\x41\x64\x64Keyframes\x12\x1c.scone.v1.AddKeyframeRequest\x1a\x15.scone.v1.KeyframeAck(\x01\x30\x01\x12\x44\n\x0eRemoveKeyframe\x12\x1f.scone.v1.RemoveKeyframeRequest\x1a\x11.scone.v1.MapInfo\x12=\n\tExportMap\x12\x1a.scone.v1.ExportMapRequest\x1a\x12.scone.v1.MapChunk0\x01\x12\x34\n\tImportMap\x12\x12.scone.v1.MapChunk\x1a\x11.scone.v1.MapInfo(\x01\x32\xd6\x01\n\x08Matching\x12\x41\n\x08\x44\x65scribe\x12\x19.scone.v1.DescribeRequest\x1a\x1a.scone.v1.DescribeResponse\x12\x44\n\tMatchPair\x12\x1a.scone.v1.MatchPairRequest\x1a\x1b.scone.v1.MatchPairResponse\x12\x41\n\x08Localize\x12\x19.scone.v1.LocalizeRequest\x1a\x1a.scone.v1.LocalizeResponseb\x06proto3')
+DESCRIPTOR = _descriptor_pool.Default().AddSerializedFile(b'\n(scone_client/_proto/scone/v1/scone.proto\x12\x08scone.v1\"[\n\nIntrinsics\x12\n\n\x02\x66x\x18\x01 \x01(\x01\x12\n\n\x02\x66y\x18\x02 \x01(\x01\x12\n\n\x02\x63x\x18\x03 \x01(\x01\x12\n\n\x02\x63y\x18\x04 \x01(\x01\x12\r\n\x05width\x18\x05 \x01(\r\x12\x0e\n\x06height\x18\x06 \x01(\r\"Z\n\x04Pose\x12\n\n\x02tx\x18\x01 \x01(\x01\x12\n\n\x02ty\x18\x02 \x01(\x01\x12\n\n\x02tz\x18\x03 \x01(\x01\x12\n\n\x02qx\x18\x04 \x01(\x01\x12\n\n\x02qy\x18\x05 \x01(\x01\x12\n\n\x02qz\x18\x06 \x01(\x01\x12\n\n\x02qw\x18\x07 \x01(\x01\"\x15\n\x05Image\x12\x0c\n\x04\x64\x61ta\x18\x01 \x01(\x0c\"_\n\x08Keypoint\x12\t\n\x01x\x18\x01 \x01(\x02\x12\t\n\x01y\x18\x02 \x01(\x02\x12\x0c\n\x04size\x18\x03 \x01(\x02\x12\r\n\x05\x61ngle\x18\x04 \x01(\x02\x12\x10\n\x08response\x18\x05 \x01(\x02\x12\x0e\n\x06octave\x18\x06 \x01(\x05\"z\n\x0bKeypointSet\x12%\n\tkeypoints\x18\x01 \x03(\x0b\x32\x12.scone.v1.Keypoint\x12\x13\n\x0b\x64\x65scriptors\x18\x02 \x01(\x0c\x12\r\n\x05width\x18\x03 \x01(\r\x12\x0e\n\x06height\x18\x04 \x01(\r\x12\x10\n\x08model_id\x18\x05 \x01(\t\"\x89\x01\n\x05\x46rame\x12 \n\x05image\x18\x01 \x01(\x0b\x32\x0f.scone.v1.ImageH\x00\x12*\n\tkeypoints\x18\x02 \x01(\x0b\x32\x15.scone.v1.KeypointSetH\x00\x12(\n\nintrinsics\x18\x03 \x01(\x0b\x32\x14.scone.v1.IntrinsicsB\x08\n\x06source\"\"\n\x10\x43reateMapRequest\x12\x0e\n\x06map_id\x18\x01 \x01(\t\"\x1f\n\rGetMapRequest\x12\x0e\n\x06map_id\x18\x01 \x01(\t\"\xd1\x01\n\x07MapInfo\x12\x0e\n\x06map_id\x18\x01 \x01(\t\x12\x10\n\x08model_id\x18\x02 \x01(\t\x12\x11\n\tkeyframes\x18\x03 \x01(\x04\x12\x11\n\tlandmarks\x18\x04 \x01(\x04\x12\x14\n\x0cobservations\x18\x05 \x01(\x04\x12\x19\n\x11live_observations\x18\x06 \x01(\x04\x12\x0f\n\x07version\x18\x07 \x01(\x04\x12\x19\n\x11\x61pproximate_index\x18\x08 \x01(\x08\x12\x0e\n\x06loaded\x18\t \x01(\x08\x12\x11\n\tload_note\x18\n \x01(\t\"\x11\n\x0fListMapsRequest\"]\n\x10ListMapsResponse\x12\x1f\n\x04maps\x18\x01 \x03(\x0b\x32\x11.scone.v1.MapInfo\x12(\n\theld_back\x18\x02 \x03(\x0b\x32\x15.scone.v1.HeldBackMap\"-\n\x0bHeldBackMap\x12\x0e\n\x06map_id\x18\x01 \x01(\t\x12\x0e\n\x06reason\x18\x02 \x01(\t\"\"\n\x10\x44\x65leteMapRequest\x12\x0e\n\x06map_id\x18\x01 \x01(\t\"\x13\n\x11\x44\x65leteMapResponse\"\xda\x01\n\x12\x41\x64\x64KeyframeRequest\x12\x0e\n\x06map_id\x18\x01 \x01(\t\x12\x13\n\x0bkeyframe_id\x18\x02 \x01(\x04\x12\x1e\n\x05\x66rame\x18\x03 \x01(\x0b\x32\x0f.scone.v1.Frame\x12\x1c\n\x04pose\x18\x04 \x01(\x0b\x32\x0e.scone.v1.Pose\x12\x11\n\tdepth_png\x18\x05 \x01(\x0c\x12\x13\n\x0b\x64\x65pth_scale\x18\x06 \x01(\x01\x12\x39\n\x12\x65xternal_landmarks\x18\x07 \x03(\x0b\x32\x1d.scone.v1.ExternalObservation\")\n\x06Point3\x12\t\n\x01x\x18\x01 \x01(\x01\x12\t\n\x01y\x18\x02 \x01(\x01\x12\t\n\x01z\x18\x03 \x01(\x01\"a\n\x13\x45xternalObservation\x12\t\n\x01x\x18\x01 \x01(\x01\x12\t\n\x01y\x18\x02 \x01(\x01\x12\x13\n\x0blandmark_id\x18\x03 \x01(\x04\x12\x1f\n\x05point\x18\x04 \x01(\x0b\x32\x10.scone.v1.Point3\"\x9e\x01\n\x0bKeyframeAck\x12\x13\n\x0bkeyframe_id\x18\x01 \x01(\x04\x12\x15\n\rnew_landmarks\x18\x02 \x01(\x04\x12\x14\n\x0cobservations\x18\x03 \x01(\x04\x12\x13\n\x0bmap_version\x18\x04 \x01(\x04\x12\x19\n\x11\x65xternal_rejected\x18\x05 \x01(\x04\x12\x1d\n\x15\x65xternal_unassociated\x18\x06 \x01(\x04\"<\n\x15RemoveKeyframeRequest\x12\x0e\n\x06map_id\x18\x01 \x01(\t\x12\x13\n\x0bkeyframe_id\x18\x02 \x01(\x04\"\"\n\x10\x45xportMapRequest\x12\x0e\n\x06map_id\x18\x01 \x01(\t\"(\n\x08MapChunk\x12\x0e\n\x06map_id\x18\x01 \x01(\t\x12\x0c\n\x04\x64\x61ta\x18\x02 \x01(\x0c\"1\n\x0f\x44\x65scribeRequest\x12\x1e\n\x05\x66rame\x18\x01 \x01(\x0b\x32\x0f.scone.v1.Frame\"\x81\x01\n\x10\x44\x65scribeResponse\x12%\n\tkeypoints\x18\x01 \x03(\x0b\x32\x12.scone.v1.Keypoint\x12\x13\n\x0b\x64\x65scriptors\x18\x02 \x01(\x0c\x12\x12\n\nembeddings\x18\x03 \x03(\x02\x12\x0b\n\x03\x64im\x18\x04 \x01(\r\x12\x10\n\x08model_id\x18\x05 \x01(\t\"I\n\x05Match\x12\x0e\n\x06index1\x18\x01 \x01(\r\x12\x0e\n\x06index2\x18\x02 \x01(\r\x12\x10\n\x08\x64istance\x18\x03 \x01(\x02\x12\x0e\n\x06inlier\x18\x04 \x01(\x08\"\x9b\x01\n\x10MatchPairRequest\x12\x1f\n\x06\x66rame1\x18\x01 \x01(\x0b\x32\x0f.scone.v1.Frame\x12\x1f\n\x06\x66rame2\x18\x02 \x01(\x0b\x32\x0f.scone.v1.Frame\x12\r\n\x05ratio\x18\x03 \x01(\x02\x12\x0e\n\x06mutual\x18\x04 \x01(\x08\x12&\n\x07matcher\x18\x05 \x01(\x0e\x32\x15.scone.v1.PairMatcher\"b\n\x0cRelativePose\x12\n\n\x02qx\x18\x01 \x01(\x01\x12\n\n\x02qy\x18\x02 \x01(\x01\x12\n\n\x02qz\x18\x03 \x01(\x01\x12\n\n\x02qw\x18\x04 \x01(\x01\x12\n\n\x02tx\x18\x05 \x01(\x01\x12\n\n\x02ty\x18\x06 \x01(\x01\x12\n\n\x02tz\x18\x07 \x01(\x01\"l\n\x11MatchPairResponse\x12 \n\x07matches\x18\x01 \x03(\x0b\x32\x0f.scone.v1.Match\x12$\n\x04pose\x18\x02 \x01(\x0b\x32\x16.scone.v1.RelativePose\x12\x0f\n\x07inliers\x18\x03 \x01(\r\"<\n\tPosePrior\x12\t\n\x01x\x18\x01 \x01(\x01\x12\t\n\x01y\x18\x02 \x01(\x01\x12\t\n\x01z\x18\x03 \x01(\x01\x12\x0e\n\x06radius\x18\x04 \x01(\x01\"e\n\x0fLocalizeRequest\x12\x0e\n\x06map_id\x18\x01 \x01(\t\x12\x1e\n\x05\x66rame\x18\x02 \x01(\x0b\x32\x0f.scone.v1.Frame\x12\"\n\x05prior\x18\x03 \x01(\x0b\x32\x13.scone.v1.PosePrior\"\x95\x01\n\x10LocalizeResponse\x12\x11\n\tlocalized\x18\x01 \x01(\x08\x12\x1c\n\x04pose\x18\x02 \x01(\x0b\x32\x0e.scone.v1.Pose\x12\x0f\n\x07matches\x18\x03 \x01(\r\x12\x0f\n\x07inliers\x18\x04 \x01(\r\x12\x1a\n\x12reprojection_error\x18\x05 \x01(\x01\x12\x12\n\nconfidence\x18\x06 \x01(\x01*\x88\x01\n\x0bPairMatcher\x12\x18\n\x14PAIR_MATCHER_DEFAULT\x10\x00\x12\x16\n\x12PAIR_MATCHER_PLAIN\x10\x01\x12\x16\n\x12PAIR_MATCHER_UNION\x10\x02\x12\x17\n\x13PAIR_MATCHER_RERANK\x10\x03\x12\x16\n\x12PAIR_MATCHER_FREAK\x10\x04\x32\x85\x04\n\x04Maps\x12:\n\tCreateMap\x12\x1a.scone.v1.CreateMapRequest\x1a\x11.scone.v1.MapInfo\x12\x34\n\x06GetMap\x12\x17.scone.v1.GetMapRequest\x1a\x11.scone.v1.MapInfo\x12\x41\n\x08ListMaps\x12\x19.scone.v1.ListMapsRequest\x1a\x1a.scone.v1.ListMapsResponse\x12\x44\n\tDeleteMap\x12\x1a.scone.v1.DeleteMapRequest\x1a\x1b.scone.v1.DeleteMapResponse\x12G\n\x0c\x41\x64\x64Keyframes\x12\x1c.scone.v1.AddKeyframeRequest\x1a\x15.scone.v1.KeyframeAck(\x01\x30\x01\x12\x44\n\x0eRemoveKeyframe\x12\x1f.scone.v1.RemoveKeyframeRequest\x1a\x11.scone.v1.MapInfo\x12=\n\tExportMap\x12\x1a.scone.v1.ExportMapRequest\x1a\x12.scone.v1.MapChunk0\x01\x12\x34\n\tImportMap\x12\x12.scone.v1.MapChunk\x1a\x11.scone.v1.MapInfo(\x01\x32\xd6\x01\n\x08Matching\x12\x41\n\x08\x44\x65scribe\x12\x19.scone.v1.DescribeRequest\x1a\x1a.scone.v1.DescribeResponse\x12\x44\n\tMatchPair\x12\x1a.scone.v1.MatchPairRequest\x1a\x1b.scone.v1.MatchPairResponse\x12\x41\n\x08Localize\x12\x19.scone.v1.LocalizeRequest\x1a\x1a.scone.v1.LocalizeResponseb\x06proto3')
 
 _globals = globals()
 _builder.BuildMessageAndEnumDescriptors(DESCRIPTOR, _globals)
 _builder.BuildTopDescriptorsAndMessages(DESCRIPTOR, 'scone_client._proto.scone.v1.scone_pb2', _globals)
 if not _descriptor._USE_C_DESCRIPTORS:
   DESCRIPTOR._loaded_options = None
-  _globals['_PAIRMATCHER']._serialized_start=2711
-  _globals['_PAIRMATCHER']._serialized_end=2847
+  _globals['_PAIRMATCHER']._serialized_start=2730
+  _globals['_PAIRMATCHER']._serialized_end=2866
   _globals['_INTRINSICS']._serialized_start=54
   _globals['_INTRINSICS']._serialized_end=145
   _globals['_POSE']._serialized_start=147
@@ -50,51 +50,51 @@ if not _descriptor._USE_C_DESCRIPTORS:
   _globals['_GETMAPREQUEST']._serialized_start=659
   _globals['_GETMAPREQUEST']._serialized_end=690
   _globals['_MAPINFO']._serialized_start=693
-  _globals['_MAPINFO']._serialized_end=883
-  _globals['_LISTMAPSREQUEST']._serialized_start=885
-  _globals['_LISTMAPSREQUEST']._serialized_end=902
-  _globals['_LISTMAPSRESPONSE']._serialized_start=904
-  _globals['_LISTMAPSRESPONSE']._serialized_end=997
-  _globals['_HELDBACKMAP']._serialized_start=999
-  _globals['_HELDBACKMAP']._serialized_end=1044
-  _globals['_DELETEMAPREQUEST']._serialized_start=1046
-  _globals['_DELETEMAPREQUEST']._serialized_end=1080
-  _globals['_DELETEMAPRESPONSE']._serialized_start=1082
-  _globals['_DELETEMAPRESPONSE']._serialized_end=1101
-  _globals['_ADDKEYFRAMEREQUEST']._serialized_start=1104
-  _globals['_ADDKEYFRAMEREQUEST']._serialized_end=1322
-  _globals['_POINT3']._serialized_start=1324
-  _globals['_POINT3']._serialized_end=1365
-  _globals['_EXTERNALOBSERVATION']._serialized_start=1367
-  _globals['_EXTERNALOBSERVATION']._serialized_end=1464
-  _globals['_KEYFRAMEACK']._serialized_start=1467
-  _globals['_KEYFRAMEACK']._serialized_end=1625
-  _globals['_REMOVEKEYFRAMEREQUEST']._serialized_start=1627
-  _globals['_REMOVEKEYFRAMEREQUEST']._serialized_end=1687
-  _globals['_EXPORTMAPREQUEST']._serialized_start=1689
-  _globals['_EXPORTMAPREQUEST']._serialized_end=1723
-  _globals['_MAPCHUNK']._serialized_start=1725
-  _globals['_MAPCHUNK']._serialized_end=1765
-  _globals['_DESCRIBEREQUEST']._serialized_start=1767
-  _globals['_DESCRIBEREQUEST']._serialized_end=1816
-  _globals['_DESCRIBERESPONSE']._serialized_start=1819
-  _globals['_DESCRIBERESPONSE']._serialized_end=1948
-  _globals['_MATCH']._serialized_start=1950
-  _globals['_MATCH']._serialized_end=2023
-  _globals['_MATCHPAIRREQUEST']._serialized_start=2026
-  _globals['_MATCHPAIRREQUEST']._serialized_end=2181
-  _globals['_RELATIVEPOSE']._serialized_start=2183
-  _globals['_RELATIVEPOSE']._serialized_end=2281
-  _globals['_MATCHPAIRRESPONSE']._serialized_start=2283
-  _globals['_MATCHPAIRRESPONSE']._serialized_end=2391
-  _globals['_POSEPRIOR']._serialized_start=2393
-  _globals['_POSEPRIOR']._serialized_end=2453
-  _globals['_LOCALIZEREQUEST']._serialized_start=2455
-  _globals['_LOCALIZEREQUEST']._serialized_end=2556
-  _globals['_LOCALIZERESPONSE']._serialized_start=2559
-  _globals['_LOCALIZERESPONSE']._serialized_end=2708
-  _globals['_MAPS']._serialized_start=2850
-  _globals['_MAPS']._serialized_end=3367
-  _globals['_MATCHING']._serialized_start=3370
-  _globals['_MATCHING']._serialized_end=3584
+  _globals['_MAPINFO']._serialized_end=902
+  _globals['_LISTMAPSREQUEST']._serialized_start=904
+  _globals['_LISTMAPSREQUEST']._serialized_end=921
+  _globals['_LISTMAPSRESPONSE']._serialized_start=923
+  _globals['_LISTMAPSRESPONSE']._serialized_end=1016
+  _globals['_HELDBACKMAP']._serialized_start=1018
+  _globals['_HELDBACKMAP']._serialized_end=1063
+  _globals['_DELETEMAPREQUEST']._serialized_start=1065
+  _globals['_DELETEMAPREQUEST']._serialized_end=1099
+  _globals['_DELETEMAPRESPONSE']._serialized_start=1101
+  _globals['_DELETEMAPRESPONSE']._serialized_end=1120
+  _globals['_ADDKEYFRAMEREQUEST']._serialized_start=1123
+  _globals['_ADDKEYFRAMEREQUEST']._serialized_end=1341
+  _globals['_POINT3']._serialized_start=1343
+  _globals['_POINT3']._serialized_end=1384
+  _globals['_EXTERNALOBSERVATION']._serialized_start=1386
+  _globals['_EXTERNALOBSERVATION']._serialized_end=1483
+  _globals['_KEYFRAMEACK']._serialized_start=1486
+  _globals['_KEYFRAMEACK']._serialized_end=1644
+  _globals['_REMOVEKEYFRAMEREQUEST']._serialized_start=1646
+  _globals['_REMOVEKEYFRAMEREQUEST']._serialized_end=1706
+  _globals['_EXPORTMAPREQUEST']._serialized_start=1708
+  _globals['_EXPORTMAPREQUEST']._serialized_end=1742
+  _globals['_MAPCHUNK']._serialized_start=1744
+  _globals['_MAPCHUNK']._serialized_end=1784
+  _globals['_DESCRIBEREQUEST']._serialized_start=1786
+  _globals['_DESCRIBEREQUEST']._serialized_end=1835
+  _globals['_DESCRIBERESPONSE']._serialized_start=1838
+  _globals['_DESCRIBERESPONSE']._serialized_end=1967
+  _globals['_MATCH']._serialized_start=1969
+  _globals['_MATCH']._serialized_end=2042
+  _globals['_MATCHPAIRREQUEST']._serialized_start=2045
+  _globals['_MATCHPAIRREQUEST']._serialized_end=2200
+  _globals['_RELATIVEPOSE']._serialized_start=2202
+  _globals['_RELATIVEPOSE']._serialized_end=2300
+  _globals['_MATCHPAIRRESPONSE']._serialized_start=2302
+  _globals['_MATCHPAIRRESPONSE']._serialized_end=2410
+  _globals['_POSEPRIOR']._serialized_start=2412
+  _globals['_POSEPRIOR']._serialized_end=2472
+  _globals['_LOCALIZEREQUEST']._serialized_start=2474
+  _globals['_LOCALIZEREQUEST']._serialized_end=2575
+  _globals['_LOCALIZERESPONSE']._serialized_start=2578
+  _globals['_LOCALIZERESPONSE']._serialized_end=2727
+  _globals['_MAPS']._serialized_start=2869
+  _globals['_MAPS']._serialized_end=3386
+  _globals['_MATCHING']._serialized_start=3389
+  _globals['_MATCHING']._serialized_end=3603
 # @@protoc_insertion_point(module_scope)

@@ -113,7 +113,7 @@ class GetMapRequest(_message.Message):
     def __init__(self, map_id: _Optional[str] = ...) -> None: ...
 
 class MapInfo(_message.Message):
-    __slots__ = ("map_id", "model_id", "keyframes", "landmarks", "observations", "live_observations", "version", "approximate_index", "loaded")
+    __slots__ = ("map_id", "model_id", "keyframes", "landmarks", "observations", "live_observations", "version", "approximate_index", "loaded", "load_note")
     MAP_ID_FIELD_NUMBER: _ClassVar[int]
     MODEL_ID_FIELD_NUMBER: _ClassVar[int]
     KEYFRAMES_FIELD_NUMBER: _ClassVar[int]
@@ -123,6 +123,7 @@ class MapInfo(_message.Message):
     VERSION_FIELD_NUMBER: _ClassVar[int]
     APPROXIMATE_INDEX_FIELD_NUMBER: _ClassVar[int]
     LOADED_FIELD_NUMBER: _ClassVar[int]
+    LOAD_NOTE_FIELD_NUMBER: _ClassVar[int]
     map_id: str
     model_id: str
     keyframes: int
@@ -132,7 +133,8 @@ class MapInfo(_message.Message):
     version: int
     approximate_index: bool
     loaded: bool
-    def __init__(self, map_id: _Optional[str] = ..., model_id: _Optional[str] = ..., keyframes: _Optional[int] = ..., landmarks: _Optional[int] = ..., observations: _Optional[int] = ..., live_observations: _Optional[int] = ..., version: _Optional[int] = ..., approximate_index: _Optional[bool] = ..., loaded: _Optional[bool] = ...) -> None: ...
+    load_note: str
+    def __init__(self, map_id: _Optional[str] = ..., model_id: _Optional[str] = ..., keyframes: _Optional[int] = ..., landmarks: _Optional[int] = ..., observations: _Optional[int] = ..., live_observations: _Optional[int] = ..., version: _Optional[int] = ..., approximate_index: _Optional[bool] = ..., loaded: _Optional[bool] = ..., load_note: _Optional[str] = ...) -> None: ...
 
 class ListMapsRequest(_message.Message):
     __slots__ = ()

@@ -37,6 +37,10 @@ class MapsStub:
     write planned on a copy that another replica changed within that bound fails with UNAVAILABLE naming the
     other writer and stores nothing; retry it. Routers send calls about one map with `x-scone-map-id` metadata,
     so a map has one writer and stays loaded in one replica (docs/object-storage.md).
+
+    A full data volume: every write (CreateMap, AddKeyframes, RemoveKeyframe, ImportMap) fails with
+    RESOURCE_EXHAUSTED naming the data volume (HTTP: 507) and stores nothing of itself; reads go on, and writes
+    succeed again once space is freed. Every acknowledged write survives (docs/fault-model.md).
     """
 
     def __init__(self, channel):
@@ -99,6 +103,10 @@ class MapsServicer:
     write planned on a copy that another replica changed within that bound fails with UNAVAILABLE naming the
     other writer and stores nothing; retry it. Routers send calls about one map with `x-scone-map-id` metadata,
     so a map has one writer and stays loaded in one replica (docs/object-storage.md).
+
+    A full data volume: every write (CreateMap, AddKeyframes, RemoveKeyframe, ImportMap) fails with
+    RESOURCE_EXHAUSTED naming the data volume (HTTP: 507) and stores nothing of itself; reads go on, and writes
+    succeed again once space is freed. Every acknowledged write survives (docs/fault-model.md).
     """
 
     def CreateMap(self, request, context):
@@ -142,7 +150,8 @@ class MapsServicer:
         raise NotImplementedError('Method not implemented!')
 
     def ExportMap(self, request, context):
-        """The whole map as one versioned, checksummed file, in chunks.
+        """The whole map as one versioned, checksummed file, in chunks. A map with an approximate index carries its
+        index graph too, so an import answers exactly as this map.
         """
         context.set_code(grpc.StatusCode.UNIMPLEMENTED)
         context.set_details('Method not implemented!')
@@ -221,6 +230,10 @@ class Maps:
     write planned on a copy that another replica changed within that bound fails with UNAVAILABLE naming the
     other writer and stores nothing; retry it. Routers send calls about one map with `x-scone-map-id` metadata,
     so a map has one writer and stays loaded in one replica (docs/object-storage.md).
+
+    A full data volume: every write (CreateMap, AddKeyframes, RemoveKeyframe, ImportMap) fails with
+    RESOURCE_EXHAUSTED naming the data volume (HTTP: 507) and stores nothing of itself; reads go on, and writes
+    succeed again once space is freed. Every acknowledged write survives (docs/fault-model.md).
     """
 
     @staticmethod
