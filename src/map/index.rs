@@ -331,7 +331,7 @@ impl EmbeddingIndex {
     pub fn load_or_build(params: IndexParams, dir: &Path, data: &MapData) -> Self {
         let mut index = Self::new(params);
         match Self::try_load(dir, data) {
-            Ok(Some((graph, points, in_graph))) => {
+            Ok(Some(LoadedDump { graph, points, in_graph })) => {
                 index.hnsw = Some(graph);
                 index.indexed = points;
                 index.in_graph = in_graph;
@@ -346,7 +346,7 @@ impl EmbeddingIndex {
 
     /// The dump in `dir` if it matches `data`; `Ok(None)` when there is none, `Err` with the reason when it
     /// does not match.
-    fn try_load(dir: &Path, data: &MapData) -> Result<Option<(Hnsw<'static, f32, DistL2>, usize, usize)>, String> {
+    fn try_load(dir: &Path, data: &MapData) -> Result<Option<LoadedDump>, String> {
         let Ok(bytes) = std::fs::read(dir.join(DUMP_MANIFEST)) else { return Ok(None) };
         let manifest: DumpManifest =
             serde_json::from_slice(&bytes).map_err(|e| format!("{DUMP_MANIFEST} does not read: {e}"))?;
@@ -378,8 +378,15 @@ impl EmbeddingIndex {
             Err(_) => return Err("hnsw_rs panicked loading it".into()),
         };
         check_graph(&graph, data, manifest.points, manifest.in_graph)?;
-        Ok(Some((graph, manifest.points, manifest.in_graph)))
+        Ok(Some(LoadedDump { graph, points: manifest.points, in_graph: manifest.in_graph }))
     }
+}
+
+/// A dump that matched its map: the graph, and its manifest's counts.
+struct LoadedDump {
+    graph: Hnsw<'static, f32, DistL2>,
+    points: usize,
+    in_graph: usize,
 }
 
 /// The manifest of a dump, and the suffixes hnsw_rs gives its two files.

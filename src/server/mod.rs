@@ -153,9 +153,11 @@ impl App {
         self.service.is_ready() && !self.shutting_down.load(Ordering::Relaxed)
     }
 
-    /// Logs errors that are ours (clients get a generic message for those).
+    /// Logs errors that are ours (clients get a generic message for those) and a full data volume (the operator
+    /// must free space) at error level; the client's own mistakes at debug.
     pub fn log_error(&self, operation: &str, e: &ServiceError) {
-        if e.kind() == crate::service::ErrorKind::Internal {
+        use crate::service::ErrorKind::{InsufficientStorage, Internal};
+        if matches!(e.kind(), Internal | InsufficientStorage) {
             tracing::error!(operation, error = %e, "request failed");
         } else {
             tracing::debug!(operation, error = %e, "request refused");
