@@ -41,8 +41,11 @@ pub const MAX_COORDINATE: f64 = 1e8;
 pub fn validate_camera(cam: &Camera) -> Result<(), PoseError> {
     let bad = |reason: String| Err(PoseError::Intrinsics { reason });
     for (name, v) in [("fx", cam.fx), ("fy", cam.fy)] {
-        if !(v.is_finite() && v > 0.0 && v <= MAX_FOCAL_PX) {
-            return bad(format!("{name} must be finite, positive and at most {MAX_FOCAL_PX} (got {v})"));
+        if !(v.is_finite() && v > 0.0) {
+            return bad(format!("{name} must be finite and positive (got {v})"));
+        }
+        if v > MAX_FOCAL_PX {
+            return bad(format!("{name} must be at most {MAX_FOCAL_PX} pixels (got {v})"));
         }
     }
     if cam.width == 0 || cam.height == 0 {
