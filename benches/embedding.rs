@@ -13,27 +13,28 @@ use criterion::{criterion_group, criterion_main, Criterion};
 
 use scone::camera::Camera;
 use scone::constellation;
-use scone::decode::{decode_grey, ImageLimits};
-use scone::embedding::{default_model_path, Embedder, EmbedderConfig};
-use scone::features::{self, ExtractorConfig};
+use scone::decode::{decode_grey, ImageLimitSettings};
+use scone::embedding::{default_model_path, Embedder, EmbedderSettings};
+use scone::features::{self, ExtractorSettings};
 use scone::matching::{match_hamming, match_l2, RatioTest};
-use scone::pose::{relative_pose, EssentialMethod, RansacParams};
+use scone::pose::{relative_pose, EssentialMethod, RansacSettings};
 
 fn bench(c: &mut Criterion) {
     features::set_opencv_threads(1).unwrap();
     let model = std::env::var_os("SCONE_MODEL").map(PathBuf::from).unwrap_or_else(default_model_path);
     let path = concat!(env!("CARGO_MANIFEST_DIR"), "/tests/fixtures/coffee-640x480.jpg");
     let bytes = std::fs::read(path).unwrap();
-    let img = decode_grey(&bytes, &ImageLimits::default()).unwrap();
-    let cfg = ExtractorConfig { max_keypoints: 1000, ..ExtractorConfig::default() };
+    let img = decode_grey(&bytes, &ImageLimitSettings::default()).unwrap();
+    let cfg = ExtractorSettings { max_keypoints: 1000, ..ExtractorSettings::default() };
     let f = features::extract(&img, &cfg).unwrap();
     let cons = constellation::build(&f.keypoints, 20);
     eprintln!("{} keypoints, model {}", f.len(), model.display());
     let mut g = c.benchmark_group("scone_640x480_1000kp");
     g.bench_function("fast_freak", |b| b.iter(|| features::extract(black_box(&img), &cfg).unwrap()));
     for threads in [1usize, 2] {
-        let e = Embedder::load(&EmbedderConfig { model: model.clone(), intra_threads: threads, ..Default::default() })
-            .unwrap();
+        let e =
+            Embedder::load(&EmbedderSettings { model: model.clone(), intra_threads: threads, ..Default::default() })
+                .unwrap();
         g.bench_function(format!("inference_{threads}thread"), |b| b.iter(|| e.embed(black_box(&f), &cons).unwrap()));
         g.bench_function(format!("fast_freak_constellations_inference_{threads}thread"), |b| {
             b.iter(|| {
@@ -64,12 +65,12 @@ fn bench(c: &mut Criterion) {
 
     let (p1, p2) = synthetic_pair(300, 0.25);
     let cam = Camera { fx: 500.0, fy: 500.0, cx: 320.0, cy: 240.0, width: 640, height: 480 };
-    let opencv = RansacParams::opencv(1.0);
+    let opencv = RansacSettings::opencv(1.0);
     let mut g = c.benchmark_group("relative_pose_300_matches");
     for (name, params) in [
         ("ransac", opencv),
-        ("usac_accurate_1000iters", RansacParams { essential: EssentialMethod::UsacAccurate, ..opencv }),
-        ("usac_accurate_default", RansacParams::default()),
+        ("usac_accurate_1000iters", RansacSettings { essential: EssentialMethod::UsacAccurate, ..opencv }),
+        ("usac_accurate_default", RansacSettings::default()),
     ] {
         g.bench_function(name, |b| b.iter(|| relative_pose(black_box(&p1), &p2, &cam, &cam, &params).unwrap()));
     }
@@ -78,8 +79,8 @@ fn bench(c: &mut Criterion) {
     let (p1, p2) = synthetic_pair(100, 0.7);
     let mut g = c.benchmark_group("relative_pose_100_matches_70pct_outliers");
     for (name, params) in [
-        ("usac_accurate_1000iters", RansacParams { essential: EssentialMethod::UsacAccurate, ..opencv }),
-        ("usac_accurate_default", RansacParams::default()),
+        ("usac_accurate_1000iters", RansacSettings { essential: EssentialMethod::UsacAccurate, ..opencv }),
+        ("usac_accurate_default", RansacSettings::default()),
     ] {
         g.bench_function(name, |b| b.iter(|| relative_pose(black_box(&p1), &p2, &cam, &cam, &params).unwrap()));
     }

@@ -7,18 +7,18 @@ use opencv::core::{KeyPoint, Vector};
 use std::hint::black_box;
 
 use scone::constellation;
-use scone::decode::{decode_grey, ImageLimits};
-use scone::features::{self, describe, detect, ExtractorConfig};
+use scone::decode::{decode_grey, ImageLimitSettings};
+use scone::features::{self, describe, detect, ExtractorSettings};
 
 fn bench(c: &mut Criterion) {
     features::set_opencv_threads(1).unwrap();
     let path = concat!(env!("CARGO_MANIFEST_DIR"), "/tests/fixtures/coffee-640x480.jpg");
     let bytes = std::fs::read(path).unwrap();
-    let limits = ImageLimits::default();
+    let limits = ImageLimitSettings::default();
     let img = decode_grey(&bytes, &limits).unwrap();
     let mut g = c.benchmark_group("extraction_640x480");
     for (name, cfg) in
-        [("pyramid", ExtractorConfig::default()), ("single_scale", ExtractorConfig::single_scale(20, 1500))]
+        [("pyramid", ExtractorSettings::default()), ("single_scale", ExtractorSettings::single_scale(20, 1500))]
     {
         let kps = detect(&img, &cfg).unwrap();
         let f = features::extract(&img, &cfg).unwrap();

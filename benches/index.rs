@@ -16,10 +16,10 @@ use rand::{Rng, SeedableRng};
 
 use scone::camera::Camera;
 use scone::camera::Pose;
-use scone::decode::ImageLimits;
-use scone::embedding::{Embedder, EmbedderConfig};
-use scone::features::{ExtractorConfig, Keypoint, DESCRIPTOR_BYTES};
-use scone::map::index::{exact_search, EmbeddingIndex, IndexParams};
+use scone::decode::ImageLimitSettings;
+use scone::embedding::{Embedder, EmbedderSettings};
+use scone::features::{ExtractorSettings, Keypoint, DESCRIPTOR_BYTES};
+use scone::map::index::{exact_search, EmbeddingIndex, IndexSettings};
 use scone::map::model::{Keyframe, MapData, MapMeta, NewObservation, Record};
 use scone::pipeline::Describer;
 
@@ -83,8 +83,8 @@ fn main() {
         eprintln!("index bench: no shared data found; nothing measured");
         return;
     }
-    let embedder = Arc::new(Embedder::load(&EmbedderConfig::default()).unwrap());
-    let d = Describer { extractor: ExtractorConfig::default(), limits: ImageLimits::default(), embedder };
+    let embedder = Arc::new(Embedder::load(&EmbedderSettings::default()).unwrap());
+    let d = Describer { extractor: ExtractorSettings::default(), limits: ImageLimitSettings::default(), embedder };
     let dim = d.embedder.dim();
     // Queries: HPatches graffiti, a scene left out of the indexed set (the kitchen's neighbouring frames would
     // be near copies of each other); every other image is indexed.
@@ -142,7 +142,7 @@ fn main() {
         // M = 16 is the default; M = 8 halves the base layer's links (hnsw_rs keeps 2M there), the memory lever.
         for m in [16usize, 8] {
             let t = Instant::now();
-            let mut index = EmbeddingIndex::new(IndexParams { exact_below: 0, m, ..IndexParams::default() });
+            let mut index = EmbeddingIndex::new(IndexSettings { exact_below: 0, m, ..IndexSettings::default() });
             index.sync(&data);
             let build = t.elapsed().as_secs_f64();
             let (points, links) = index.graph_shape().unwrap();

@@ -29,14 +29,14 @@ use opencv::core::Vector;
 use opencv::prelude::*;
 use rayon::prelude::*;
 use scone::camera::Camera;
-use scone::decode::{decode_depth_png, ImageLimits, TUM_DEPTH_SCALE};
-use scone::embedding::{Embedder, EmbedderConfig};
-use scone::features::{ExtractorConfig, KeypointLimits};
+use scone::decode::{decode_depth_png, ImageLimitSettings, TUM_DEPTH_SCALE};
+use scone::embedding::{Embedder, EmbedderSettings};
+use scone::features::{ExtractorSettings, KeypointLimitSettings};
 use scone::map::builder::{Depth, KeyframeInput};
-use scone::map::index::{exact_search, l2_squared, EmbeddingIndex, IndexParams};
-use scone::map::localize::{localize, LocalizeParams};
+use scone::map::index::{exact_search, l2_squared, EmbeddingIndex, IndexSettings};
+use scone::map::localize::{localize, LocalizeSettings};
 use scone::map::model::MapData;
-use scone::map::store::{MapStore, ModelInfo, StoreConfig};
+use scone::map::store::{MapStore, ModelInfo, StoreSettings};
 use scone::offline::scene::Scene;
 use scone::pipeline::Describer;
 use scone::pose::rotation_error_deg;
@@ -82,8 +82,8 @@ fn map_frames(scenes: &[Scene]) -> Vec<MapFrame> {
     out
 }
 
-fn config(dir: &Path, index: IndexParams) -> StoreConfig {
-    StoreConfig { data_dir: dir.to_path_buf(), compact_every: usize::MAX, index, ..StoreConfig::default() }
+fn config(dir: &Path, index: IndexSettings) -> StoreSettings {
+    StoreSettings { data_dir: dir.to_path_buf(), compact_every: usize::MAX, index, ..StoreSettings::default() }
 }
 
 /// What a finished build wrote next to its map.
@@ -126,9 +126,9 @@ fn prepare(
     }
     std::fs::create_dir_all(&dir).unwrap();
     eprintln!("reloc bench: building the {target} map in {}", dir.display());
-    let limits = ImageLimits::default();
+    let limits = ImageLimitSettings::default();
     let t = Instant::now();
-    let store = MapStore::open(config(&dir, IndexParams::default()), info.clone()).unwrap();
+    let store = MapStore::open(config(&dir, IndexSettings::default()), info.clone()).unwrap();
     if store.summary("m").is_err() {
         store.create("m").unwrap();
     }
@@ -170,7 +170,7 @@ fn prepare(
     assert!(store.flush().is_empty(), "the map was not snapshotted");
     let s = store.summary("m").unwrap();
     let built = Built { frames: next, observations: s.observations, build_seconds: t.elapsed().as_secs_f64(), resumed };
-    scone::map::format::write_atomic(&done, &serde_json::to_vec(&built).unwrap()).unwrap();
+    scone::map::storage::format::write_atomic(&done, &serde_json::to_vec(&built).unwrap()).unwrap();
     (dir, built, true)
 }
 
@@ -196,9 +196,10 @@ fn main() {
         }
     };
     scone::features::set_opencv_threads(1).unwrap();
-    let embedder = Arc::new(Embedder::load(&EmbedderConfig::default()).unwrap());
+    let embedder = Arc::new(Embedder::load(&EmbedderSettings::default()).unwrap());
     let info = ModelInfo { model_id: embedder.model_id().to_string(), k: embedder.k(), dim: embedder.dim() };
-    let describer = Describer { extractor: ExtractorConfig::default(), limits: ImageLimits::default(), embedder };
+    let describer =
+        Describer { extractor: ExtractorSettings::default(), limits: ImageLimitSettings::default(), embedder };
     let frames = map_frames(&scenes);
     let kitchen = &scenes[0];
     let camera: Camera = kitchen.camera;
@@ -248,9 +249,9 @@ fn main() {
         // The exact row comes right after the HNSW row, before anything allocates and frees much, so its RSS
         // growth is the map data's. The capped row's open is not measured.
         for (label, index, cap) in [
-            ("HNSW", IndexParams::default(), usize::MAX),
-            ("exact", IndexParams { exact_below: usize::MAX, ..IndexParams::default() }, usize::MAX),
-            ("HNSW, 400 query keypoints", IndexParams::default(), 400),
+            ("HNSW", IndexSettings::default(), usize::MAX),
+            ("exact", IndexSettings { exact_below: usize::MAX, ..IndexSettings::default() }, usize::MAX),
+            ("HNSW, 400 query keypoints", IndexSettings::default(), 400),
         ] {
             // The exact row opens the map without its graph (the dump set aside), so its time to ready is the
             // map data's alone.
@@ -310,7 +311,7 @@ fn main() {
             } else {
                 "-".into()
             };
-            let service = Service::new(describer.clone(), KeypointLimits::default(), Default::default());
+            let service = Service::new(describer.clone(), KeypointLimitSettings::default(), Default::default());
             let store = Arc::new(store);
             service.attach_store(store.clone());
             let runs = match (label, target) {
@@ -477,7 +478,7 @@ fn score(
     index: &EmbeddingIndex,
     described: &[Described],
     camera: &Camera,
-    params: &LocalizeParams,
+    params: &LocalizeSettings,
 ) -> Scored {
     let mut out = Scored::default();
     for (d, gt) in described {
@@ -531,12 +532,12 @@ fn per_landmark(store: &MapStore, described: &[Described], camera: &Camera) -> V
         let points = data.live_observations();
         let before = rss_mb();
         let t = Instant::now();
-        let mut index = EmbeddingIndex::new(IndexParams::default());
+        let mut index = EmbeddingIndex::new(IndexSettings::default());
         index.sync(&data);
         let build = t.elapsed().as_secs_f64();
         let graph_kb = (rss_mb() - before) * 1024.0 / n as f64;
         let Scored { search_ms, localised, within, within5, .. } =
-            score(&data, &index, described, camera, &LocalizeParams::default());
+            score(&data, &index, described, camera, &LocalizeSettings::default());
         rows.push(format!(
             "| {label} | {points} | {build:.0} | {graph_kb:.2} | {:.1} | {localised}/{q} | {within}/{q} | {within5}/{q} |",
             median(search_ms),
@@ -557,7 +558,7 @@ fn sweep(store: &MapStore, described: &[Described], camera: &Camera, observation
     let map = store.get("m").unwrap();
     let mut rows = Vec::new();
     for cap in CAPS {
-        let params = LocalizeParams { max_query_keypoints: cap, ..LocalizeParams::default() };
+        let params = LocalizeSettings { max_query_keypoints: cap, ..LocalizeSettings::default() };
         let Scored { search_ms, pnp_ms, matches, localised, within, within5 } =
             map.read(|data, index| score(data, index, described, camera, &params));
         let n = described.len();

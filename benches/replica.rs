@@ -16,12 +16,13 @@ use futures_util::TryStreamExt;
 use object_store::aws::AmazonS3Builder;
 use object_store::path::Path as ObjectPath;
 use object_store::{ObjectStore, ObjectStoreExt};
-use scone::decode::{decode_depth_png, ImageLimits, TUM_DEPTH_SCALE};
-use scone::embedding::{Embedder, EmbedderConfig};
-use scone::features::ExtractorConfig;
+use scone::decode::{decode_depth_png, ImageLimitSettings, TUM_DEPTH_SCALE};
+use scone::embedding::{Embedder, EmbedderSettings};
+use scone::features::ExtractorSettings;
 use scone::map::builder::{Depth, KeyframeInput};
-use scone::map::s3::S3Config;
-use scone::map::store::{BackendConfig, CacheConfig, MapStore, ModelInfo, StoreConfig};
+use scone::map::storage::s3::S3Settings;
+use scone::map::storage::BackendSettings;
+use scone::map::store::{CacheSettings, MapStore, ModelInfo, StoreSettings};
 use scone::offline::scene::Scene;
 use scone::pipeline::Describer;
 
@@ -52,8 +53,8 @@ fn start_moto(port: u16) -> Moto {
     Moto(child)
 }
 
-fn s3(endpoint: &str, bucket: &str) -> S3Config {
-    S3Config {
+fn s3(endpoint: &str, bucket: &str) -> S3Settings {
+    S3Settings {
         bucket: bucket.into(),
         prefix: "bench".into(),
         region: Some("us-east-1".into()),
@@ -64,12 +65,12 @@ fn s3(endpoint: &str, bucket: &str) -> S3Config {
 }
 
 fn store(endpoint: &str, bucket: &str, dir: &Path, model: &ModelInfo) -> MapStore {
-    let config = StoreConfig {
+    let config = StoreSettings {
         data_dir: dir.to_path_buf(),
         compact_every: usize::MAX,
-        backend: BackendConfig::S3(s3(endpoint, bucket)),
-        cache: CacheConfig { lazy: Some(true), memory_budget_mb: 0, ..CacheConfig::default() },
-        ..StoreConfig::default()
+        backend: BackendSettings::S3(s3(endpoint, bucket)),
+        cache: CacheSettings { lazy: Some(true), memory_budget_mb: 0, ..CacheSettings::default() },
+        ..StoreSettings::default()
     };
     MapStore::open(config, model.clone()).unwrap()
 }
@@ -104,10 +105,11 @@ fn main() {
     let bucket = "replica-bench";
     assert!(rt.block_on(http.put(format!("{endpoint}/{bucket}")).send()).unwrap().status().is_success());
 
-    let embedder = Arc::new(Embedder::load(&EmbedderConfig::default()).unwrap());
+    let embedder = Arc::new(Embedder::load(&EmbedderSettings::default()).unwrap());
     let model = ModelInfo { model_id: embedder.model_id().to_string(), k: embedder.k(), dim: embedder.dim() };
-    let describer = Describer { extractor: ExtractorConfig::default(), limits: ImageLimits::default(), embedder };
-    let limits = ImageLimits::default();
+    let describer =
+        Describer { extractor: ExtractorSettings::default(), limits: ImageLimitSettings::default(), embedder };
+    let limits = ImageLimitSettings::default();
     let tmp = std::env::temp_dir().join(format!("scone-bench-replica-{}", std::process::id()));
     let _ = std::fs::remove_dir_all(&tmp);
 

@@ -2,7 +2,7 @@
 //!
 //! Every image reaching the service is hostile until proven otherwise: the byte length is checked first,
 //! then the format and the dimensions are read from the container header (PNG `IHDR`, JPEG `SOFn`) without
-//! decoding, and only an image within [`ImageLimits`] is handed to OpenCV's decoder. A decoder failure or a
+//! decoding, and only an image within [`ImageLimitSettings`] is handed to OpenCV's decoder. A decoder failure or a
 //! result whose size disagrees with the header is reported as a corrupt image.
 
 use opencv::core::{Mat, Vector};
@@ -15,7 +15,7 @@ use crate::error::FeatureError;
 /// Limits applied to every encoded image before decoding.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields, default)]
-pub struct ImageLimits {
+pub struct ImageLimitSettings {
     /// Largest accepted encoded size in bytes.
     pub max_bytes: usize,
     /// Largest accepted width in pixels.
@@ -26,7 +26,7 @@ pub struct ImageLimits {
     pub max_pixels: u64,
 }
 
-impl ImageLimits {
+impl ImageLimitSettings {
     /// Width, height and width x height against the limits; `names` say what each is in the error (an
     /// image's header, or a client's keypoint set).
     pub fn check_dimensions(&self, width: u32, height: u32, names: [&'static str; 3]) -> Result<(), FeatureError> {
@@ -44,7 +44,7 @@ impl ImageLimits {
     }
 }
 
-impl Default for ImageLimits {
+impl Default for ImageLimitSettings {
     fn default() -> Self {
         Self { max_bytes: 16 << 20, max_width: 4096, max_height: 4096, max_pixels: 12_000_000 }
     }
@@ -155,7 +155,7 @@ fn jpeg_header(bytes: &[u8]) -> Result<ImageHeader, FeatureError> {
 }
 
 /// Checks the encoded size and the header dimensions against `limits`.
-pub fn check_limits(bytes: &[u8], limits: &ImageLimits) -> Result<ImageHeader, FeatureError> {
+pub fn check_limits(bytes: &[u8], limits: &ImageLimitSettings) -> Result<ImageHeader, FeatureError> {
     if bytes.len() > limits.max_bytes {
         return Err(FeatureError::ImageTooLarge {
             what: "encoded bytes",
@@ -175,7 +175,7 @@ pub fn check_limits(bytes: &[u8], limits: &ImageLimits) -> Result<ImageHeader, F
 ///
 /// Colour images are converted with OpenCV's BGR-to-grey weights (0.299 R + 0.587 G + 0.114 B), as
 /// `imread(..., IMREAD_GRAYSCALE)` does.
-pub fn decode_grey(bytes: &[u8], limits: &ImageLimits) -> Result<GreyImage, FeatureError> {
+pub fn decode_grey(bytes: &[u8], limits: &ImageLimitSettings) -> Result<GreyImage, FeatureError> {
     let header = check_limits(bytes, limits)?;
     let buf = Vector::<u8>::from_slice(bytes);
     let decoded = imgcodecs::imdecode(&buf, imgcodecs::IMREAD_UNCHANGED)
@@ -226,7 +226,7 @@ pub const TUM_DEPTH_PER_METRE: f64 = 5000.0;
 pub const TUM_DEPTH_SCALE: f64 = 1.0 / TUM_DEPTH_PER_METRE;
 
 /// Decodes a 16-bit single-channel depth PNG (TUM convention: metres x 5000, 0 = no reading).
-pub fn decode_depth_png(bytes: &[u8], limits: &ImageLimits) -> Result<Mat, FeatureError> {
+pub fn decode_depth_png(bytes: &[u8], limits: &ImageLimitSettings) -> Result<Mat, FeatureError> {
     let header = check_limits(bytes, limits)?;
     if header.format != ImageFormat::Png {
         return Err(FeatureError::CorruptImage { reason: "depth images must be 16-bit PNG".into() });
@@ -268,7 +268,7 @@ mod tests {
             let bytes = encode(&img, ext);
             let header = read_header(&bytes).unwrap();
             assert_eq!(header, ImageHeader { format, width: 37, height: 21 });
-            let grey = decode_grey(&bytes, &ImageLimits::default()).unwrap();
+            let grey = decode_grey(&bytes, &ImageLimitSettings::default()).unwrap();
             assert_eq!((grey.width(), grey.height()), (37, 21));
             assert_eq!(grey.mat().typ(), opencv::core::CV_8UC1);
         }
@@ -276,21 +276,21 @@ mod tests {
 
     #[test]
     fn empty_input_is_rejected() {
-        assert!(matches!(decode_grey(&[], &ImageLimits::default()), Err(FeatureError::EmptyImage)));
+        assert!(matches!(decode_grey(&[], &ImageLimitSettings::default()), Err(FeatureError::EmptyImage)));
     }
 
     #[test]
     fn unknown_format_is_rejected() {
-        let err = decode_grey(b"GIF89a this is not supported", &ImageLimits::default()).unwrap_err();
+        let err = decode_grey(b"GIF89a this is not supported", &ImageLimitSettings::default()).unwrap_err();
         assert!(matches!(err, FeatureError::UnsupportedFormat), "{err}");
     }
 
     #[test]
     fn truncated_png_is_corrupt() {
         let bytes = encode(&gradient(64, 64), ".png");
-        let err = decode_grey(&bytes[..bytes.len() / 2], &ImageLimits::default()).unwrap_err();
+        let err = decode_grey(&bytes[..bytes.len() / 2], &ImageLimitSettings::default()).unwrap_err();
         assert!(matches!(err, FeatureError::CorruptImage { .. }), "{err}");
-        let err = decode_grey(&bytes[..20], &ImageLimits::default()).unwrap_err();
+        let err = decode_grey(&bytes[..20], &ImageLimitSettings::default()).unwrap_err();
         assert!(matches!(err, FeatureError::CorruptImage { .. }), "{err}");
     }
 
@@ -298,7 +298,7 @@ mod tests {
     fn garbage_after_jpeg_magic_is_corrupt() {
         let mut bytes = vec![0xff, 0xd8, 0xff, 0xe0, 0x00, 0x10];
         bytes.extend_from_slice(&[0u8; 14]);
-        let err = decode_grey(&bytes, &ImageLimits::default()).unwrap_err();
+        let err = decode_grey(&bytes, &ImageLimitSettings::default()).unwrap_err();
         assert!(matches!(err, FeatureError::CorruptImage { .. }), "{err}");
     }
 
@@ -310,7 +310,7 @@ mod tests {
         for b in &mut bytes[n / 2..] {
             *b = 0xff;
         }
-        match decode_grey(&bytes, &ImageLimits::default()) {
+        match decode_grey(&bytes, &ImageLimitSettings::default()) {
             Err(FeatureError::CorruptImage { .. }) => {}
             // libjpeg may recover a damaged scan with grey filler; the size must still match.
             Ok(img) => assert_eq!((img.width(), img.height()), (64, 64)),
@@ -326,20 +326,20 @@ mod tests {
         bytes.extend_from_slice(&100_000u32.to_be_bytes());
         bytes.extend_from_slice(&100_000u32.to_be_bytes());
         bytes.extend_from_slice(&[8, 0, 0, 0, 0, 0, 0, 0, 0]);
-        let err = decode_grey(&bytes, &ImageLimits::default()).unwrap_err();
+        let err = decode_grey(&bytes, &ImageLimitSettings::default()).unwrap_err();
         assert!(matches!(err, FeatureError::ImageTooLarge { what: "width", .. }), "{err}");
     }
 
     #[test]
     fn pixel_and_byte_limits_apply() {
         let bytes = encode(&gradient(100, 100), ".png");
-        let limits = ImageLimits { max_pixels: 9_999, ..ImageLimits::default() };
+        let limits = ImageLimitSettings { max_pixels: 9_999, ..ImageLimitSettings::default() };
         let err = decode_grey(&bytes, &limits).unwrap_err();
         assert!(matches!(err, FeatureError::ImageTooLarge { what: "pixels", .. }), "{err}");
-        let limits = ImageLimits { max_bytes: bytes.len() - 1, ..ImageLimits::default() };
+        let limits = ImageLimitSettings { max_bytes: bytes.len() - 1, ..ImageLimitSettings::default() };
         let err = decode_grey(&bytes, &limits).unwrap_err();
         assert!(matches!(err, FeatureError::ImageTooLarge { what: "encoded bytes", .. }), "{err}");
-        let limits = ImageLimits { max_height: 99, ..ImageLimits::default() };
+        let limits = ImageLimitSettings { max_height: 99, ..ImageLimitSettings::default() };
         let err = decode_grey(&bytes, &limits).unwrap_err();
         assert!(matches!(err, FeatureError::ImageTooLarge { what: "height", .. }), "{err}");
     }

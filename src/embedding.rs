@@ -35,7 +35,7 @@ use crate::features::{Features, DESCRIPTOR_BYTES};
 /// Settings of the embedding runtime.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields, default)]
-pub struct EmbedderConfig {
+pub struct EmbedderSettings {
     /// ONNX model file.
     pub model: PathBuf,
     /// ONNX Runtime shared library (`libonnxruntime.so`).
@@ -50,7 +50,7 @@ pub struct EmbedderConfig {
     pub spinning: bool,
 }
 
-impl Default for EmbedderConfig {
+impl Default for EmbedderSettings {
     fn default() -> Self {
         Self {
             model: default_model_path(),
@@ -189,7 +189,7 @@ fn check_contract(path: &Path, session: &Session) -> Result<(usize, usize), Embe
 
 impl Embedder {
     /// Loads the runtime and the model, checks the contract and runs one warm-up inference per session.
-    pub fn load(config: &EmbedderConfig) -> Result<Self, EmbeddingError> {
+    pub fn load(config: &EmbedderSettings) -> Result<Self, EmbeddingError> {
         let path = config.model.clone();
         let bytes = model_bytes(&path, &default_model_path())?;
         let model_id = format!("sha256:{:x}", Sha256::digest(&bytes));

@@ -44,7 +44,7 @@ const FREAK_OCTAVES: i32 = 4;
 /// Settings of detection and description. Defaults suit a 640x480 image.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields, default)]
-pub struct ExtractorConfig {
+pub struct ExtractorSettings {
     /// FAST intensity threshold.
     pub fast_threshold: i32,
     /// Keypoints kept at most (before FREAK's own border check).
@@ -57,13 +57,13 @@ pub struct ExtractorConfig {
     pub grid_cell: u32,
 }
 
-impl Default for ExtractorConfig {
+impl Default for ExtractorSettings {
     fn default() -> Self {
         Self { fast_threshold: 20, max_keypoints: 1500, levels: 6, scale_factor: 1.2, grid_cell: 32 }
     }
 }
 
-impl ExtractorConfig {
+impl ExtractorSettings {
     /// Single-scale FAST, strongest `max_keypoints`, no bucketing: the paper's and OpenCV's pipeline.
     pub fn single_scale(fast_threshold: i32, max_keypoints: usize) -> Self {
         Self { fast_threshold, max_keypoints, levels: 1, scale_factor: 1.2, grid_cell: 0 }
@@ -160,13 +160,13 @@ impl Features {
 /// Limits on client-supplied keypoints.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields, default)]
-pub struct KeypointLimits {
+pub struct KeypointLimitSettings {
     pub max_keypoints: usize,
     /// Largest accepted keypoint size in pixels.
     pub max_size: f32,
 }
 
-impl Default for KeypointLimits {
+impl Default for KeypointLimitSettings {
     fn default() -> Self {
         Self { max_keypoints: 10_000, max_size: 1024.0 }
     }
@@ -178,14 +178,14 @@ fn freak_border(size: f32) -> f32 {
 }
 
 /// Detects and describes keypoints on a grey image.
-pub fn extract(image: &GreyImage, config: &ExtractorConfig) -> Result<Features, FeatureError> {
+pub fn extract(image: &GreyImage, config: &ExtractorSettings) -> Result<Features, FeatureError> {
     config.validate()?;
     let mut candidates = detect(image, config)?;
     describe(image, &mut candidates)
 }
 
 /// FAST on every pyramid level, border-filtered and budgeted; keypoints in full-resolution coordinates.
-pub fn detect(image: &GreyImage, config: &ExtractorConfig) -> Result<Vector<KeyPoint>, FeatureError> {
+pub fn detect(image: &GreyImage, config: &ExtractorSettings) -> Result<Vector<KeyPoint>, FeatureError> {
     let full = image.mat();
     let (w, h) = (full.cols(), full.rows());
     let level_weights: Vec<f64> = (0..config.levels).map(|l| config.scale_factor.powi(-2 * l as i32)).collect();
@@ -312,7 +312,7 @@ pub fn from_precomputed(
     height: u32,
     keypoints: Vec<Keypoint>,
     descriptors: &[u8],
-    limits: &KeypointLimits,
+    limits: &KeypointLimitSettings,
 ) -> Result<Features, FeatureError> {
     if width == 0 || height == 0 {
         return Err(FeatureError::InvalidKeypoint {
@@ -414,11 +414,11 @@ mod tests {
 
     #[test]
     fn config_validation_names_the_field() {
-        let cfg = ExtractorConfig { scale_factor: 0.5, ..ExtractorConfig::default() };
+        let cfg = ExtractorSettings { scale_factor: 0.5, ..ExtractorSettings::default() };
         assert!(matches!(cfg.validate(), Err(FeatureError::InvalidConfig { field: "scale_factor", .. })));
-        let cfg = ExtractorConfig { levels: 0, ..ExtractorConfig::default() };
+        let cfg = ExtractorSettings { levels: 0, ..ExtractorSettings::default() };
         assert!(matches!(cfg.validate(), Err(FeatureError::InvalidConfig { field: "levels", .. })));
-        assert!(ExtractorConfig::default().validate().is_ok());
+        assert!(ExtractorSettings::default().validate().is_ok());
     }
 
     fn good_kp() -> Keypoint {
@@ -427,14 +427,14 @@ mod tests {
 
     #[test]
     fn precomputed_accepts_valid_input() {
-        let f = from_precomputed(64, 48, vec![good_kp(); 2], &[7u8; 128], &KeypointLimits::default()).unwrap();
+        let f = from_precomputed(64, 48, vec![good_kp(); 2], &[7u8; 128], &KeypointLimitSettings::default()).unwrap();
         assert_eq!(f.len(), 2);
         assert_eq!(f.descriptors[1], [7u8; 64]);
     }
 
     #[test]
     fn precomputed_rejects_each_violation() {
-        let limits = KeypointLimits::default();
+        let limits = KeypointLimitSettings::default();
         let check = |k: Keypoint, field: &str| {
             let err = from_precomputed(64, 48, vec![good_kp(), k], &[0u8; 128], &limits).unwrap_err();
             match err {
@@ -453,7 +453,7 @@ mod tests {
         check(Keypoint { response: f32::NAN, ..good_kp() }, "response");
         let err = from_precomputed(64, 48, vec![good_kp(); 2], &[0u8; 127], &limits).unwrap_err();
         assert!(matches!(err, FeatureError::InvalidDescriptors { .. }), "{err}");
-        let small = KeypointLimits { max_keypoints: 1, ..limits };
+        let small = KeypointLimitSettings { max_keypoints: 1, ..limits };
         let err = from_precomputed(64, 48, vec![good_kp(); 2], &[0u8; 128], &small).unwrap_err();
         assert!(matches!(err, FeatureError::TooManyKeypoints { count: 2, max: 1 }), "{err}");
     }
@@ -461,7 +461,7 @@ mod tests {
     #[test]
     fn negative_angles_are_normalised() {
         let k = Keypoint { angle: -90.0, ..good_kp() };
-        let f = from_precomputed(64, 48, vec![k], &[0u8; 64], &KeypointLimits::default()).unwrap();
+        let f = from_precomputed(64, 48, vec![k], &[0u8; 64], &KeypointLimitSettings::default()).unwrap();
         assert_eq!(f.keypoints[0].angle, 270.0);
     }
 }

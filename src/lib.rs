@@ -24,12 +24,13 @@
 //! - [`map`]: landmarks with their SConE observations, durable storage (local or S3), the ANN index,
 //!   relocalisation;
 //! - [`service`]: the operations the API offers, in domain types, with one error type for clients;
-//! - [`workers`]: the bounded CPU pool every request's CPU work runs on;
+//! - [`cpu_pool`]: the bounded CPU pool every request's CPU work runs on;
 //! - [`settings`]: the server's typed, layered configuration;
 //! - [`server`]: the gRPC and HTTP transports, auth, connection limits, metrics, life cycle;
 //! - [`error`]: the error types of the core modules.
 //!
-//! Offline: [`offline`] (scene reader, COLMAP import, training-feature export, evaluation).
+//! Offline: [`offline`] (scene reader, COLMAP import, training-feature export, evaluation), with
+//! [`progress`] (a bar or log lines) on its long jobs.
 //!
 //! # One request, end to end
 //!
@@ -37,7 +38,7 @@
 //!
 //! 1. [`server::http`] refuses it at once if the CPU pool has no free slot, else reads the body (size and
 //!    time limits) and checks the read key ([`server::auth`]);
-//! 2. a closure runs on the [`workers::CpuPool`] under the request deadline: it turns the form into a
+//! 2. a closure runs on the [`cpu_pool::CpuPool`] under the request deadline: it turns the form into a
 //!    [`service::FrameInput`] and calls
 //!    [`service::Service::localize`], which checks the map exists, the image header and the intrinsics
 //!    ([`camera::validate_camera`]) before any decoding;
@@ -54,6 +55,7 @@
 
 pub mod camera;
 pub mod constellation;
+pub mod cpu_pool;
 pub mod decode;
 pub mod embedding;
 pub mod error;
@@ -63,12 +65,12 @@ pub mod matching;
 pub mod offline;
 pub mod pipeline;
 pub mod pose;
+pub mod progress;
 pub mod render;
 pub mod server;
 pub mod service;
 pub mod settings;
 #[cfg(test)]
 pub(crate) mod test_dir;
-pub mod workers;
 
 pub use error::{EmbeddingError, FeatureError, ImportError, MapError, PoseError, SceneError};

@@ -6,10 +6,10 @@ use std::sync::Arc;
 use std::time::Instant;
 
 use crate::constellation;
-use crate::decode::{decode_grey, ImageLimits};
+use crate::decode::{decode_grey, ImageLimitSettings};
 use crate::embedding::Embedder;
 use crate::error::{EmbeddingError, FeatureError};
-use crate::features::{self, ExtractorConfig, Features};
+use crate::features::{self, ExtractorSettings, Features};
 
 /// Wall time of each stage of a request, seconds, in order.
 #[derive(Debug, Clone, Default, PartialEq)]
@@ -60,8 +60,8 @@ pub struct Described {
 /// Extraction settings, limits and the model, shared by all callers.
 #[derive(Debug, Clone)]
 pub struct Describer {
-    pub extractor: ExtractorConfig,
-    pub limits: ImageLimits,
+    pub extractor: ExtractorSettings,
+    pub limits: ImageLimitSettings,
     pub embedder: Arc<Embedder>,
 }
 
@@ -92,7 +92,7 @@ impl Describer {
             keyframe.camera.height,
             keyframe.keypoints.clone(),
             &keyframe.descriptors,
-            &features::KeypointLimits { max_keypoints: usize::MAX, ..Default::default() },
+            &features::KeypointLimitSettings { max_keypoints: usize::MAX, ..Default::default() },
         )?;
         Ok(embed(&self.embedder, &features)?)
     }

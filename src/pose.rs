@@ -15,7 +15,7 @@ use crate::error::PoseError;
 /// RANSAC settings shared by both estimators.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields, default)]
-pub struct RansacParams {
+pub struct RansacSettings {
     /// Inlier threshold in pixels.
     pub threshold_px: f64,
     pub confidence: f64,
@@ -33,7 +33,7 @@ pub struct RansacParams {
 /// search needs about 2,800 iterations for 0.999, and on the selection split (5 standard scenes + 4
 /// wide-orbit sequences) the larger budget raised mean AUC@10 from 0.678 to 0.694 for SConE and from 0.684 to
 /// 0.707 for FREAK. Relocalisation sets its own PnP parameters (`map::localize`).
-impl Default for RansacParams {
+impl Default for RansacSettings {
     fn default() -> Self {
         Self {
             threshold_px: 1.0,
@@ -45,7 +45,7 @@ impl Default for RansacParams {
     }
 }
 
-impl RansacParams {
+impl RansacSettings {
     /// A finite positive threshold, a confidence strictly between 0 and 1 and at least one iteration.
     pub fn validate(&self) -> Result<(), String> {
         if !(self.threshold_px.is_finite() && self.threshold_px > 0.0) {
@@ -140,7 +140,7 @@ pub fn relative_pose(
     p2: &[(f32, f32)],
     cam1: &Camera,
     cam2: &Camera,
-    params: &RansacParams,
+    params: &RansacSettings,
 ) -> Result<Option<RelativePose>, PoseError> {
     validate_camera(cam1)?;
     validate_camera(cam2)?;
@@ -235,7 +235,7 @@ pub fn absolute_pose(
     points3d: &[[f64; 3]],
     points2d: &[(f32, f32)],
     cam: &Camera,
-    params: &RansacParams,
+    params: &RansacSettings,
     min_inliers: usize,
 ) -> Result<Option<AbsolutePose>, PoseError> {
     validate_camera(cam)?;
@@ -390,7 +390,7 @@ mod tests {
             p1.push(a);
             p2.push(if i % 10 < 3 { (b.0 + 40.0 + (i % 7) as f32 * 9.0, b.1 - 25.0) } else { b });
         }
-        let pose = relative_pose(&p1, &p2, &c, &c, &RansacParams::default()).unwrap().unwrap();
+        let pose = relative_pose(&p1, &p2, &c, &c, &RansacSettings::default()).unwrap().unwrap();
         let gt = relative_motion(&Isometry3::identity(), &second_camera());
         assert!(rotation_error_deg(&pose.rotation, &gt.rotation.to_rotation_matrix()) < 0.5);
         assert!(translation_angle_deg(&pose.translation, &gt.translation.vector) < 2.0);
@@ -416,13 +416,13 @@ mod tests {
                 p2.push((b.0, b.1 + d));
             }
         }
-        let params = RansacParams { duplicate_px: 2.0, threshold_px: 2.0, ..Default::default() };
+        let params = RansacSettings { duplicate_px: 2.0, threshold_px: 2.0, ..Default::default() };
         let pose = relative_pose(&p1, &p2, &c, &c, &params).unwrap().unwrap();
         let gt = relative_motion(&Isometry3::identity(), &second_camera());
         assert!(rotation_error_deg(&pose.rotation, &gt.rotation.to_rotation_matrix()) < 0.5);
         assert_eq!(pose.inliers.len(), p1.len());
         assert!(pose.inlier_count >= p1.len() * 9 / 10, "{} of {}", pose.inlier_count, p1.len());
-        assert!(RansacParams { duplicate_px: f64::NAN, ..Default::default() }.validate().is_err());
+        assert!(RansacSettings { duplicate_px: f64::NAN, ..Default::default() }.validate().is_err());
     }
 
     #[test]
@@ -441,7 +441,7 @@ mod tests {
                 p2.push(if i % 5 == 0 { (uv.0 + 50.0, uv.1 + 30.0) } else { uv });
             }
         }
-        let pose = absolute_pose(&p3, &p2, &c, &RansacParams { threshold_px: 2.0, ..Default::default() }, 10)
+        let pose = absolute_pose(&p3, &p2, &c, &RansacSettings { threshold_px: 2.0, ..Default::default() }, 10)
             .unwrap()
             .unwrap();
         let d = pose.camera_to_world.inverse() * t_wc;
@@ -454,8 +454,8 @@ mod tests {
     fn too_few_points_give_no_pose() {
         let c = cam();
         let p = vec![(1.0, 2.0); 4];
-        assert!(relative_pose(&p, &p, &c, &c, &RansacParams::default()).unwrap().is_none());
-        assert!(absolute_pose(&[[0.0; 3]; 4], &p, &c, &RansacParams::default(), 10).unwrap().is_none());
+        assert!(relative_pose(&p, &p, &c, &c, &RansacSettings::default()).unwrap().is_none());
+        assert!(absolute_pose(&[[0.0; 3]; 4], &p, &c, &RansacSettings::default(), 10).unwrap().is_none());
     }
 
     #[test]
@@ -463,7 +463,7 @@ mod tests {
         let bad = Camera { fx: f64::NAN, ..cam() };
         let p = vec![(1.0, 2.0); 8];
         assert!(matches!(
-            relative_pose(&p, &p, &bad, &cam(), &RansacParams::default()),
+            relative_pose(&p, &p, &bad, &cam(), &RansacSettings::default()),
             Err(PoseError::Intrinsics { .. })
         ));
     }

@@ -214,6 +214,49 @@ pub fn localization(frame: &Backdrop, points: &[LocalizedPoint], caption: &[Stri
     with_caption(&body, caption)
 }
 
+/// The caption of a MatchPair picture: the matcher, the counts, and the relative pose (rotation angle in
+/// degrees and unit translation direction) when there is one.
+pub fn pair_caption(
+    matcher: &str,
+    ratio: f32,
+    putative: usize,
+    inliers: usize,
+    pose: Option<(f64, [f64; 3])>,
+) -> [String; 3] {
+    let pose = pose.map_or("no relative pose".to_string(), |(angle, t)| {
+        format!("rotation {angle:.1} deg, translation direction ({:.2}, {:.2}, {:.2})", t[0], t[1], t[2])
+    });
+    [
+        format!("MatchPair, matcher '{matcher}', ratio {ratio}"),
+        format!("{putative} putative matches, {inliers} inliers (green), {} outliers (red)", putative - inliers),
+        pose,
+    ]
+}
+
+/// The caption of a Localize picture: the map, the counts, and the camera centre, reprojection error and
+/// confidence when the frame was localised.
+pub fn localization_caption(
+    map: &str,
+    matches: usize,
+    inliers: usize,
+    pose: Option<([f64; 3], f64, f64)>,
+) -> [String; 3] {
+    let pose = pose.map_or("not localised".to_string(), |(c, reprojection, confidence)| {
+        format!(
+            "camera at ({:.3}, {:.3}, {:.3}), reprojection error {reprojection:.2} px, confidence {confidence:.2}",
+            c[0], c[1], c[2]
+        )
+    });
+    [
+        format!("Localize against map '{map}'"),
+        format!(
+            "{matches} 2D-3D matches, {inliers} inliers (green; landmarks reprojected in cyan), {} outliers (red)",
+            matches - inliers
+        ),
+        pose,
+    ]
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

@@ -10,11 +10,11 @@ use figment::providers::{Env, Format, Serialized, Toml};
 use figment::Figment;
 use serde::{Deserialize, Serialize};
 
-use crate::decode::ImageLimits;
-use crate::embedding::EmbedderConfig;
-use crate::features::{ExtractorConfig, KeypointLimits};
-use crate::map::store::StoreConfig;
-use crate::pose::RansacParams;
+use crate::decode::ImageLimitSettings;
+use crate::embedding::EmbedderSettings;
+use crate::features::{ExtractorSettings, KeypointLimitSettings};
+use crate::map::store::StoreSettings;
+use crate::pose::RansacSettings;
 
 /// Listeners and request lifetime.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -106,8 +106,8 @@ impl std::fmt::Debug for AuthSettings {
 #[derive(Debug, Clone, PartialEq, Default, Serialize, Deserialize)]
 #[serde(deny_unknown_fields, default)]
 pub struct LimitSettings {
-    pub image: ImageLimits,
-    pub keypoints: KeypointLimits,
+    pub image: ImageLimitSettings,
+    pub keypoints: KeypointLimitSettings,
 }
 
 /// The CPU pool every request's work runs on.
@@ -138,12 +138,12 @@ pub struct Settings {
     pub auth: AuthSettings,
     pub limits: LimitSettings,
     pub workers: WorkerSettings,
-    pub model: EmbedderConfig,
-    pub extractor: ExtractorConfig,
-    pub store: StoreConfig,
+    pub model: EmbedderSettings,
+    pub extractor: ExtractorSettings,
+    pub store: StoreSettings,
     /// MatchPair's essential-matrix search (`[relative_pose]`: threshold_px, confidence, max_iters, essential,
     /// duplicate_px). The defaults favour accuracy; a smaller `max_iters` bounds the time a hard pair can take.
-    pub relative_pose: RansacParams,
+    pub relative_pose: RansacSettings,
 }
 
 /// Flags that override everything else.
@@ -400,13 +400,13 @@ mod tests {
     fn the_relative_pose_search_is_set_by_field_and_checked() {
         figment::Jail::expect_with(|jail| {
             let s = Settings::load(None, &Overrides::default()).map_err(|e| e.to_string())?;
-            assert_eq!(s.relative_pose, RansacParams::default());
+            assert_eq!(s.relative_pose, RansacSettings::default());
             jail.set_env("SCONE_RELATIVE_POSE__MAX_ITERS", "2000");
             jail.set_env("SCONE_RELATIVE_POSE__ESSENTIAL", "ransac");
             let s = Settings::load(None, &Overrides::default()).map_err(|e| e.to_string())?;
             assert_eq!(s.relative_pose.max_iters, 2000);
             assert_eq!(s.relative_pose.essential, crate::pose::EssentialMethod::Ransac);
-            assert_eq!(s.relative_pose.confidence, RansacParams::default().confidence, "unset fields keep defaults");
+            assert_eq!(s.relative_pose.confidence, RansacSettings::default().confidence, "unset fields keep defaults");
             Ok(())
         });
         for (var, value, word) in [
@@ -427,7 +427,7 @@ mod tests {
     fn the_map_backend_is_local_by_default_and_s3_from_the_environment() {
         figment::Jail::expect_with(|_| {
             let s = Settings::load(None, &Overrides::default()).map_err(|e| e.to_string())?;
-            assert_eq!(s.store.backend, crate::map::store::BackendConfig::Local {});
+            assert_eq!(s.store.backend, crate::map::storage::BackendSettings::Local {});
             Ok(())
         });
         figment::Jail::expect_with(|jail| {
@@ -437,7 +437,7 @@ mod tests {
             jail.set_env("SCONE_STORE__BACKEND__ENDPOINT", "http://minio.storage:9000");
             jail.set_env("SCONE_STORE__BACKEND__ALLOW_HTTP", "true");
             let s = Settings::load(None, &Overrides::default()).map_err(|e| e.to_string())?;
-            let crate::map::store::BackendConfig::S3(s3) = &s.store.backend else { panic!("{:?}", s.store) };
+            let crate::map::storage::BackendSettings::S3(s3) = &s.store.backend else { panic!("{:?}", s.store) };
             assert_eq!((s3.bucket.as_str(), s3.prefix.as_str(), s3.allow_http), ("scone-maps", "prod", true));
             assert_eq!(s.redacted()["store"]["backend"]["kind"], "s3");
             Ok(())

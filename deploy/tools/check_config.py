@@ -2,7 +2,7 @@
 """Check the scone TOML embedded in the Kubernetes ConfigMaps and the keys file example.
 
 TOML: parses, and uses only settings the server knows (the server rejects unknown keys: `deny_unknown_fields`).
-KNOWN mirrors src/settings.rs and the structs it embeds (model: EmbedderConfig, store: StoreConfig) as of this
+KNOWN mirrors src/settings.rs and the structs it embeds (model: EmbedderSettings, store: StoreSettings) as of this
 writing; the whole-section entries (limits, extractor, store.index ...) are not checked further.
 Keys file: every non-comment line is `write <key>` or `read <key>`, like the server's parser.
 Usage: check_config.py CONFIGMAP.yaml... [--keys KEYSFILE]"""

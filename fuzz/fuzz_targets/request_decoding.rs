@@ -5,17 +5,17 @@
 
 use libfuzzer_sys::fuzz_target;
 use prost::Message;
-use scone::features::{from_precomputed, KeypointLimits};
-use scone::server::grpc::frame;
+use scone::features::{from_precomputed, KeypointLimitSettings};
+use scone::server::grpc::frame_input;
 use scone::server::proto::{DescribeRequest, LocalizeRequest};
 use scone::service::{ErrorKind, FrameSource, ServiceError};
 
 fn check(f: Option<scone::server::proto::Frame>) {
-    match frame(f, "frame") {
+    match frame_input(f, "frame") {
         Ok(input) => {
             if let FrameSource::Keypoints(k) = input.source {
                 if let Err(e) =
-                    from_precomputed(k.width, k.height, k.keypoints, &k.descriptors, &KeypointLimits::default())
+                    from_precomputed(k.width, k.height, k.keypoints, &k.descriptors, &KeypointLimitSettings::default())
                 {
                     assert_eq!(ServiceError::from(e).kind(), ErrorKind::InvalidArgument);
                 }

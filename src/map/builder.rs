@@ -58,7 +58,7 @@ use crate::matching::{match_l2, RatioTest};
 /// Settings of map building.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields, default)]
-pub struct BuildParams {
+pub struct BuildSettings {
     /// Ratio test between new and candidate keyframes.
     pub ratio: f32,
     /// Reprojection tolerance in pixels.
@@ -86,7 +86,7 @@ pub struct BuildParams {
     pub external_point_tolerance: f64,
 }
 
-impl Default for BuildParams {
+impl Default for BuildSettings {
     fn default() -> Self {
         Self {
             ratio: crate::matching::DEFAULT_RATIO,
@@ -102,7 +102,7 @@ impl Default for BuildParams {
     }
 }
 
-impl BuildParams {
+impl BuildSettings {
     /// Checks the settings of external landmarks (the others have always been taken as given).
     pub fn validate(&self) -> Result<(), String> {
         for (name, v) in [
@@ -249,12 +249,12 @@ fn viewing_direction(pose: &Isometry3<f64>) -> Vector3<f64> {
 }
 
 /// Plans the record that adds `input` to `data`.
-pub fn plan_keyframe(data: &MapData, input: &KeyframeInput, params: &BuildParams) -> Result<Record, MapError> {
+pub fn plan_keyframe(data: &MapData, input: &KeyframeInput, params: &BuildSettings) -> Result<Record, MapError> {
     Ok(plan(data, input, params)?.record)
 }
 
 /// Plans the record that adds `input` to `data`, with the counts of its external observations.
-pub fn plan(data: &MapData, input: &KeyframeInput, params: &BuildParams) -> Result<Plan, MapError> {
+pub fn plan(data: &MapData, input: &KeyframeInput, params: &BuildSettings) -> Result<Plan, MapError> {
     let dim = data.meta.dim;
     let n = input.features.len();
     if input.embeddings.len() != n * dim {
@@ -427,7 +427,7 @@ fn plan_external(
     data: &MapData,
     input: &KeyframeInput,
     external: &[ExternalObservation],
-    params: &BuildParams,
+    params: &BuildSettings,
 ) -> Result<ExternalPlan, MapError> {
     if external.len() > MAX_EXTERNAL_OBSERVATIONS {
         return Err(invalid(

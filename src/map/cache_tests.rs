@@ -13,9 +13,9 @@ use crate::camera::Camera;
 use crate::error::MapError;
 use crate::features::{Features, Keypoint, DESCRIPTOR_BYTES};
 use crate::map::builder::{ExternalObservation, KeyframeInput};
-use crate::map::journal::MapBackend;
-use crate::map::s3::ObjectStorageBackend;
-use crate::map::store::{CacheConfig, MapStore, ModelInfo, StoreConfig};
+use crate::map::storage::backend::MapBackend;
+use crate::map::storage::s3::ObjectStorageBackend;
+use crate::map::store::{CacheSettings, MapStore, ModelInfo, StoreSettings};
 use crate::map::tests::vectors;
 use crate::test_dir::{temp_dir, TestDir};
 
@@ -80,20 +80,20 @@ impl Bucket {
     }
 
     /// A replica: its own cache directory, the shared bucket, lazy mode with `cache`.
-    fn replica(&self, name: &str, cache: CacheConfig, compact_every: usize, exact_below: usize) -> MapStore {
+    fn replica(&self, name: &str, cache: CacheSettings, compact_every: usize, exact_below: usize) -> MapStore {
         let store: Arc<dyn ObjectStore> = Arc::clone(&self.mem) as Arc<dyn ObjectStore>;
         let backend =
             ObjectStorageBackend::new(store, "memory://", "replicas", &self.dir.join(name), compact_every).unwrap();
-        let mut config = StoreConfig { data_dir: self.dir.join(name), compact_every, ..StoreConfig::default() };
-        config.cache = CacheConfig { lazy: Some(true), ..cache };
+        let mut config = StoreSettings { data_dir: self.dir.join(name), compact_every, ..StoreSettings::default() };
+        config.cache = CacheSettings { lazy: Some(true), ..cache };
         config.index.exact_below = exact_below;
         let model = ModelInfo { model_id: "sha256:test".into(), k: 20, dim: DIM };
         MapStore::open_with_backend(config, model, Arc::new(backend) as Arc<dyn MapBackend>).unwrap()
     }
 }
 
-fn always_check() -> CacheConfig {
-    CacheConfig { freshness_ms: 0, ..CacheConfig::default() }
+fn always_check() -> CacheSettings {
+    CacheSettings { freshness_ms: 0, ..CacheSettings::default() }
 }
 
 fn version(store: &MapStore, map: &str) -> u64 {
@@ -150,7 +150,7 @@ fn a_map_made_on_one_replica_is_seen_written_and_deleted_through_another() {
 fn a_compaction_elsewhere_reloads_and_within_the_bound_the_copy_is_served() {
     let bucket = Bucket::new("cache-compaction");
     let a = bucket.replica("a", always_check(), 2, 100_000);
-    let slow = CacheConfig { freshness_ms: 3_600_000, ..CacheConfig::default() };
+    let slow = CacheSettings { freshness_ms: 3_600_000, ..CacheSettings::default() };
     let b = bucket.replica("b", slow, 2, 100_000);
     a.create("m").unwrap();
     add(&a, "m", 1, &frame(5, 5, 0, 1)).unwrap();
@@ -173,8 +173,8 @@ fn a_compaction_elsewhere_reloads_and_within_the_bound_the_copy_is_served() {
 fn maps_beyond_the_memory_budget_are_evicted_least_recently_used_first_and_reload() {
     let bucket = Bucket::new("cache-budget");
     // Three maps of about 1.4 MB (estimated) each; a 3 MiB budget holds two.
-    let budget = CacheConfig { memory_budget_mb: 3, ..CacheConfig::default() };
-    let writer = bucket.replica("w", CacheConfig { memory_budget_mb: 0, ..CacheConfig::default() }, 0, 100_000);
+    let budget = CacheSettings { memory_budget_mb: 3, ..CacheSettings::default() };
+    let writer = bucket.replica("w", CacheSettings { memory_budget_mb: 0, ..CacheSettings::default() }, 0, 100_000);
     for (i, id) in ["m1", "m2", "m3"].iter().enumerate() {
         writer.create(id).unwrap();
         add(&writer, id, 1, &frame(40, 20, 0, i as u64)).unwrap();

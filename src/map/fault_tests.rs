@@ -10,9 +10,9 @@ use fail::FailScenario;
 use super::tests::{hnsw_map, keyframe_record, meta, write};
 use crate::error::MapError;
 use crate::map::index::EmbeddingIndex;
-use crate::map::journal::MapBackend;
-use crate::map::local::{LocalBackend, MapLog};
 use crate::map::model::MapData;
+use crate::map::storage::backend::MapBackend;
+use crate::map::storage::local::{LocalBackend, LocalJournal};
 use crate::test_dir::temp_dir;
 
 /// The file of the dump in `dir` whose name ends with `suffix` (there must be exactly one).
@@ -47,7 +47,7 @@ fn a_failed_append_leaves_the_log_as_it_was_and_later_writes_follow_good_data() 
     let _scenario = FailScenario::setup();
     let dir = temp_dir("fault-append");
     let mut data = MapData::new(meta(8));
-    let mut log = MapLog::create(&dir, &data, 0).unwrap();
+    let mut log = LocalJournal::create(&dir, &data, 0).unwrap();
     write(&mut log, &mut data, keyframe_record(0, 10, 0, 8, 1));
     let before = std::fs::read(dir.join("log.bin")).unwrap();
 
@@ -62,7 +62,7 @@ fn a_failed_append_leaves_the_log_as_it_was_and_later_writes_follow_good_data() 
     write(&mut log, &mut data, keyframe_record(2, 10, 20, 8, 3));
     write(&mut log, &mut data, keyframe_record(3, 10, 30, 8, 4));
     drop(log);
-    let (loaded, _, report) = MapLog::open(&dir, 0).unwrap();
+    let (loaded, _, report) = LocalJournal::open(&dir, 0).unwrap();
     assert_eq!((report.replayed, report.truncated_bytes), (3, 0));
     assert_eq!(loaded, data);
 }
@@ -108,7 +108,7 @@ fn a_failed_compaction_keeps_every_acknowledged_record_and_no_temporary_file() {
     for file in ["snapshot.bin", "log.bin"] {
         let dir = temp_dir("fault-compact");
         let mut data = MapData::new(meta(8));
-        let mut log = MapLog::create(&dir, &data, 2).unwrap();
+        let mut log = LocalJournal::create(&dir, &data, 2).unwrap();
         write(&mut log, &mut data, keyframe_record(0, 5, 0, 8, 1));
         write(&mut log, &mut data, keyframe_record(1, 5, 5, 8, 2));
         inject("map-write", &[&name_of(&dir), file]);
@@ -119,7 +119,7 @@ fn a_failed_compaction_keeps_every_acknowledged_record_and_no_temporary_file() {
         assert_eq!(names, ["log.bin", "snapshot.bin"], "{file}");
         write(&mut log, &mut data, keyframe_record(2, 5, 10, 8, 3));
         drop(log);
-        let (loaded, _, report) = MapLog::open(&dir, 2).unwrap();
+        let (loaded, _, report) = LocalJournal::open(&dir, 2).unwrap();
         assert_eq!(report.truncated_bytes, 0, "{file}");
         assert_eq!(loaded, data, "{file}");
     }

@@ -23,14 +23,17 @@ use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
 use crate::error::MapError;
-use crate::map::format::io_error;
-pub use crate::map::format::DumpBytes;
 use crate::map::model::MapData;
+pub use crate::map::storage::format::DumpBytes;
+use crate::map::storage::format::{
+    file_crc, io_error, remove_dump, remove_dumps_except, valid_base, DumpManifest, DATA_SUFFIX, DUMP_MANIFEST,
+    GRAPH_SUFFIX,
+};
 
 /// Settings of the index.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields, default)]
-pub struct IndexParams {
+pub struct IndexSettings {
     /// Below this many observations the search is exact (brute force).
     pub exact_below: usize,
     /// HNSW links per node.
@@ -41,7 +44,7 @@ pub struct IndexParams {
     pub rebuild_dead_share: f64,
 }
 
-impl Default for IndexParams {
+impl Default for IndexSettings {
     fn default() -> Self {
         Self { exact_below: 1_000, m: 16, ef_construction: 100, ef_search: 16, rebuild_dead_share: 0.3 }
     }
@@ -49,22 +52,6 @@ impl Default for IndexParams {
 
 /// hnsw_rs's dump only reloads with 16 layers.
 const MAX_LAYER: usize = 16;
-
-/// `index.json`: which files hold the dump, and what it was built from.
-#[derive(Debug, Serialize, Deserialize, PartialEq)]
-struct DumpManifest {
-    /// Base name of the two files (`<base>.hnsw.graph`, `<base>.hnsw.data`), as hnsw_rs wrote them.
-    base: String,
-    /// Observations `[0, points)` were offered to the graph...
-    points: usize,
-    /// ...of which this many (the live ones then) are in it.
-    in_graph: usize,
-    model_id: String,
-    graph_crc: u32,
-    data_crc: u32,
-    /// CRC-32 of the embeddings of observations `[0, points)` at the dump.
-    embeddings_crc: u32,
-}
 
 /// A neighbour: observation id and L2 distance.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -75,7 +62,7 @@ pub struct Hit {
 
 /// The index of one map.
 pub struct EmbeddingIndex {
-    params: IndexParams,
+    params: IndexSettings,
     hnsw: Option<Hnsw<'static, f32, DistL2>>,
     /// Observations [0, indexed) are in `hnsw` (when it exists)...
     indexed: usize,
@@ -135,11 +122,11 @@ pub fn exact_search(data: &MapData, query: &[f32], k: usize, accept: Accept) -> 
 }
 
 impl EmbeddingIndex {
-    pub fn new(params: IndexParams) -> Self {
+    pub fn new(params: IndexSettings) -> Self {
         Self { params, hnsw: None, indexed: 0, in_graph: 0, from_dump: false, dead_in_graph: 0 }
     }
 
-    pub fn params(&self) -> &IndexParams {
+    pub fn params(&self) -> &IndexSettings {
         &self.params
     }
 
@@ -279,9 +266,9 @@ impl EmbeddingIndex {
             return Ok(());
         };
         let base = format!("index-{:016x}", rand::random::<u64>());
-        let written = if crate::map::format::injected("index-dump", dir) {
+        let written = if crate::map::storage::format::injected("index-dump", dir) {
             let _ = std::fs::write(dir.join(format!("{base}{GRAPH_SUFFIX}")), b"partial");
-            Err(crate::map::format::injected_full(&dir.join(&base)))
+            Err(crate::map::storage::format::injected_full(&dir.join(&base)))
         } else {
             // hnsw_rs panics on some I/O failures (a file it cannot create): a failed dump, not a crash.
             let dumped = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| graph.file_dump(dir, &base)));
@@ -315,7 +302,7 @@ impl EmbeddingIndex {
                 embeddings_crc: embeddings_crc(data, self.indexed),
             };
             let json = serde_json::to_vec(&manifest).expect("manifest serialises");
-            crate::map::format::write_atomic(&manifest_path, &json)
+            crate::map::storage::format::write_atomic(&manifest_path, &json)
         })();
         if let Err(e) = finished {
             remove_dump(dir, &name);
@@ -328,7 +315,7 @@ impl EmbeddingIndex {
     /// Loads a dump from `dir` when it holds exactly what `data` says it should (model, files' checksums,
     /// the embeddings it was built from, and, point by point, the observations in the graph); then syncs the
     /// rest. Anything else rebuilds from the map data.
-    pub fn load_or_build(params: IndexParams, dir: &Path, data: &MapData) -> Self {
+    pub fn load_or_build(params: IndexSettings, dir: &Path, data: &MapData) -> Self {
         let mut index = Self::new(params);
         match Self::try_load(dir, data) {
             Ok(Some(LoadedDump { graph, points, in_graph })) => {
@@ -389,49 +376,6 @@ struct LoadedDump {
     in_graph: usize,
 }
 
-/// The manifest of a dump, and the suffixes hnsw_rs gives its two files.
-pub const DUMP_MANIFEST: &str = "index.json";
-const GRAPH_SUFFIX: &str = ".hnsw.graph";
-const DATA_SUFFIX: &str = ".hnsw.data";
-
-/// The dump in `dir`, read (`None` when there is none or it cannot be read whole).
-pub fn read_dump(dir: &Path) -> Option<DumpBytes> {
-    let manifest = std::fs::read(dir.join(DUMP_MANIFEST)).ok()?;
-    let base = serde_json::from_slice::<DumpManifest>(&manifest).ok()?.base;
-    if !valid_base(&base) {
-        return None;
-    }
-    let graph = std::fs::read(dir.join(format!("{base}{GRAPH_SUFFIX}"))).ok()?;
-    let data = std::fs::read(dir.join(format!("{base}{DATA_SUFFIX}"))).ok()?;
-    Some(DumpBytes { manifest, graph, data })
-}
-
-/// Writes a dump read elsewhere ([`read_dump`]) into `dir`: the two files under the manifest's base name, the
-/// manifest last, then the other dumps there are deleted. The loader checks it against the map, so a dump
-/// that does not match is rebuilt, not used.
-pub fn install_dump(dir: &Path, dump: &DumpBytes) -> Result<(), MapError> {
-    let base = serde_json::from_slice::<DumpManifest>(&dump.manifest)
-        .ok()
-        .map(|m| m.base)
-        .filter(|b| valid_base(b))
-        .ok_or_else(|| crate::map::format::corrupt(&dir.join(DUMP_MANIFEST), "not an index manifest"))?;
-    let write = crate::map::format::write_atomic;
-    write(&dir.join(format!("{base}{GRAPH_SUFFIX}")), &dump.graph)?;
-    write(&dir.join(format!("{base}{DATA_SUFFIX}")), &dump.data)?;
-    write(&dir.join(DUMP_MANIFEST), &dump.manifest)?;
-    remove_dumps_except(dir, Some(&base));
-    Ok(())
-}
-
-/// A base name this module writes (`index-<hex>`, or `index-<n>` as hnsw_rs may pick): no path, no dots.
-fn valid_base(base: &str) -> bool {
-    !base.is_empty() && base.len() <= 64 && base.bytes().all(|b| b.is_ascii_alphanumeric() || b == b'-' || b == b'_')
-}
-
-fn file_crc(path: &Path) -> Result<u32, MapError> {
-    std::fs::read(path).map(|b| crc32fast::hash(&b)).map_err(|e| io_error(path, e))
-}
-
 /// CRC-32 of the embeddings of observations `[0, points)`: what the graph was built from.
 fn embeddings_crc(data: &MapData, points: usize) -> u32 {
     let mut h = crc32fast::Hasher::new();
@@ -470,23 +414,4 @@ fn check_graph(
         return Err(format!("live observation {missing} is not in the graph"));
     }
     Ok(())
-}
-
-/// Removes the two files of the dump `base` in `dir`.
-fn remove_dump(dir: &Path, base: &str) {
-    for suffix in [GRAPH_SUFFIX, DATA_SUFFIX] {
-        let _ = std::fs::remove_file(dir.join(format!("{base}{suffix}")));
-    }
-}
-
-/// Removes every dump file in `dir` but those of `keep` (replaced dumps, and any a crash left behind).
-fn remove_dumps_except(dir: &Path, keep: Option<&str>) {
-    let Ok(entries) = std::fs::read_dir(dir) else { return };
-    for entry in entries.flatten() {
-        let name = entry.file_name().to_string_lossy().into_owned();
-        let base = name.strip_suffix(GRAPH_SUFFIX).or_else(|| name.strip_suffix(DATA_SUFFIX));
-        if base.is_some_and(|b| Some(b) != keep) {
-            let _ = std::fs::remove_file(entry.path());
-        }
-    }
 }

@@ -17,14 +17,14 @@ use crate::error::MapError;
 use crate::features::Features;
 use crate::map::index::EmbeddingIndex;
 use crate::map::model::MapData;
-use crate::pose::{absolute_pose, AbsolutePose, RansacParams};
+use crate::pose::{absolute_pose, AbsolutePose, RansacSettings};
 
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields, default)]
-pub struct LocalizeParams {
+pub struct LocalizeSettings {
     pub ratio: f32,
     pub knn: usize,
-    pub ransac: RansacParams,
+    pub ransac: RansacSettings,
     pub min_inliers: usize,
     /// Only this many of the query's keypoints, the strongest by detector response, are searched in the
     /// index (all of them are still embedded: a constellation is made of all keypoints). The search is the
@@ -37,19 +37,19 @@ pub struct LocalizeParams {
     pub max_query_keypoints: usize,
 }
 
-impl Default for LocalizeParams {
+impl Default for LocalizeSettings {
     fn default() -> Self {
         Self {
             ratio: crate::matching::DEFAULT_RATIO,
             knn: 4,
-            ransac: RansacParams { threshold_px: 4.0, confidence: 0.999, max_iters: 2000, ..Default::default() },
+            ransac: RansacSettings { threshold_px: 4.0, confidence: 0.999, max_iters: 2000, ..Default::default() },
             min_inliers: 15,
             max_query_keypoints: usize::MAX,
         }
     }
 }
 
-impl LocalizeParams {
+impl LocalizeSettings {
     /// Checks the settings a configuration file can get wrong.
     pub fn validate(&self) -> Result<(), String> {
         if self.max_query_keypoints < self.min_inliers.max(1) {
@@ -96,7 +96,7 @@ pub fn match_landmarks(
     index: &EmbeddingIndex,
     embeddings: &[f32],
     prior: Option<&Prior>,
-    params: &LocalizeParams,
+    params: &LocalizeSettings,
 ) -> Vec<LandmarkMatch> {
     let dim = data.meta.dim;
     let near = |obs: usize| -> bool {
@@ -153,7 +153,7 @@ pub fn localize(
     embeddings: &[f32],
     camera: &Camera,
     prior: Option<&Prior>,
-    params: &LocalizeParams,
+    params: &LocalizeSettings,
 ) -> Result<Localization, MapError> {
     if embeddings.len() != features.len() * data.meta.dim {
         return Err(MapError::InvalidInput {

@@ -5,10 +5,10 @@ use std::path::PathBuf;
 use crate::camera::Camera;
 use crate::camera::Pose;
 use crate::features::{Keypoint, DESCRIPTOR_BYTES};
-use crate::map::format::{decode_snapshot, encode_snapshot};
-use crate::map::index::{exact_search, EmbeddingIndex, IndexParams};
-use crate::map::local::MapLog;
+use crate::map::index::{exact_search, EmbeddingIndex, IndexSettings};
 use crate::map::model::{Keyframe, MapData, MapMeta, NewObservation, Record};
+use crate::map::storage::format::{decode_snapshot, encode_snapshot};
+use crate::map::storage::local::LocalJournal;
 
 use crate::test_dir::{temp_dir, TestDir};
 
@@ -56,7 +56,7 @@ pub(crate) fn keyframe_record(id: u64, n: usize, first_landmark: u64, dim: usize
     }
 }
 
-pub(crate) fn write(log: &mut MapLog, data: &mut MapData, r: Record) {
+pub(crate) fn write(log: &mut LocalJournal, data: &mut MapData, r: Record) {
     data.check(&r).unwrap();
     log.append(data.version + 1, &r).unwrap();
     data.apply(&r);
@@ -66,13 +66,13 @@ pub(crate) fn write(log: &mut MapLog, data: &mut MapData, r: Record) {
 fn log_replays_to_the_same_map() {
     let dir = temp_dir("replay");
     let mut data = MapData::new(meta(8));
-    let mut log = MapLog::create(&dir, &data, 0).unwrap();
+    let mut log = LocalJournal::create(&dir, &data, 0).unwrap();
     for k in 0..5 {
         write(&mut log, &mut data, keyframe_record(k, 10, k * 10, 8, k));
     }
     write(&mut log, &mut data, Record::RemoveKeyframe { id: 2 });
     drop(log);
-    let (loaded, _, report) = MapLog::open(&dir, 0).unwrap();
+    let (loaded, _, report) = LocalJournal::open(&dir, 0).unwrap();
     assert_eq!(report.replayed, 6);
     assert_eq!(report.truncated_bytes, 0);
     assert_eq!(loaded, data);
@@ -83,7 +83,7 @@ fn log_replays_to_the_same_map() {
 fn logged_map(name: &str) -> TestDir {
     let dir = temp_dir(name);
     let mut data = MapData::new(meta(8));
-    let mut log = MapLog::create(&dir, &data, 0).unwrap();
+    let mut log = LocalJournal::create(&dir, &data, 0).unwrap();
     write(&mut log, &mut data, keyframe_record(0, 10, 0, 8, 1));
     write(&mut log, &mut data, keyframe_record(1, 10, 10, 8, 2));
     dir
@@ -97,14 +97,14 @@ fn torn_last_record_is_cut_and_the_map_loads() {
     // Simulate a crash in the middle of appending the second record.
     let cut = full.len() - 37;
     std::fs::write(&path, &full[..cut]).unwrap();
-    let (loaded, mut log, report) = MapLog::open(&dir, 0).unwrap();
+    let (loaded, mut log, report) = LocalJournal::open(&dir, 0).unwrap();
     assert_eq!(loaded.keyframes.len(), 1);
     assert!(report.truncated_bytes > 0);
     // The log accepts new records after the cut, and they replay.
     let mut data = loaded;
     write(&mut log, &mut data, keyframe_record(7, 4, 100, 8, 3));
     drop(log);
-    let (again, _, report) = MapLog::open(&dir, 0).unwrap();
+    let (again, _, report) = LocalJournal::open(&dir, 0).unwrap();
     assert_eq!(report.truncated_bytes, 0);
     assert_eq!(again, data);
 }
@@ -116,7 +116,7 @@ fn corruption_before_the_end_is_reported_with_the_file() {
     let mut bytes = std::fs::read(&path).unwrap();
     bytes[40] ^= 0xff; // inside the first record's payload
     std::fs::write(&path, &bytes).unwrap();
-    let err = MapLog::open(&dir, 0).unwrap_err().to_string();
+    let err = LocalJournal::open(&dir, 0).unwrap_err().to_string();
     assert!(err.contains("log.bin") && err.contains("checksum"), "{err}");
 }
 
@@ -124,14 +124,14 @@ fn corruption_before_the_end_is_reported_with_the_file() {
 fn compaction_keeps_everything_and_restarts_the_log() {
     let dir = temp_dir("compact");
     let mut data = MapData::new(meta(8));
-    let mut log = MapLog::create(&dir, &data, 2).unwrap();
+    let mut log = LocalJournal::create(&dir, &data, 2).unwrap();
     write(&mut log, &mut data, keyframe_record(0, 5, 0, 8, 1));
     write(&mut log, &mut data, keyframe_record(1, 5, 5, 8, 2));
     assert!(log.wants_compaction());
     log.compact(&data).unwrap();
     write(&mut log, &mut data, keyframe_record(2, 5, 10, 8, 3));
     drop(log);
-    let (loaded, _, report) = MapLog::open(&dir, 2).unwrap();
+    let (loaded, _, report) = LocalJournal::open(&dir, 2).unwrap();
     assert_eq!(report.replayed, 1);
     assert_eq!(loaded, data);
 }
@@ -190,12 +190,12 @@ fn exact_search_equals_brute_force_and_skips_tombstones() {
 }
 
 /// A map of `keyframes` x 250 observations with an HNSW index (exact search only below 1,000).
-pub(crate) fn hnsw_map(keyframes: u64, seed: u64) -> (MapData, IndexParams, EmbeddingIndex) {
+pub(crate) fn hnsw_map(keyframes: u64, seed: u64) -> (MapData, IndexSettings, EmbeddingIndex) {
     let mut data = MapData::new(meta(48));
     for k in 0..keyframes {
         data.apply(&keyframe_record(k, 250, k * 250, 48, k + seed));
     }
-    let params = IndexParams { exact_below: 1000, ..IndexParams::default() };
+    let params = IndexSettings { exact_below: 1000, ..IndexSettings::default() };
     let mut index = EmbeddingIndex::new(params);
     index.sync(&data);
     (data, params, index)
@@ -260,8 +260,8 @@ mod external {
 
     use super::*;
     use crate::features::Features;
-    use crate::map::builder::{plan, BuildParams, Depth, ExternalObservation, KeyframeInput};
-    use crate::map::format::{encode_record, frame_snapshot, MapDataV1, FORMAT_VERSION};
+    use crate::map::builder::{plan, BuildSettings, Depth, ExternalObservation, KeyframeInput};
+    use crate::map::storage::format::{encode_record, frame_snapshot, MapDataV1, FORMAT_VERSION};
 
     const DIM: usize = 8;
 
@@ -324,7 +324,7 @@ mod external {
             seen(301.2, 100.0, 5.0, 6), // nearest is keypoint 2 too, but farther: unassociated, not moved to 3
             seen(100.3, 100.0, 5.0, 1), // a second view of id 1: rejected
         ];
-        let p = plan(&data, &input(0, &f, &e, &ext), &BuildParams::default()).unwrap();
+        let p = plan(&data, &input(0, &f, &e, &ext), &BuildSettings::default()).unwrap();
         assert_eq!(
             (p.external.given, p.external.associated, p.external.rejected, p.external.unassociated),
             (7, 2, 3, 2)
@@ -343,7 +343,7 @@ mod external {
         let e2 = vectors(2, DIM, 4);
         let ext2 =
             vec![ExternalObservation { point: ext[0].point, ..seen(100.0, 100.0, 5.0, 1) }, seen(250.0, 250.0, 3.0, 7)];
-        let p2 = plan(&data, &input(1, &f2, &e2, &ext2), &BuildParams::default()).unwrap();
+        let p2 = plan(&data, &input(1, &f2, &e2, &ext2), &BuildSettings::default()).unwrap();
         let Record::AddExternalKeyframe { new_landmarks, observations, .. } = &p2.record else { unreachable!() };
         assert_eq!(new_landmarks.len(), 1, "only id 7 is new");
         assert_eq!(observations[0].landmark, data.external_ids[&1]);
@@ -360,7 +360,7 @@ mod external {
         let mut data = MapData::new(meta(DIM));
         let f = features(&[(100.0, 100.0)]);
         let e = vectors(1, DIM, 5);
-        let params = BuildParams::default();
+        let params = BuildSettings::default();
         let mut nan = vec![seen(100.0, 100.0, 5.0, 1), seen(150.0, 100.0, 5.0, 2)];
         nan[1].point[1] = f64::NAN;
         let msg = field_of(plan(&data, &input(0, &f, &e, &nan), &params).unwrap_err());
@@ -411,7 +411,7 @@ mod external {
         log.extend_from_slice(&encode_record(1, &keyframe_record(0, 10, 0, DIM, 1)).unwrap());
         std::fs::write(dir.join("log.bin"), &log).unwrap();
 
-        let (mut data, mut log, report) = MapLog::open(&dir, 0).unwrap();
+        let (mut data, mut log, report) = LocalJournal::open(&dir, 0).unwrap();
         assert_eq!(report.replayed, 1);
         assert_eq!(data.keyframes.len(), 1);
         assert!(data.external_ids.is_empty());
@@ -423,10 +423,10 @@ mod external {
         let f = features(&[(100.0, 100.0)]);
         let e = vectors(1, DIM, 9);
         let ext = [seen(100.0, 100.0, 5.0, 42)];
-        let p = plan(&data, &input(7, &f, &e, &ext), &BuildParams::default()).unwrap();
+        let p = plan(&data, &input(7, &f, &e, &ext), &BuildSettings::default()).unwrap();
         super::write(&mut log, &mut data, p.record);
         drop(log);
-        let (again, _, report) = MapLog::open(&dir, 0).unwrap();
+        let (again, _, report) = LocalJournal::open(&dir, 0).unwrap();
         assert_eq!(report.replayed, 1);
         assert_eq!(again, data);
         assert_eq!(again.external_ids.len(), 1);
@@ -441,7 +441,7 @@ mod external {
 #[test]
 fn a_query_keypoint_cap_searches_the_strongest_keypoints_and_still_localises() {
     use crate::features::Features;
-    use crate::map::localize::{localize, LocalizeParams};
+    use crate::map::localize::{localize, LocalizeSettings};
     let (n, dim) = (200usize, 48usize);
     let cam = Camera { fx: 500.0, fy: 500.0, cx: 320.0, cy: 240.0, width: 640, height: 480 };
     // Landmark i is seen at pixel (x_i, y_i) by a camera at the origin looking along +z.
@@ -455,7 +455,7 @@ fn a_query_keypoint_cap_searches_the_strongest_keypoints_and_still_localises() {
     let new_landmarks = (0..n).map(|i| (i as u64, point(i))).collect();
     let mut data = MapData::new(meta(dim));
     data.apply(&Record::AddKeyframe { keyframe: keyframe.clone(), new_landmarks, observations });
-    let index = EmbeddingIndex::new(IndexParams::default());
+    let index = EmbeddingIndex::new(IndexSettings::default());
     // The query: the same embeddings at the landmarks' pixels; responses a permutation of 0..n (73 is prime to
     // 200), so the strongest keypoints are scattered over the index range.
     let response = |i: usize| ((i * 73) % n) as f32;
@@ -471,9 +471,10 @@ fn a_query_keypoint_cap_searches_the_strongest_keypoints_and_still_localises() {
         descriptors: vec![[0u8; DESCRIPTOR_BYTES]; n],
     };
     let features = query(&response);
-    let all = localize(&data, &index, &features, &keyframe.embeddings, &cam, None, &LocalizeParams::default()).unwrap();
+    let all =
+        localize(&data, &index, &features, &keyframe.embeddings, &cam, None, &LocalizeSettings::default()).unwrap();
     assert_eq!(all.matches.len(), n);
-    let capped = LocalizeParams { max_query_keypoints: 50, ..LocalizeParams::default() };
+    let capped = LocalizeSettings { max_query_keypoints: 50, ..LocalizeSettings::default() };
     let l = localize(&data, &index, &features, &keyframe.embeddings, &cam, None, &capped).unwrap();
     // Only the 50 strongest keypoints were searched, and matches name them by their index in the whole set.
     assert_eq!(l.matches.len(), 50);
@@ -487,11 +488,11 @@ fn a_query_keypoint_cap_searches_the_strongest_keypoints_and_still_localises() {
     searched.sort_unstable();
     assert_eq!(searched, (0..50).collect::<Vec<_>>());
     // A cap below min_inliers (possible only in code; settings refuse it) still searches min_inliers.
-    let tiny = LocalizeParams { max_query_keypoints: 3, ..LocalizeParams::default() };
+    let tiny = LocalizeSettings { max_query_keypoints: 3, ..LocalizeSettings::default() };
     let l = localize(&data, &index, &features, &keyframe.embeddings, &cam, None, &tiny).unwrap();
-    assert_eq!(l.matches.len(), LocalizeParams::default().min_inliers);
+    assert_eq!(l.matches.len(), LocalizeSettings::default().min_inliers);
     // A cap below the inliers a pose needs is refused at configuration time.
-    let too_low = LocalizeParams { max_query_keypoints: 10, ..LocalizeParams::default() };
+    let too_low = LocalizeSettings { max_query_keypoints: 10, ..LocalizeSettings::default() };
     assert!(too_low.validate().unwrap_err().contains("min_inliers"));
-    assert!(LocalizeParams::default().validate().is_ok());
+    assert!(LocalizeSettings::default().validate().is_ok());
 }

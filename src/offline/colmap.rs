@@ -291,7 +291,7 @@ pub struct ImportSummary {
 /// Writes every image of `model` into map `map` (created if missing) as a keyframe with its external
 /// landmarks, in `IMAGE_ID` order, one durable write each; `on_image` hears of each once it is durable.
 /// Images are read from `images_dir` by name. Association radius and thresholds are the store's
-/// [`crate::map::builder::BuildParams`].
+/// [`crate::map::builder::BuildSettings`].
 pub fn import(
     store: &MapStore,
     describer: &Describer,

@@ -18,7 +18,7 @@ pub const DEFAULT_MAX_GAP: f64 = 0.02;
 
 /// One colour frame with what was associated to it.
 #[derive(Debug, Clone)]
-pub struct Frame {
+pub struct SceneFrame {
     /// The timestamp as written in `rgb.txt`.
     pub stamp: String,
     pub time: f64,
@@ -34,7 +34,7 @@ pub struct Scene {
     pub root: PathBuf,
     pub name: String,
     pub camera: Camera,
-    pub frames: Vec<Frame>,
+    pub frames: Vec<SceneFrame>,
 }
 
 /// Meaningful lines of a TUM list file: `(line number, whitespace-separated fields)`, comments skipped.
@@ -158,7 +158,7 @@ impl Scene {
         let depth_times: Vec<f64> = depth.iter().map(|d| d.1).collect();
         let frames = rgb
             .into_iter()
-            .map(|(stamp, time, rgb)| Frame {
+            .map(|(stamp, time, rgb)| SceneFrame {
                 pose: nearest(&gt_times, time, max_gap).map(|i| gt[i].1),
                 depth: nearest(&depth_times, time, max_gap).map(|i| depth[i].2.clone()),
                 stamp,

@@ -22,9 +22,9 @@ use ndarray_npy::NpzWriter;
 use serde::Serialize;
 
 use crate::constellation::{self, Constellations, GEOMETRY_DIM};
-use crate::decode::{decode_grey, ImageLimits};
+use crate::decode::{decode_grey, ImageLimitSettings};
 use crate::error::SceneError;
-use crate::features::{extract, ExtractorConfig, Features, DESCRIPTOR_BYTES};
+use crate::features::{extract, ExtractorSettings, Features, DESCRIPTOR_BYTES};
 use crate::offline::scene::Scene;
 
 /// Version of the export layout; bumped on any change of keys, dtypes or meanings.
@@ -46,7 +46,7 @@ struct ExportMeta<'a> {
     version: u32,
     scone_version: &'static str,
     scene: &'a str,
-    extractor: &'a ExtractorConfig,
+    extractor: &'a ExtractorSettings,
     k: usize,
     frames: Vec<FrameMeta>,
 }
@@ -99,7 +99,7 @@ pub fn export_image(
     name: &str,
     features: &Features,
     constellations: &Constellations,
-    config: &ExtractorConfig,
+    config: &ExtractorSettings,
     out: &Path,
 ) -> Result<(), SceneError> {
     let file = File::create(out).map_err(|source| SceneError::Io { path: out.into(), source })?;
@@ -137,9 +137,9 @@ fn finish(mut npz: NpzWriter<BufWriter<File>>, out: &Path, meta: &ExportMeta) ->
 /// Extracts features and constellations for every frame of `scene` and writes them to `out`.
 pub fn export_scene(
     scene: &Scene,
-    config: &ExtractorConfig,
+    config: &ExtractorSettings,
     k: usize,
-    limits: &ImageLimits,
+    limits: &ImageLimitSettings,
     out: &Path,
 ) -> Result<ExportSummary, SceneError> {
     config.validate().map_err(|source| SceneError::Feature { frame: "(settings)".into(), source })?;
@@ -158,9 +158,9 @@ pub fn export_scene(
 /// [`export_scene`]'s work, into the partial file `tmp`.
 fn write_scene(
     scene: &Scene,
-    config: &ExtractorConfig,
+    config: &ExtractorSettings,
     k: usize,
-    limits: &ImageLimits,
+    limits: &ImageLimitSettings,
     out: &Path,
     tmp: &Path,
 ) -> Result<ExportSummary, SceneError> {
@@ -235,7 +235,7 @@ mod tests {
         let dir = crate::test_dir::temp_dir("export");
         let scene_dir = fixture_copy(&dir);
         let out = dir.join("scene.features.npz");
-        let (config, limits) = (ExtractorConfig::default(), ImageLimits::default());
+        let (config, limits) = (ExtractorSettings::default(), ImageLimitSettings::default());
         let summary = export_scene(&Scene::load(&scene_dir).unwrap(), &config, 20, &limits, &out).unwrap();
         assert_eq!(summary.frames, 10);
         assert!(out.exists());

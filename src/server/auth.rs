@@ -6,6 +6,12 @@ use sha2::{Digest, Sha256};
 use crate::service::ServiceError;
 use crate::settings::Access;
 
+/// Proof that a request's key was checked for the access its operation needs ([`Keys::authorize`]). The
+/// entry points to the CPU pool ([`crate::server::app::App::call`]) take it, so a key is checked once per
+/// request, and once per stream of keyframes.
+#[derive(Debug, Clone, Copy)]
+pub struct Authorized(());
+
 /// The configured keys.
 pub struct Keys {
     digests: Vec<([u8; 32], Access)>,
@@ -33,6 +39,16 @@ impl Keys {
 
     pub fn is_empty(&self) -> bool {
         self.digests.is_empty()
+    }
+
+    /// `presented` checked for an operation needing `needed`: the proof, or why not.
+    pub fn authorize(
+        &self,
+        presented: Option<&str>,
+        needed: Access,
+        operation: &str,
+    ) -> Result<Authorized, ServiceError> {
+        self.check(presented, needed, operation).map(|()| Authorized(()))
     }
 
     /// Whether `presented` may perform an operation needing `needed`.

@@ -18,16 +18,17 @@ use tonic::{Code, Request, Response, Status, Streaming};
 
 use super::connections::{CountRequestsLayer, Listener};
 use super::metrics::CountedBody;
-use super::proto::{self, frame::Source};
-use super::App;
 use crate::camera::{quaternion_xyzw, Camera, Pose};
 use crate::decode::TUM_DEPTH_SCALE;
 use crate::features::Keypoint;
-use crate::map::builder::ExternalObservation;
-use crate::map::localize::Prior;
-use crate::map::store::MapSummary;
 use crate::matching::{SconeMatcher, DEFAULT_RATIO};
-use crate::service::{ErrorKind, FrameInput, FrameSource, KeyframeRequest, KeypointsInput, PairOptions, ServiceError};
+use crate::server::app::App;
+use crate::server::auth::Authorized;
+use crate::server::proto::{self, frame::Source};
+use crate::service::{
+    ErrorKind, ExternalObservation, FrameInput, FrameSource, KeyframeRequest, KeypointsInput, MapSummary, PairOptions,
+    Prior, ServiceError,
+};
 use crate::settings::Access;
 
 /// Export chunks, bytes.
@@ -85,7 +86,7 @@ fn keypoints_input(k: proto::KeypointSet) -> KeypointsInput {
 }
 
 /// A wire frame as the service's input (public for the fuzz target).
-pub fn frame(f: Option<proto::Frame>, field: &str) -> Result<FrameInput, ServiceError> {
+pub fn frame_input(f: Option<proto::Frame>, field: &str) -> Result<FrameInput, ServiceError> {
     let f = f.ok_or_else(|| invalid(field, "is required"))?;
     let source = match f.source {
         Some(Source::Image(img)) => FrameSource::Image(img.data),
@@ -138,16 +139,16 @@ pub struct GrpcApi {
 }
 
 impl GrpcApi {
-    async fn handle<R, F>(&self, route: &'static str, access: Access, key: Option<&str>, f: F) -> Result<R, Status>
+    async fn call<R, F>(&self, route: &'static str, access: Access, key: Option<&str>, f: F) -> Result<R, Status>
     where
         R: Send + 'static,
         F: FnOnce(&App) -> Result<R, ServiceError> + Send + 'static,
     {
-        self.handle_on(route, access, key, None, f).await
+        self.call_on(route, access, key, None, f).await
     }
 
-    /// [`GrpcApi::handle`] for a request on one map ([`App::call_map`]).
-    async fn handle_map<R, F>(
+    /// [`GrpcApi::call`] for a request on one map ([`App::call_map`]).
+    async fn call_map<R, F>(
         &self,
         route: &'static str,
         access: Access,
@@ -159,10 +160,10 @@ impl GrpcApi {
         R: Send + 'static,
         F: FnOnce(&App) -> Result<R, ServiceError> + Send + 'static,
     {
-        self.handle_on(route, access, key, Some(map), f).await
+        self.call_on(route, access, key, Some(map), f).await
     }
 
-    async fn handle_on<R, F>(
+    async fn call_on<R, F>(
         &self,
         route: &'static str,
         access: Access,
@@ -174,11 +175,49 @@ impl GrpcApi {
         R: Send + 'static,
         F: FnOnce(&App) -> Result<R, ServiceError> + Send + 'static,
     {
+        match self.app.authorize(key, access, route) {
+            Ok(authorized) => self.call_authorized(route, authorized, map, f).await,
+            Err(e) => self.answer(route, Instant::now(), Err(e)),
+        }
+    }
+
+    /// [`GrpcApi::call_on`] for a request whose key was checked (a stream checks it once).
+    async fn call_authorized<R, F>(
+        &self,
+        route: &'static str,
+        authorized: Authorized,
+        map: Option<&str>,
+        f: F,
+    ) -> Result<R, Status>
+    where
+        R: Send + 'static,
+        F: FnOnce(&App) -> Result<R, ServiceError> + Send + 'static,
+    {
         let t = Instant::now();
-        let r = match map {
-            Some(map) => self.app.call_map(key, access, route, map, f).await,
-            None => self.app.call(key, access, route, f).await,
-        };
+        let r = self.run(route, authorized, map, f).await;
+        self.answer(route, t, r)
+    }
+
+    /// Runs `f` on the CPU pool, on map `map` if given.
+    async fn run<R, F>(
+        &self,
+        route: &'static str,
+        authorized: Authorized,
+        map: Option<&str>,
+        f: F,
+    ) -> Result<R, ServiceError>
+    where
+        R: Send + 'static,
+        F: FnOnce(&App) -> Result<R, ServiceError> + Send + 'static,
+    {
+        match map {
+            Some(map) => self.app.call_map(authorized, route, map, f).await,
+            None => self.app.call(authorized, route, f).await,
+        }
+    }
+
+    /// Counts and logs the outcome of `route` started at `t`, as a gRPC answer.
+    fn answer<R>(&self, route: &'static str, t: Instant, r: Result<R, ServiceError>) -> Result<R, Status> {
         let code = match &r {
             Ok(_) => Code::Ok,
             Err(e) => to_status(e).code(),
@@ -210,16 +249,15 @@ impl proto::maps_server::Maps for GrpcApi {
     async fn create_map(&self, req: Request<proto::CreateMapRequest>) -> Result<Response<proto::MapInfo>, Status> {
         let key = key(req.metadata());
         let id = req.into_inner().map_id;
-        let s = self.handle("CreateMap", Access::Write, key.as_deref(), move |a| a.service.create_map(&id)).await?;
+        let s = self.call("CreateMap", Access::Write, key.as_deref(), move |a| a.service.create_map(&id)).await?;
         Ok(Response::new(map_info(s)))
     }
 
     async fn get_map(&self, req: Request<proto::GetMapRequest>) -> Result<Response<proto::MapInfo>, Status> {
         let key = key(req.metadata());
         let id = req.into_inner().map_id;
-        let s = self
-            .handle_map("GetMap", Access::Read, key.as_deref(), &id.clone(), move |a| a.service.get_map(&id))
-            .await?;
+        let s =
+            self.call_map("GetMap", Access::Read, key.as_deref(), &id.clone(), move |a| a.service.get_map(&id)).await?;
         Ok(Response::new(map_info(s)))
     }
 
@@ -228,7 +266,7 @@ impl proto::maps_server::Maps for GrpcApi {
         req: Request<proto::ListMapsRequest>,
     ) -> Result<Response<proto::ListMapsResponse>, Status> {
         let key = key(req.metadata());
-        let (maps, held) = self.handle("ListMaps", Access::Read, key.as_deref(), |a| a.service.list_maps()).await?;
+        let (maps, held) = self.call("ListMaps", Access::Read, key.as_deref(), |a| a.service.list_maps()).await?;
         Ok(Response::new(proto::ListMapsResponse {
             maps: maps.into_iter().map(map_info).collect(),
             held_back: held.into_iter().map(|(map_id, reason)| proto::HeldBackMap { map_id, reason }).collect(),
@@ -241,7 +279,7 @@ impl proto::maps_server::Maps for GrpcApi {
     ) -> Result<Response<proto::DeleteMapResponse>, Status> {
         let key = key(req.metadata());
         let id = req.into_inner().map_id;
-        self.handle("DeleteMap", Access::Write, key.as_deref(), move |a| a.service.delete_map(&id)).await?;
+        self.call("DeleteMap", Access::Write, key.as_deref(), move |a| a.service.delete_map(&id)).await?;
         Ok(Response::new(proto::DeleteMapResponse {}))
     }
 
@@ -252,7 +290,8 @@ impl proto::maps_server::Maps for GrpcApi {
         req: Request<Streaming<proto::AddKeyframeRequest>>,
     ) -> Result<Response<Self::AddKeyframesStream>, Status> {
         let key = key(req.metadata());
-        self.app.keys.check(key.as_deref(), Access::Write, "AddKeyframes").map_err(|e| to_status(&e))?;
+        let authorized =
+            self.app.authorize(key.as_deref(), Access::Write, "AddKeyframes").map_err(|e| to_status(&e))?;
         let mut inbound = req.into_inner();
         let (tx, rx) = tokio::sync::mpsc::channel(4);
         let api = self.clone();
@@ -268,11 +307,11 @@ impl proto::maps_server::Maps for GrpcApi {
                 };
                 let map = msg.map_id.clone();
                 let r = api
-                    .handle_map("AddKeyframes", Access::Write, key.as_deref(), &map, move |a| {
+                    .call_authorized("AddKeyframes", authorized, Some(&map), move |a| {
                         let p = msg.pose.ok_or_else(|| invalid("pose", "is required"))?;
                         let request = KeyframeRequest {
                             id: msg.keyframe_id,
-                            frame: frame(msg.frame, "frame")?,
+                            frame: frame_input(msg.frame, "frame")?,
                             pose: Pose { translation: [p.tx, p.ty, p.tz], rotation: [p.qx, p.qy, p.qz, p.qw] },
                             depth_png: (!msg.depth_png.is_empty()).then_some(msg.depth_png),
                             depth_scale: if msg.depth_scale == 0.0 { TUM_DEPTH_SCALE } else { msg.depth_scale },
@@ -307,7 +346,7 @@ impl proto::maps_server::Maps for GrpcApi {
         let r = req.into_inner();
         let map = r.map_id.clone();
         let s = self
-            .handle_map("RemoveKeyframe", Access::Write, key.as_deref(), &map, move |a| {
+            .call_map("RemoveKeyframe", Access::Write, key.as_deref(), &map, move |a| {
                 a.service.remove_keyframe(&r.map_id, r.keyframe_id)
             })
             .await?;
@@ -323,7 +362,7 @@ impl proto::maps_server::Maps for GrpcApi {
         let key = key(req.metadata());
         let id = req.into_inner().map_id;
         let bytes = self
-            .handle_map("ExportMap", Access::Read, key.as_deref(), &id.clone(), move |a| a.service.export_map(&id))
+            .call_map("ExportMap", Access::Read, key.as_deref(), &id.clone(), move |a| a.service.export_map(&id))
             .await?;
         let chunks: Vec<Result<proto::MapChunk, Status>> =
             bytes.chunks(CHUNK).map(|c| Ok(proto::MapChunk { map_id: String::new(), data: c.to_vec() })).collect();
@@ -332,7 +371,7 @@ impl proto::maps_server::Maps for GrpcApi {
 
     async fn import_map(&self, req: Request<Streaming<proto::MapChunk>>) -> Result<Response<proto::MapInfo>, Status> {
         let key = key(req.metadata());
-        self.app.keys.check(key.as_deref(), Access::Write, "ImportMap").map_err(|e| to_status(&e))?;
+        let authorized = self.app.authorize(key.as_deref(), Access::Write, "ImportMap").map_err(|e| to_status(&e))?;
         let max = self.app.settings.server.max_map_bytes;
         let mut inbound = req.into_inner();
         let mut id = String::new();
@@ -347,7 +386,7 @@ impl proto::maps_server::Maps for GrpcApi {
             bytes.extend_from_slice(&chunk.data);
         }
         let s = self
-            .handle("ImportMap", Access::Write, key.as_deref(), move |a| {
+            .call_authorized("ImportMap", authorized, None, move |a| {
                 if id.is_empty() {
                     return Err(invalid("map_id", "the first chunk must name the map"));
                 }
@@ -367,8 +406,8 @@ impl proto::matching_server::Matching for GrpcApi {
         let key = key(req.metadata());
         let r = req.into_inner();
         let out = self
-            .handle("Describe", Access::Read, key.as_deref(), move |a| {
-                let f = frame(r.frame, "frame")?;
+            .call("Describe", Access::Read, key.as_deref(), move |a| {
+                let f = frame_input(r.frame, "frame")?;
                 let d = a.service.describe(f.source)?;
                 a.metrics.stages(&d.times);
                 Ok(proto::DescribeResponse {
@@ -390,7 +429,7 @@ impl proto::matching_server::Matching for GrpcApi {
         let key = key(req.metadata());
         let r = req.into_inner();
         let out = self
-            .handle("MatchPair", Access::Read, key.as_deref(), move |a| {
+            .call("MatchPair", Access::Read, key.as_deref(), move |a| {
                 let matcher = match proto::PairMatcher::try_from(r.matcher) {
                     Ok(proto::PairMatcher::Default) => SconeMatcher::default(),
                     Ok(proto::PairMatcher::Plain) => SconeMatcher::Plain,
@@ -404,7 +443,11 @@ impl proto::matching_server::Matching for GrpcApi {
                     mutual: r.mutual,
                     matcher,
                 };
-                let o = a.service.match_pair(frame(r.frame1, "frame1")?, frame(r.frame2, "frame2")?, options)?;
+                let o = a.service.match_pair(
+                    frame_input(r.frame1, "frame1")?,
+                    frame_input(r.frame2, "frame2")?,
+                    options,
+                )?;
                 a.metrics.stages(&o.times);
                 Ok(proto::MatchPairResponse {
                     matches: o
@@ -445,9 +488,9 @@ impl proto::matching_server::Matching for GrpcApi {
         let r = req.into_inner();
         let map = r.map_id.clone();
         let out = self
-            .handle_map("Localize", Access::Read, key.as_deref(), &map, move |a| {
+            .call_map("Localize", Access::Read, key.as_deref(), &map, move |a| {
                 let prior = r.prior.map(|p| Prior { position: [p.x, p.y, p.z], radius: p.radius });
-                let o = a.service.localize(&r.map_id, frame(r.frame, "frame")?, prior)?;
+                let o = a.service.localize(&r.map_id, frame_input(r.frame, "frame")?, prior)?;
                 a.metrics.stages(&o.times);
                 Ok(proto::LocalizeResponse {
                     localized: o.pose.is_some(),

@@ -3,8 +3,8 @@
 //! Path of a request: the transport first refuses it when the CPU pool has no free slot
 //! ([`App::check_room`], before the body is read or decoded, so overload costs a request head), then
 //! authenticates it ([`auth`]), converts the wire format to the service's domain types, and hands a closure
-//! to [`App::call`], which runs it on the bounded CPU pool ([`crate::workers::CpuPool`]) under the request
-//! deadline; the result or the [`ServiceError`] is converted back, each transport with exactly one error
+//! to [`App::call`], which runs it on the bounded CPU pool ([`crate::cpu_pool::CpuPool`]) under the request
+//! deadline; the result or the [`ServiceError`](crate::service::ServiceError) is converted back, each transport with exactly one error
 //! mapping.
 //!
 //! Life cycle ([`start`]): settings are validated and the model is loaded (a model that breaks the contract
@@ -12,11 +12,15 @@
 //! thread, then SERVING. On shutdown health flips to NOT_SERVING first, both servers stop accepting and
 //! finish in-flight requests within `server.shutdown_grace_ms`, the pool drains, and every map is flushed.
 
+pub mod app;
 pub mod auth;
 pub mod connections;
 pub mod grpc;
 pub mod http;
 pub mod metrics;
+pub mod proto;
+
+pub use app::App;
 
 use std::net::SocketAddr;
 use std::sync::atomic::{AtomicBool, Ordering};
@@ -28,142 +32,11 @@ use tokio::net::TcpListener;
 use tokio::sync::watch;
 use tokio::task::JoinHandle;
 
+use crate::cpu_pool::CpuPool;
 use crate::embedding::Embedder;
-use crate::map::store::{MapStore, ModelInfo};
 use crate::pipeline::Describer;
-use crate::service::{Service, ServiceError};
-use crate::settings::{Access, Settings};
-use crate::workers::{CpuPool, PoolError};
-
-/// Generated gRPC code for `proto/scone/v1/scone.proto`.
-pub mod proto {
-    #![allow(clippy::all, missing_docs)]
-    // The .proto comments contain `<hex>`, which rustdoc would read as an unclosed HTML tag.
-    #![allow(rustdoc::invalid_html_tags)]
-    tonic::include_proto!("scone.v1");
-    /// Encoded descriptors of the API, for server reflection.
-    pub const FILE_DESCRIPTOR_SET: &[u8] = tonic::include_file_descriptor_set!("scone_descriptor");
-}
-
-/// Everything a request handler needs.
-pub struct App {
-    pub service: Service,
-    pub pool: CpuPool,
-    pub keys: auth::Keys,
-    pub metrics: metrics::Metrics,
-    pub settings: Settings,
-    shutting_down: AtomicBool,
-    /// Maps loaded at once (lazy mode): a burst of requests for cold maps loads them two at a time instead of
-    /// all together past the cache's budget.
-    map_loads: tokio::sync::Semaphore,
-}
-
-impl App {
-    /// Checks the key, then runs `f` on the CPU pool under the request deadline.
-    pub async fn call<R, F>(
-        self: &Arc<Self>,
-        key: Option<&str>,
-        access: Access,
-        operation: &str,
-        f: F,
-    ) -> Result<R, ServiceError>
-    where
-        R: Send + 'static,
-        F: FnOnce(&App) -> Result<R, ServiceError> + Send + 'static,
-    {
-        self.keys.check(key, access, operation)?;
-        self.run_on_pool(operation, f).await
-    }
-
-    /// Runs `f` on the CPU pool under the request deadline; the key was checked by the caller.
-    async fn run_on_pool<R, F>(self: &Arc<Self>, operation: &str, f: F) -> Result<R, ServiceError>
-    where
-        R: Send + 'static,
-        F: FnOnce(&App) -> Result<R, ServiceError> + Send + 'static,
-    {
-        let timeout = self.settings.server.request_timeout_ms;
-        let deadline = Instant::now() + Duration::from_millis(timeout);
-        let app = Arc::clone(self);
-        match self.pool.run(deadline, move || f(&app)).await {
-            Ok(r) => r,
-            Err(PoolError::Full(_)) => {
-                self.hold_refusal().await;
-                Err(ServiceError::Overloaded { queued: self.pool.stats().queued.load(Ordering::Relaxed) })
-            }
-            Err(PoolError::Expired) => Err(ServiceError::DeadlineExceeded { ms: timeout }),
-            Err(PoolError::Closed) => Err(ServiceError::ShuttingDown),
-            Err(PoolError::Panicked) => Err(ServiceError::Internal(format!("{operation} panicked"))),
-        }
-    }
-
-    /// [`App::call`] for a request on one map: first, when maps are loaded on demand, the map is loaded (or
-    /// checked for freshness) on tokio's blocking threads, so a load never holds a CPU worker that requests
-    /// for loaded maps need; an unknown map is refused before any CPU work.
-    pub async fn call_map<R, F>(
-        self: &Arc<Self>,
-        key: Option<&str>,
-        access: Access,
-        operation: &str,
-        map: &str,
-        f: F,
-    ) -> Result<R, ServiceError>
-    where
-        R: Send + 'static,
-        F: FnOnce(&App) -> Result<R, ServiceError> + Send + 'static,
-    {
-        self.keys.check(key, access, operation)?;
-        // The map, held until the request is done so that it cannot be evicted in between.
-        let mut _held = None;
-        if let Ok(store) = self.service.store() {
-            if store.is_lazy() {
-                let _loading = match store.is_loaded(map) {
-                    true => None,
-                    false => Some(self.map_loads.acquire().await.map_err(|_| ServiceError::ShuttingDown)?),
-                };
-                let (store, id) = (Arc::clone(store), map.to_string());
-                _held = Some(
-                    tokio::task::spawn_blocking(move || store.prepare(&id))
-                        .await
-                        .map_err(|_| ServiceError::Internal(format!("{operation}: loading the map panicked")))??,
-                );
-            }
-        }
-        self.run_on_pool(operation, f).await
-    }
-
-    /// Refuses with [`ServiceError::Overloaded`] when every slot of the CPU pool is taken. The transports
-    /// call this before they read a body that the pool would refuse anyway; it reserves nothing.
-    pub fn check_room(&self) -> Result<(), ServiceError> {
-        self.pool
-            .check_room()
-            .map_err(|_| ServiceError::Overloaded { queued: self.pool.stats().queued.load(Ordering::Relaxed) })
-    }
-
-    /// Waits `workers.refusal_hold_ms` before a refusal for a full pool is sent: a client that retries at
-    /// once is held to one attempt per hold, so refusals cannot take the core from the pool.
-    pub async fn hold_refusal(&self) {
-        let ms = self.settings.workers.refusal_hold_ms;
-        if ms > 0 {
-            tokio::time::sleep(Duration::from_millis(ms)).await;
-        }
-    }
-
-    /// Ready to serve maps: loaded, not shutting down.
-    pub fn is_ready(&self) -> bool {
-        self.service.is_ready() && !self.shutting_down.load(Ordering::Relaxed)
-    }
-
-    /// Logs errors that are ours (clients get a generic message for those) and a full data volume (the operator
-    /// must free space) at error level; the client's own mistakes at debug.
-    pub fn log_error(&self, operation: &str, e: &ServiceError) {
-        use crate::service::ErrorKind::{InsufficientStorage, Internal};
-        if matches!(e.kind(), Internal | InsufficientStorage) {
-            tracing::error!(operation, error = %e, "request failed");
-        } else {
-            tracing::debug!(operation, error = %e, "request refused");
-        }
-    }
-}
+use crate::service::Service;
+use crate::settings::Settings;
 
 /// A started server.
 pub struct Running {
@@ -264,11 +137,10 @@ pub async fn start(settings: Settings) -> anyhow::Result<Running> {
         let app = Arc::clone(&app);
         let reporter = reporter.clone();
         let store_cfg = settings.store.clone();
-        let info = ModelInfo { model_id: embedder.model_id().to_string(), k: embedder.k(), dim: embedder.dim() };
         tokio::spawn(async move {
             let t = Instant::now();
-            let store = tokio::task::spawn_blocking(move || MapStore::open(store_cfg, info)).await??;
-            app.service.attach_store(Arc::new(store));
+            let opener = Arc::clone(&app);
+            tokio::task::spawn_blocking(move || opener.service.open_store(store_cfg)).await??;
             if !app.shutting_down.load(Ordering::Relaxed) {
                 set_health(&reporter, true).await;
             }

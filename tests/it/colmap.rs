@@ -13,11 +13,11 @@ use nalgebra::{Isometry3, Point3};
 use opencv::core::Mat;
 use opencv::prelude::*;
 use scone::camera::Camera;
-use scone::decode::{decode_depth_png, decode_grey, ImageLimits};
-use scone::embedding::{Embedder, EmbedderConfig};
-use scone::features::{self, ExtractorConfig};
+use scone::decode::{decode_depth_png, decode_grey, ImageLimitSettings};
+use scone::embedding::{Embedder, EmbedderSettings};
+use scone::features::{self, ExtractorSettings};
 use scone::map::builder::{ExternalObservation, KeyframeInput};
-use scone::map::store::{MapStore, ModelInfo, StoreConfig};
+use scone::map::store::{MapStore, ModelInfo, StoreSettings};
 use scone::offline::colmap::{self, ColmapModel};
 use scone::offline::scene::Scene;
 use scone::pipeline::Describer;
@@ -59,7 +59,7 @@ fn visible(pose: &Isometry3<f64>, cam: &Camera, depth: &Mat, p: &[f64; 3]) -> Op
 /// Points from depth at the keypoints of `sources` (a keypoint an earlier point already explains, within
 /// 2 px, makes none), and their views in every frame of `views` where they are visible.
 pub fn synthetic_sfm(scene: &Scene, sources: &[usize], views: &[usize]) -> SyntheticSfm {
-    let limits = ImageLimits::default();
+    let limits = ImageLimitSettings::default();
     let cam = scene.camera;
     let depth =
         |f: usize| decode_depth_png(&std::fs::read(scene.frames[f].depth.as_ref().unwrap()).unwrap(), &limits).unwrap();
@@ -67,7 +67,7 @@ pub fn synthetic_sfm(scene: &Scene, sources: &[usize], views: &[usize]) -> Synth
     let mut points: Vec<[f64; 3]> = Vec::new();
     for &f in sources {
         let grey = decode_grey(&std::fs::read(&scene.frames[f].rgb).unwrap(), &limits).unwrap();
-        let feats = features::extract(&grey, &ExtractorConfig::default()).unwrap();
+        let feats = features::extract(&grey, &ExtractorSettings::default()).unwrap();
         let d = depth(f);
         let explained: Vec<(f64, f64)> = points.iter().filter_map(|p| visible(&pose(f), &cam, &d, p)).collect();
         for k in &feats.keypoints {
@@ -147,10 +147,11 @@ pub fn write_colmap(dir: &Path, scene: &Scene, sfm: &SyntheticSfm, images: &[usi
 }
 
 fn open(dir: &Path) -> (MapStore, Describer) {
-    let embedder = Arc::new(Embedder::load(&EmbedderConfig::default()).unwrap());
+    let embedder = Arc::new(Embedder::load(&EmbedderSettings::default()).unwrap());
     let info = ModelInfo { model_id: embedder.model_id().into(), k: embedder.k(), dim: embedder.dim() };
-    let store = MapStore::open(StoreConfig { data_dir: dir.to_path_buf(), ..StoreConfig::default() }, info).unwrap();
-    (store, Describer { extractor: ExtractorConfig::default(), limits: ImageLimits::default(), embedder })
+    let store =
+        MapStore::open(StoreSettings { data_dir: dir.to_path_buf(), ..StoreSettings::default() }, info).unwrap();
+    (store, Describer { extractor: ExtractorSettings::default(), limits: ImageLimitSettings::default(), embedder })
 }
 
 /// The frames of the map (even) and a held-out one; frame 9 is seen by the model but written later.

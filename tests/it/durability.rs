@@ -6,10 +6,10 @@ use std::io::{BufRead, BufReader};
 use std::process::{Command, Stdio};
 use std::sync::Arc;
 
-use scone::decode::ImageLimits;
-use scone::embedding::{Embedder, EmbedderConfig};
-use scone::features::ExtractorConfig;
-use scone::map::store::{MapStore, ModelInfo, StoreConfig};
+use scone::decode::ImageLimitSettings;
+use scone::embedding::{Embedder, EmbedderSettings};
+use scone::features::ExtractorSettings;
+use scone::map::store::{MapStore, ModelInfo, StoreSettings};
 use scone::offline::scene::Scene;
 use scone::pipeline::Describer;
 use scone::pose::rotation_error_deg;
@@ -17,10 +17,11 @@ use scone::pose::rotation_error_deg;
 use crate::common::{fixture, temp_dir};
 
 fn open(dir: &std::path::Path) -> (MapStore, Describer) {
-    let embedder = Arc::new(Embedder::load(&EmbedderConfig::default()).unwrap());
+    let embedder = Arc::new(Embedder::load(&EmbedderSettings::default()).unwrap());
     let info = ModelInfo { model_id: embedder.model_id().into(), k: embedder.k(), dim: embedder.dim() };
-    let store = MapStore::open(StoreConfig { data_dir: dir.to_path_buf(), ..StoreConfig::default() }, info).unwrap();
-    (store, Describer { extractor: ExtractorConfig::default(), limits: ImageLimits::default(), embedder })
+    let store =
+        MapStore::open(StoreSettings { data_dir: dir.to_path_buf(), ..StoreSettings::default() }, info).unwrap();
+    (store, Describer { extractor: ExtractorSettings::default(), limits: ImageLimitSettings::default(), embedder })
 }
 
 #[test]
@@ -139,8 +140,11 @@ fn reads_of_one_map_go_on_while_another_is_written() {
         .frames
         .iter()
         .map(|f| {
-            scone::decode::decode_depth_png(&std::fs::read(f.depth.as_ref().unwrap()).unwrap(), &ImageLimits::default())
-                .unwrap()
+            scone::decode::decode_depth_png(
+                &std::fs::read(f.depth.as_ref().unwrap()).unwrap(),
+                &ImageLimitSettings::default(),
+            )
+            .unwrap()
         })
         .collect();
     let write = |map: &str, id: u64, i: usize| {
@@ -196,13 +200,14 @@ fn a_map_from_another_model_is_refused_until_re_embedded() {
     {
         // Written by a store that believes it runs an older model.
         let old = ModelInfo { model_id: "sha256:older-model".into(), k: 20, dim: describer.embedder.dim() };
-        let store = MapStore::open(StoreConfig { data_dir: dir.to_path_buf(), ..StoreConfig::default() }, old).unwrap();
+        let store =
+            MapStore::open(StoreSettings { data_dir: dir.to_path_buf(), ..StoreSettings::default() }, old).unwrap();
         store.create("m").unwrap();
         for i in (0..scene.frames.len()).step_by(2) {
             let d = describer.describe_image(&std::fs::read(&scene.frames[i].rgb).unwrap()).unwrap();
             let depth = scone::decode::decode_depth_png(
                 &std::fs::read(scene.frames[i].depth.as_ref().unwrap()).unwrap(),
-                &ImageLimits::default(),
+                &ImageLimitSettings::default(),
             )
             .unwrap();
             let input = scone::map::builder::KeyframeInput {

@@ -7,9 +7,9 @@ use ndarray::{Array1, Array2, Array3};
 use ndarray_npy::{NpzReader, ReadNpyExt};
 
 use scone::constellation;
-use scone::decode::{decode_grey, ImageLimits};
-use scone::embedding::{Embedder, EmbedderConfig};
-use scone::features::{extract, ExtractorConfig};
+use scone::decode::{decode_grey, ImageLimitSettings};
+use scone::embedding::{Embedder, EmbedderSettings};
+use scone::features::{extract, ExtractorSettings};
 
 use crate::common::fixture;
 
@@ -29,8 +29,8 @@ fn golden_model() -> PathBuf {
 #[test]
 fn rust_features_and_embeddings_match_the_python_golden_fixture() {
     let dir = golden_dir();
-    let image = decode_grey(&std::fs::read(fixture("astronaut.jpg")).unwrap(), &ImageLimits::default()).unwrap();
-    let features = extract(&image, &ExtractorConfig::default()).unwrap();
+    let image = decode_grey(&std::fs::read(fixture("astronaut.jpg")).unwrap(), &ImageLimitSettings::default()).unwrap();
+    let features = extract(&image, &ExtractorSettings::default()).unwrap();
     let c = constellation::build(&features.keypoints, 20);
 
     let mut npz = NpzReader::new(std::fs::File::open(dir.join("astronaut.features.npz")).unwrap()).unwrap();
@@ -54,7 +54,7 @@ fn rust_features_and_embeddings_match_the_python_golden_fixture() {
     let max_rel = rel_ours.iter().zip(rel.iter()).map(|(a, b)| (a - b).abs()).fold(0.0f32, f32::max);
     assert!(max_rel <= 1e-5, "relative geometry differs by {max_rel}");
 
-    let embedder = Embedder::load(&EmbedderConfig { model: golden_model(), ..EmbedderConfig::default() }).unwrap();
+    let embedder = Embedder::load(&EmbedderSettings { model: golden_model(), ..EmbedderSettings::default() }).unwrap();
     let ours = embedder.embed(&features, &c).unwrap();
     let golden = Array2::<f32>::read_npy(std::fs::File::open(dir.join("astronaut.embeddings.npy")).unwrap()).unwrap();
     assert_eq!(golden.shape(), &[features.len(), embedder.dim()]);
@@ -65,7 +65,7 @@ fn rust_features_and_embeddings_match_the_python_golden_fixture() {
 
 #[test]
 fn a_file_that_is_not_a_model_is_refused_with_its_name() {
-    let cfg = EmbedderConfig { model: fixture("astronaut.jpg"), ..EmbedderConfig::default() };
+    let cfg = EmbedderSettings { model: fixture("astronaut.jpg"), ..EmbedderSettings::default() };
     let err = Embedder::load(&cfg).unwrap_err().to_string();
     assert!(err.contains("astronaut.jpg"), "{err}");
 }
@@ -73,7 +73,7 @@ fn a_file_that_is_not_a_model_is_refused_with_its_name() {
 /// `bad-contract.onnx` is a valid ONNX graph whose `descriptors` input is float32 instead of uint8.
 #[test]
 fn a_model_with_the_wrong_contract_is_refused_naming_the_mismatch() {
-    let cfg = EmbedderConfig { model: fixture("bad-contract.onnx"), ..EmbedderConfig::default() };
+    let cfg = EmbedderSettings { model: fixture("bad-contract.onnx"), ..EmbedderSettings::default() };
     let err = Embedder::load(&cfg).unwrap_err().to_string();
     assert!(err.contains("descriptors") && err.contains("Uint8") && err.contains("contract"), "{err}");
 }

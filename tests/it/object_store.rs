@@ -14,16 +14,16 @@ use futures_util::TryStreamExt;
 use object_store::aws::AmazonS3Builder;
 use object_store::path::Path as ObjectPath;
 use object_store::{ObjectStore, ObjectStoreExt};
-use scone::decode::{decode_depth_png, ImageLimits};
-use scone::embedding::{Embedder, EmbedderConfig};
-use scone::features::ExtractorConfig;
+use scone::decode::{decode_depth_png, ImageLimitSettings};
+use scone::embedding::{Embedder, EmbedderSettings};
+use scone::features::ExtractorSettings;
 use scone::map::builder::{Depth, KeyframeInput};
-use scone::map::journal::MapBackend;
 use scone::map::model::{MapData, Record};
-use scone::map::s3::S3Config;
-use scone::map::s3::{ObjectStorageBackend, S3Credentials};
-use scone::map::store::BackendConfig;
-use scone::map::store::{CacheConfig, MapStore, ModelInfo, StoreConfig};
+use scone::map::storage::backend::MapBackend;
+use scone::map::storage::s3::S3Settings;
+use scone::map::storage::s3::{ObjectStorageBackend, S3Credentials};
+use scone::map::storage::BackendSettings;
+use scone::map::store::{CacheSettings, MapStore, ModelInfo, StoreSettings};
 use scone::offline::scene::Scene;
 use scone::pipeline::{Described, Describer};
 use scone::pose::rotation_error_deg;
@@ -84,8 +84,8 @@ impl Moto {
         name.to_string()
     }
 
-    fn config(&self, bucket: &str, cache: &Path) -> S3Config {
-        S3Config {
+    fn config(&self, bucket: &str, cache: &Path) -> S3Settings {
+        S3Settings {
             bucket: bucket.into(),
             prefix: PREFIX.into(),
             region: Some("us-east-1".into()),
@@ -103,12 +103,12 @@ impl Moto {
         // Every map loaded at open, and no freshness checks: these tests are about the storage protocol (what
         // a replica that does not re-check sees, what its conditional writes do). The cache is in
         // `src/map/cache_tests.rs` and `replicas.rs`.
-        let config = StoreConfig {
+        let config = StoreSettings {
             data_dir: cache.to_path_buf(),
             compact_every,
-            backend: BackendConfig::S3(s3),
-            cache: CacheConfig { lazy: Some(false), freshness_ms: 3_600_000, ..CacheConfig::default() },
-            ..StoreConfig::default()
+            backend: BackendSettings::S3(s3),
+            cache: CacheSettings { lazy: Some(false), freshness_ms: 3_600_000, ..CacheSettings::default() },
+            ..StoreSettings::default()
         };
         MapStore::open_with_backend(config, model, Arc::new(backend)).unwrap()
     }
@@ -151,16 +151,20 @@ struct Frames {
 }
 
 fn frames() -> Frames {
-    let embedder = Arc::new(Embedder::load(&EmbedderConfig::default()).unwrap());
+    let embedder = Arc::new(Embedder::load(&EmbedderSettings::default()).unwrap());
     let model = ModelInfo { model_id: embedder.model_id().into(), k: embedder.k(), dim: embedder.dim() };
-    let describer = Describer { extractor: ExtractorConfig::default(), limits: ImageLimits::default(), embedder };
+    let describer =
+        Describer { extractor: ExtractorSettings::default(), limits: ImageLimitSettings::default(), embedder };
     let scene = Scene::load(&fixture("rendered")).unwrap();
     let described =
         scene.frames.iter().map(|f| describer.describe_image(&std::fs::read(&f.rgb).unwrap()).unwrap()).collect();
     let depths = scene
         .frames
         .iter()
-        .map(|f| decode_depth_png(&std::fs::read(f.depth.as_ref().unwrap()).unwrap(), &ImageLimits::default()).unwrap())
+        .map(|f| {
+            decode_depth_png(&std::fs::read(f.depth.as_ref().unwrap()).unwrap(), &ImageLimitSettings::default())
+                .unwrap()
+        })
         .collect();
     Frames { scene, described, depths, model }
 }
@@ -326,7 +330,7 @@ fn an_orphan_segment_is_ignored_and_a_corrupt_segment_holds_back_only_its_map() 
     let rt = runtime();
     // A crash between the segment PUT and the manifest PUT: a valid next record that no manifest names.
     let orphan = ObjectPath::from("it/maps/good/segments/00000000000000000003-00000000deadbeef.rec");
-    let bytes = scone::map::format::encode_segment(3, &Record::RemoveKeyframe { id: 0 }).unwrap();
+    let bytes = scone::map::storage::format::encode_segment(3, &Record::RemoveKeyframe { id: 0 }).unwrap();
     rt.block_on(raw.put(&orphan, bytes.into())).unwrap();
     // One flipped byte in a segment of the other map.
     let segment = keys(&raw, "it/maps/bad/segments").into_iter().next().unwrap();
@@ -425,7 +429,7 @@ fn scone_serve_stores_maps_in_the_bucket_its_settings_name() {
     assert!(child.wait().unwrap().success(), "the server did not shut down cleanly");
 
     let model = {
-        let e = Embedder::load(&EmbedderConfig::default()).unwrap();
+        let e = Embedder::load(&EmbedderSettings::default()).unwrap();
         ModelInfo { model_id: e.model_id().into(), k: e.k(), dim: e.dim() }
     };
     let store = moto.store(&bucket, &tmp.join("check"), 0, model);

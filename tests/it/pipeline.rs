@@ -6,14 +6,14 @@ use opencv::prelude::*;
 use opencv::{calib3d, imgproc};
 
 use scone::constellation::{self, wrap_angle};
-use scone::decode::{decode_grey, GreyImage, ImageLimits};
-use scone::features::{extract, ExtractorConfig, Features};
+use scone::decode::{decode_grey, GreyImage, ImageLimitSettings};
+use scone::features::{extract, ExtractorSettings, Features};
 use scone::matching::{match_hamming, RatioTest};
 
 use crate::common::{fixture, shared_data};
 
 fn load(path: &std::path::Path) -> GreyImage {
-    decode_grey(&std::fs::read(path).unwrap(), &ImageLimits::default()).unwrap()
+    decode_grey(&std::fs::read(path).unwrap(), &ImageLimitSettings::default()).unwrap()
 }
 
 fn median(mut v: Vec<f32>) -> f32 {
@@ -57,7 +57,7 @@ fn correspondences(a: &Features, b: &Features, t: &Mat, scale: f32, tol: f32) ->
 #[test]
 fn constellations_agree_under_rotation_and_scale() {
     let img = load(&fixture("astronaut.jpg"));
-    let cfg = ExtractorConfig::default();
+    let cfg = ExtractorSettings::default();
     let base = extract(&img, &cfg).unwrap();
     let base_c = constellation::build(&base.keypoints, 20);
     for &(angle_deg, scale) in &[(30.0f64, 1.0f64), (90.0, 0.7), (145.0, 1.4), (250.0, 1.2), (-60.0, 0.85)] {
@@ -127,7 +127,7 @@ fn read_homography(path: &std::path::Path) -> [[f64; 3]; 3] {
 }
 
 /// (matches, share within 3 px of the true homography) for ratio-test FREAK matches of image 1 to image n.
-fn graffiti_matches(dir: &std::path::Path, n: u32, cfg: &ExtractorConfig) -> (usize, f64) {
+fn graffiti_matches(dir: &std::path::Path, n: u32, cfg: &ExtractorSettings) -> (usize, f64) {
     let a = extract(&load(&dir.join("1.png")), cfg).unwrap();
     let b = extract(&load(&dir.join(format!("{n}.png"))), cfg).unwrap();
     let h = read_homography(&dir.join(format!("H_1_{n}")));
@@ -153,9 +153,10 @@ fn graffiti_matches(dir: &std::path::Path, n: u32, cfg: &ExtractorConfig) -> (us
 fn graffiti_freak_matches_follow_the_homography() {
     let Some(data) = shared_data() else { return };
     let dir = data.join("scenes/hpatches-v_graffiti");
-    for (name, cfg) in
-        [("pyramid (default)", ExtractorConfig::default()), ("single-scale", ExtractorConfig::single_scale(20, 2000))]
-    {
+    for (name, cfg) in [
+        ("pyramid (default)", ExtractorSettings::default()),
+        ("single-scale", ExtractorSettings::single_scale(20, 2000)),
+    ] {
         let (n, share) = graffiti_matches(&dir, 2, &cfg);
         eprintln!("graffiti 1->2 {name}: {n} matches, {:.1} % within 3 px", share * 100.0);
         assert!(n >= 300, "{name}: {n} matches");
@@ -168,7 +169,7 @@ fn graffiti_freak_matches_follow_the_homography() {
 fn graffiti_homography_estimate_matches_ground_truth() {
     let Some(data) = shared_data() else { return };
     let dir = data.join("scenes/hpatches-v_graffiti");
-    let cfg = ExtractorConfig::default();
+    let cfg = ExtractorSettings::default();
     let a = extract(&load(&dir.join("1.png")), &cfg).unwrap();
     let b = extract(&load(&dir.join("2.png")), &cfg).unwrap();
     let matches = match_hamming(&a, &b, &RatioTest::plain(0.8)).unwrap();

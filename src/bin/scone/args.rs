@@ -6,8 +6,8 @@ use anyhow::Context;
 use clap::Args;
 
 use scone::constellation::DEFAULT_K;
-use scone::embedding::{Embedder, EmbedderConfig};
-use scone::features::{self, ExtractorConfig};
+use scone::embedding::{Embedder, EmbedderSettings};
+use scone::features::{self, ExtractorSettings};
 
 /// Model and output of an evaluation.
 #[derive(Args, Clone)]
@@ -34,7 +34,7 @@ impl ReportArgs {
     }
 }
 
-/// Extraction settings on the command line; unset flags keep [`ExtractorConfig::default`].
+/// Extraction settings on the command line; unset flags keep [`ExtractorSettings::default`].
 #[derive(Args, Clone)]
 pub struct ExtractorArgs {
     /// FAST threshold.
@@ -61,9 +61,9 @@ pub struct ExtractorArgs {
 }
 
 impl ExtractorArgs {
-    pub fn config(&self) -> anyhow::Result<ExtractorConfig> {
-        let d = ExtractorConfig::default();
-        let cfg = ExtractorConfig {
+    pub fn config(&self) -> anyhow::Result<ExtractorSettings> {
+        let d = ExtractorSettings::default();
+        let cfg = ExtractorSettings {
             fast_threshold: self.fast_threshold.unwrap_or(d.fast_threshold),
             max_keypoints: self.max_keypoints.unwrap_or(d.max_keypoints),
             levels: self.levels.unwrap_or(d.levels),
@@ -81,7 +81,7 @@ pub fn load_embedder(needed: bool, report: &ReportArgs) -> anyhow::Result<Option
     if !needed {
         return Ok(None);
     }
-    let mut ec = EmbedderConfig { intra_threads: report.embed_threads.max(1), ..EmbedderConfig::default() };
+    let mut ec = EmbedderSettings { intra_threads: report.embed_threads.max(1), ..EmbedderSettings::default() };
     if let Some(m) = report.model.clone() {
         ec.model = m;
     }

@@ -4,7 +4,7 @@ use std::path::PathBuf;
 
 use clap::Subcommand;
 
-use scone::features::ExtractorConfig;
+use scone::features::ExtractorSettings;
 use scone::offline::eval::methods::Method;
 use scone::offline::eval::pairs::{self, PairsConfig};
 use scone::offline::eval::reloc;
@@ -136,11 +136,11 @@ pub fn run(cmd: EvalCommand) -> anyhow::Result<()> {
             // --single-scale is OpenCV's own pipeline, plain ratio test and plain RANSAC (with OpenCV's
             // iteration cap and confidence) included.
             let base = if single_scale {
-                scone::pose::RansacParams::opencv(ransac_px)
+                scone::pose::RansacSettings::opencv(ransac_px)
             } else {
-                scone::pose::RansacParams { threshold_px: ransac_px, ..Default::default() }
+                scone::pose::RansacSettings { threshold_px: ransac_px, ..Default::default() }
             };
-            let ransac = scone::pose::RansacParams {
+            let ransac = scone::pose::RansacSettings {
                 essential: essential.unwrap_or(base.essential),
                 max_iters: ransac_iters.unwrap_or(base.max_iters),
                 confidence: ransac_confidence.unwrap_or(base.confidence),
@@ -158,7 +158,7 @@ pub fn run(cmd: EvalCommand) -> anyhow::Result<()> {
             })?;
             let mut cfg = extractor.config()?;
             if single_scale {
-                cfg = ExtractorConfig::single_scale(20, 2000);
+                cfg = ExtractorSettings::single_scale(20, 2000);
             }
             let s = Scene::load(&scene)?;
             let embedder =

@@ -6,7 +6,7 @@ use anyhow::Context;
 use clap::Args;
 
 use scone::constellation;
-use scone::decode::{decode_grey, ImageLimits};
+use scone::decode::{decode_grey, ImageLimitSettings};
 use scone::features;
 use scone::offline::scene::Scene;
 
@@ -42,7 +42,7 @@ pub fn extract(args: ExtractArgs) -> anyhow::Result<()> {
     let cfg = extractor.config()?;
     let bytes = std::fs::read(&image).with_context(|| format!("reading {}", image.display()))?;
     let t0 = std::time::Instant::now();
-    let grey = decode_grey(&bytes, &ImageLimits::default())?;
+    let grey = decode_grey(&bytes, &ImageLimitSettings::default())?;
     let f = features::extract(&grey, &cfg)?;
     let c = constellation::build(&f.keypoints, extractor.k);
     let ms = t0.elapsed().as_secs_f64() * 1e3;
@@ -72,7 +72,7 @@ pub fn export(args: FeaturesArgs) -> anyhow::Result<()> {
     let cfg = extractor.config()?;
     let s = Scene::load(&scene)?;
     let summary =
-        scone::offline::training_features::export_scene(&s, &cfg, extractor.k, &ImageLimits::default(), &out)?;
+        scone::offline::training_features::export_scene(&s, &cfg, extractor.k, &ImageLimitSettings::default(), &out)?;
     println!("{}", serde_json::to_string_pretty(&summary)?);
     Ok(())
 }

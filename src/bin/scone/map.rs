@@ -4,13 +4,14 @@ use std::path::PathBuf;
 
 use clap::Subcommand;
 
-use scone::decode::ImageLimits;
-use scone::embedding::EmbedderConfig;
-use scone::features::ExtractorConfig;
-use scone::map::builder::{BuildParams, Depth, KeyframeInput};
-use scone::map::store::{MapStore, ModelInfo, StoreConfig};
+use scone::decode::ImageLimitSettings;
+use scone::embedding::EmbedderSettings;
+use scone::features::ExtractorSettings;
+use scone::map::builder::{BuildSettings, Depth, KeyframeInput};
+use scone::map::store::{MapStore, ModelInfo, StoreSettings};
 use scone::offline::scene::Scene;
 use scone::pipeline::Describer;
+use scone::progress::Progress;
 
 use crate::args::{load_embedder, ReportArgs};
 
@@ -50,7 +51,7 @@ pub enum MapCommand {
         #[arg(long)]
         images: PathBuf,
         /// An observation takes the nearest keypoint within this many pixels.
-        #[arg(long, default_value_t = BuildParams::default().external_radius_px)]
+        #[arg(long, default_value_t = BuildSettings::default().external_radius_px)]
         radius_px: f64,
         #[arg(long)]
         model: Option<PathBuf>,
@@ -65,15 +66,16 @@ pub enum MapCommand {
 }
 
 fn open_store(data_dir: PathBuf, model: Option<PathBuf>) -> anyhow::Result<(MapStore, Describer)> {
-    open_store_with(StoreConfig { data_dir, ..StoreConfig::default() }, model)
+    open_store_with(StoreSettings { data_dir, ..StoreSettings::default() }, model)
 }
 
-fn open_store_with(config: StoreConfig, model: Option<PathBuf>) -> anyhow::Result<(MapStore, Describer)> {
-    let report = ReportArgs { model, json: None, embed_threads: EmbedderConfig::default().intra_threads };
+fn open_store_with(config: StoreSettings, model: Option<PathBuf>) -> anyhow::Result<(MapStore, Describer)> {
+    let report = ReportArgs { model, json: None, embed_threads: EmbedderSettings::default().intra_threads };
     let embedder = std::sync::Arc::new(load_embedder(true, &report)?.expect("requested"));
     let info = ModelInfo { model_id: embedder.model_id().to_string(), k: embedder.k(), dim: embedder.dim() };
     let store = MapStore::open(config, info)?;
-    let describer = Describer { extractor: ExtractorConfig::default(), limits: ImageLimits::default(), embedder };
+    let describer =
+        Describer { extractor: ExtractorSettings::default(), limits: ImageLimitSettings::default(), embedder };
     Ok((store, describer))
 }
 
@@ -86,12 +88,15 @@ pub fn run(cmd: MapCommand) -> anyhow::Result<()> {
                 store.create(&map)?;
             }
             let s = Scene::load(&scene)?;
-            let limits = ImageLimits::default();
+            let limits = ImageLimitSettings::default();
             let mut stdout = std::io::stdout().lock();
             let mut next_id = store.summary(&map)?.keyframes as u64;
+            let per_pass = s.frames.iter().step_by(stride.max(1)).filter(|f| f.pose.is_some()).count();
+            let mut progress = Progress::new(format!("write-scene {map}"), per_pass * repeat.max(1));
             for _ in 0..repeat.max(1) {
                 for (i, frame) in s.frames.iter().enumerate().filter(|(i, _)| i % stride.max(1) == 0) {
                     let Some(pose) = frame.pose else { continue };
+                    progress.step();
                     let d = describer.describe_image(&std::fs::read(&frame.rgb)?)?;
                     let depth = match &frame.depth {
                         Some(p) => Some(scone::decode::decode_depth_png(&std::fs::read(p)?, &limits)?),
@@ -116,13 +121,16 @@ pub fn run(cmd: MapCommand) -> anyhow::Result<()> {
             flush(&store)?;
         }
         MapCommand::ImportColmap { data_dir, map, model_dir, images, radius_px, model } => {
-            let build = BuildParams { external_radius_px: radius_px, ..BuildParams::default() };
+            let build = BuildSettings { external_radius_px: radius_px, ..BuildSettings::default() };
             build.validate().map_err(|e| anyhow::anyhow!("--radius-px: {e}"))?;
             let colmap = scone::offline::colmap::ColmapModel::read(&model_dir)?;
-            let (store, describer) = open_store_with(StoreConfig { data_dir, build, ..StoreConfig::default() }, model)?;
+            let (store, describer) =
+                open_store_with(StoreSettings { data_dir, build, ..StoreSettings::default() }, model)?;
             let mut stdout = std::io::stdout().lock();
             let mut failed: Option<std::io::Error> = None;
+            let mut progress = Progress::new(format!("import-colmap {map}"), colmap.images.len());
             let summary = scone::offline::colmap::import(&store, &describer, &map, &colmap, &images, &mut |i| {
+                progress.step();
                 let line = match &i.added {
                     Some(a) => format!(
                         "ack {} image {} landmarks {} observations {} rejected {} unassociated {}",

@@ -11,7 +11,7 @@ use serde::{Deserialize, Serialize};
 use crate::decode::GreyImage;
 use crate::embedding::Embedder;
 use crate::error::FeatureError;
-use crate::features::{self, ExtractorConfig, Keypoint};
+use crate::features::{self, ExtractorSettings, Keypoint};
 use crate::matching::{embedding_mat, match_descriptors, match_scone, Match, RatioTest, SconeFrame, SconeMatcher};
 
 /// The rows of a continuous f32 matrix as one slice (empty for an empty matrix).
@@ -80,7 +80,7 @@ fn from_cv(kps: &Vector<KeyPoint>) -> Vec<Keypoint> {
 pub fn describe(
     method: Method,
     image: &GreyImage,
-    extractor: &ExtractorConfig,
+    extractor: &ExtractorSettings,
     embedder: Option<&Embedder>,
 ) -> Result<Described, Box<dyn std::error::Error + Send + Sync>> {
     let t0 = Instant::now();

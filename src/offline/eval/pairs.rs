@@ -20,17 +20,18 @@ use rand::seq::SliceRandom;
 use rand::SeedableRng;
 use serde::{Deserialize, Serialize};
 
-use super::methods::{describe, putative_matches, Described, Method};
-use super::{accuracy, auc, median};
 use crate::camera::Camera;
-use crate::decode::{decode_depth_png, decode_grey, ImageLimits};
+use crate::decode::{decode_depth_png, decode_grey, ImageLimitSettings};
 use crate::embedding::Embedder;
-use crate::features::ExtractorConfig;
+use crate::features::ExtractorSettings;
 use crate::matching::{RatioTest, SconeMatcher};
+use crate::offline::eval::methods::{describe, putative_matches, Described, Method};
+use crate::offline::eval::stats::{accuracy, auc, median};
 use crate::offline::scene::Scene;
 use crate::pose::{
-    ransac_iterations_needed, relative_motion, relative_pose, rotation_error_deg, translation_angle_deg, RansacParams,
+    ransac_iterations_needed, relative_motion, relative_pose, rotation_error_deg, translation_angle_deg, RansacSettings,
 };
+use crate::progress::Progress;
 
 type BoxError = Box<dyn std::error::Error + Send + Sync>;
 
@@ -50,7 +51,7 @@ pub struct PairsConfig {
     /// existed used the plain embedding.
     #[serde(default)]
     pub scone_matcher: SconeMatcher,
-    pub ransac: RansacParams,
+    pub ransac: RansacSettings,
     pub depth_px: f64,
     pub epipolar_px: f64,
     /// Pairs whose ground-truth baseline is shorter than this (scene units) are also reported apart: their
@@ -58,7 +59,7 @@ pub struct PairsConfig {
     /// error alone there, and the other pairs by the usual max(rotation, translation). 0 = off.
     #[serde(default)]
     pub short_baseline: f64,
-    pub extractor: ExtractorConfig,
+    pub extractor: ExtractorSettings,
 }
 
 impl Default for PairsConfig {
@@ -71,11 +72,11 @@ impl Default for PairsConfig {
             mutual: false,
             same_corner_px: crate::matching::SAME_CORNER_PX,
             scone_matcher: SconeMatcher::default(),
-            ransac: RansacParams::default(),
+            ransac: RansacSettings::default(),
             depth_px: 4.0,
             epipolar_px: 2.0,
             short_baseline: 0.0,
-            extractor: ExtractorConfig::default(),
+            extractor: ExtractorSettings::default(),
         }
     }
 }
@@ -228,7 +229,7 @@ pub fn evaluate(scene: &Scene, cfg: &PairsConfig, embedder: Option<&Embedder>) -
     if cfg.scone_matcher == SconeMatcher::Freak {
         return Err("scone_matcher freak is FREAK, not SConE: compare with the freak method instead".into());
     }
-    let limits = ImageLimits::default();
+    let limits = ImageLimitSettings::default();
     let pairs: Vec<(usize, usize)> = window_pairs(scene.frames.len(), cfg.window)
         .into_iter()
         .filter(|&(i, j)| scene.frames[i].pose.is_some() && scene.frames[j].pose.is_some())
@@ -247,19 +248,22 @@ pub fn evaluate(scene: &Scene, cfg: &PairsConfig, embedder: Option<&Embedder>) -
         if let (Some(path), std::collections::hash_map::Entry::Vacant(slot)) = (&scene.frames[i].depth, depths.entry(i))
         {
             let bytes = std::fs::read(path).map_err(|e| format!("{}: {e}", path.display()))?;
-            slot.insert(decode_depth_png(&bytes, &ImageLimits::default())?);
+            slot.insert(decode_depth_png(&bytes, &ImageLimitSettings::default())?);
         }
     }
     let mut records = Vec::new();
     let mut describe_seconds: HashMap<Method, Vec<f64>> = HashMap::new();
+    let mut progress = Progress::new("eval pairs", cfg.methods.len() * (needed.len() + pairs.len()));
     for &method in &cfg.methods {
         let mut described: HashMap<usize, Described> = HashMap::new();
         for &i in &needed {
+            progress.step();
             let d = describe(method, &images[&i], &cfg.extractor, embedder)?;
             describe_seconds.entry(method).or_default().push(d.seconds);
             described.insert(i, d);
         }
         for &(i, j) in &pairs {
+            progress.step();
             let (a, b) = (&described[&i], &described[&j]);
             let t0 = Instant::now();
             let test = RatioTest { ratio: cfg.ratio, mutual: cfg.mutual, same_corner_px: cfg.same_corner_px };

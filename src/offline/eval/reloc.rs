@@ -19,7 +19,7 @@
 //! * `distractors`: keyframes of other real scenes are added to the same map, far away from it in space (so
 //!   their landmarks can only be wrong matches), until the map holds `distractor_observations` of their
 //!   observations; the nearest neighbours must then be found among many look-alikes. With distractors the
-//!   index is the service's (HNSW above `IndexParams::exact_below` observations), as a deployment's is.
+//!   index is the service's (HNSW above `IndexSettings::exact_below` observations), as a deployment's is.
 //! * `unit_scale`: the success thresholds are multiplied by it (scenes whose units are not metres).
 
 use std::time::Instant;
@@ -27,17 +27,18 @@ use std::time::Instant;
 use opencv::prelude::*;
 use serde::{Deserialize, Serialize};
 
-use super::median;
-use super::methods::{describe, Described, Method};
-use crate::decode::{decode_depth_png, decode_grey, ImageLimits};
+use crate::decode::{decode_depth_png, decode_grey, ImageLimitSettings};
 use crate::embedding::Embedder;
-use crate::features::{ExtractorConfig, Features};
-use crate::map::builder::{plan_keyframe, BuildParams, Depth, KeyframeInput};
-use crate::map::index::{EmbeddingIndex, IndexParams};
-use crate::map::localize::{localize, LocalizeParams};
+use crate::features::{ExtractorSettings, Features};
+use crate::map::builder::{plan_keyframe, BuildSettings, Depth, KeyframeInput};
+use crate::map::index::{EmbeddingIndex, IndexSettings};
+use crate::map::localize::{localize, LocalizeSettings};
 use crate::map::model::{MapData, MapMeta};
+use crate::offline::eval::methods::{describe, Described, Method};
+use crate::offline::eval::stats::median;
 use crate::offline::scene::Scene;
 use crate::pose::rotation_error_deg;
+use crate::progress::Progress;
 
 type BoxError = Box<dyn std::error::Error + Send + Sync>;
 
@@ -45,9 +46,9 @@ type BoxError = Box<dyn std::error::Error + Send + Sync>;
 pub struct RelocConfig {
     pub methods: Vec<Method>,
     pub stride: usize,
-    pub extractor: ExtractorConfig,
-    pub build: BuildParams,
-    pub localize: LocalizeParams,
+    pub extractor: ExtractorSettings,
+    pub build: BuildSettings,
+    pub localize: LocalizeSettings,
     pub precision_px: f64,
     /// Map from a contiguous block `[a, b)` of the posed frames (fractions) instead of every `stride`-th.
     #[serde(default)]
@@ -86,9 +87,9 @@ impl Default for RelocConfig {
         Self {
             methods: vec![Method::Scone, Method::Freak, Method::Sift],
             stride: 3,
-            extractor: ExtractorConfig::default(),
-            build: BuildParams::default(),
-            localize: LocalizeParams::default(),
+            extractor: ExtractorSettings::default(),
+            build: BuildSettings::default(),
+            localize: LocalizeSettings::default(),
             precision_px: 5.0,
             map_block: None,
             distractors: Vec::new(),
@@ -198,7 +199,7 @@ fn vectors(method: Method, d: &Described) -> Result<(Vec<f32>, usize), BoxError>
 }
 
 pub fn evaluate(scene: &Scene, cfg: &RelocConfig, embedder: Option<&Embedder>) -> Result<RelocReport, BoxError> {
-    let limits = ImageLimits::default();
+    let limits = ImageLimitSettings::default();
     let posed: Vec<usize> = (0..scene.frames.len()).filter(|&i| scene.frames[i].pose.is_some()).collect();
     let (map_frames, query_frames) = split_frames(&posed, cfg)?;
     let centres: Vec<_> = posed.iter().map(|&i| scene.frames[i].pose.unwrap().translation.vector).collect();
@@ -210,12 +211,17 @@ pub fn evaluate(scene: &Scene, cfg: &RelocConfig, embedder: Option<&Embedder>) -
     }
     let mut summaries = Vec::new();
     let mut queries = Vec::new();
+    let per_method = images.len() + map_frames.len() + query_frames.len();
+    let mut progress = Progress::new("eval reloc", cfg.methods.len() * per_method);
     for &method in &cfg.methods {
         let ratio_scale = |r: f32| if method == Method::Freak { r.sqrt() } else { r };
-        let build = BuildParams { ratio: ratio_scale(cfg.build.ratio), ..cfg.build };
-        let loc = LocalizeParams { ratio: ratio_scale(cfg.localize.ratio), ..cfg.localize };
-        let described: Vec<Described> =
-            images.iter().map(|im| describe(method, im, &cfg.extractor, embedder)).collect::<Result<_, _>>()?;
+        let build = BuildSettings { ratio: ratio_scale(cfg.build.ratio), ..cfg.build };
+        let loc = LocalizeSettings { ratio: ratio_scale(cfg.localize.ratio), ..cfg.localize };
+        let described: Vec<Described> = images
+            .iter()
+            .map(|im| describe(method, im, &cfg.extractor, embedder))
+            .inspect(|_| progress.step())
+            .collect::<Result<_, _>>()?;
         let vecs: Vec<(Vec<f32>, usize)> = described.iter().map(|d| vectors(method, d)).collect::<Result<_, _>>()?;
         let dim = vecs.iter().map(|v| v.1).max().unwrap_or(1);
         let mut data = MapData::new(MapMeta {
@@ -227,6 +233,7 @@ pub fn evaluate(scene: &Scene, cfg: &RelocConfig, embedder: Option<&Embedder>) -
         });
         let t0 = Instant::now();
         for &i in &map_frames {
+            progress.step();
             let d = &described[i];
             let features =
                 Features { width: d.width, height: d.height, keypoints: d.keypoints.clone(), descriptors: vec![] };
@@ -258,15 +265,16 @@ pub fn evaluate(scene: &Scene, cfg: &RelocConfig, embedder: Option<&Embedder>) -
         // Exact search on the scene alone (the descriptors compared, not the index); the service's index
         // (HNSW above `exact_below`) once distractors make the map large, as a deployment's is.
         let params = if distractor_observations > 0 {
-            IndexParams::default()
+            IndexSettings::default()
         } else {
-            IndexParams { exact_below: usize::MAX, ..IndexParams::default() }
+            IndexSettings { exact_below: usize::MAX, ..IndexSettings::default() }
         };
         let mut index = EmbeddingIndex::new(params);
         index.sync(&data);
         let build_seconds = t0.elapsed().as_secs_f64();
         let mut recs = Vec::new();
         for &i in &query_frames {
+            progress.step();
             let d = &described[i];
             let features =
                 Features { width: d.width, height: d.height, keypoints: d.keypoints.clone(), descriptors: vec![] };
@@ -428,10 +436,10 @@ fn add_distractors(
     base: usize,
     method: Method,
     cfg: &RelocConfig,
-    build: &BuildParams,
+    build: &BuildSettings,
     embedder: Option<&Embedder>,
 ) -> Result<(), BoxError> {
-    let limits = ImageLimits::default();
+    let limits = ImageLimitSettings::default();
     let other = Scene::load(dir)?;
     let offset = nalgebra::Vector3::new(DISTRACTOR_OFFSET * (scene_index + 1) as f64, 0.0, 0.0);
     for (fi, f) in other.frames.iter().enumerate().step_by(cfg.distractor_stride.max(1)) {

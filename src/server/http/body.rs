@@ -281,7 +281,7 @@ pub fn agreed_intrinsics(given: &[(&str, Option<Intrinsics>)]) -> Result<Option<
 
 /// A frame from its JSON description and/or a binary image part. `outer`: intrinsics given outside the
 /// frame (name, value), which must agree with the frame's own.
-pub fn frame(
+pub fn frame_input(
     json: Option<Frame>,
     image: Option<Bytes>,
     outer: &[(&str, Option<Intrinsics>)],
@@ -447,7 +447,7 @@ impl<S: Send + Sync> FromRequestParts<S> for Render {
 mod tests {
     use super::super::wire::{DescribeRequest, Keypoint, KeypointSet, LocalizeRequest, MatchRequest};
     use super::*;
-    use crate::features::{from_precomputed, KeypointLimits};
+    use crate::features::{from_precomputed, KeypointLimitSettings};
     use crate::service::ErrorKind;
     use proptest::prelude::*;
 
@@ -479,9 +479,9 @@ mod tests {
             h in 0u32..5000,
         ) {
             let bytes = (kps.len() as i64 * 64 + extra).max(0) as usize;
-            let f = frame(Some(keypoints_body(&kps, bytes, w, h)), None, &[], "frame").unwrap();
+            let f = frame_input(Some(keypoints_body(&kps, bytes, w, h)), None, &[], "frame").unwrap();
             let FrameSource::Keypoints(k) = f.source else { panic!("keypoints expected") };
-            match from_precomputed(k.width, k.height, k.keypoints, &k.descriptors, &KeypointLimits::default()) {
+            match from_precomputed(k.width, k.height, k.keypoints, &k.descriptors, &KeypointLimitSettings::default()) {
                 Ok(features) => {
                     prop_assert_eq!(features.len(), kps.len());
                     prop_assert_eq!(bytes, kps.len() * 64);
@@ -495,9 +495,9 @@ mod tests {
         fn in_range_keypoints_are_accepted(
             kps in prop::collection::vec((40.0f32..600.0, 40.0f32..440.0, 7.0f32..12.0, 0.0f32..359.9, 0i32..3), 1..60),
         ) {
-            let f = frame(Some(keypoints_body(&kps, kps.len() * 64, 640, 480)), None, &[], "frame").unwrap();
+            let f = frame_input(Some(keypoints_body(&kps, kps.len() * 64, 640, 480)), None, &[], "frame").unwrap();
             let FrameSource::Keypoints(k) = f.source else { panic!("keypoints expected") };
-            let features = from_precomputed(k.width, k.height, k.keypoints, &k.descriptors, &KeypointLimits::default());
+            let features = from_precomputed(k.width, k.height, k.keypoints, &k.descriptors, &KeypointLimitSettings::default());
             prop_assert!(features.is_ok(), "{:?}", features.err());
         }
 
@@ -517,10 +517,10 @@ mod tests {
         #[test]
         fn malformed_frames_name_the_field(junk in "[!-*,-.:-<>-@\\[-`{-~]{1,20}") {
             let f = Frame { image_base64: Some(junk), ..Default::default() };
-            let e = frame(Some(f), None, &[], "frame1").unwrap_err();
+            let e = frame_input(Some(f), None, &[], "frame1").unwrap_err();
             prop_assert!(e.to_string().contains("frame1.image_base64"), "{}", e);
             let both = Frame { image_base64: Some("aGk=".into()), ..keypoints_body(&[], 0, 1, 1) };
-            prop_assert!(frame(Some(both), None, &[], "frame").is_err());
+            prop_assert!(frame_input(Some(both), None, &[], "frame").is_err());
         }
     }
 

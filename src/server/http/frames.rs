@@ -9,15 +9,17 @@ use axum::response::{IntoResponse, Response};
 use axum::Json;
 use base64::Engine;
 
-use super::body::{frame, parse_json, read_body, ApiPath, IntrinsicsQuery, Render, FRAME_BODIES, JSON_OR_MULTIPART};
+use super::body::{
+    frame_input, parse_json, read_body, ApiPath, IntrinsicsQuery, Render, FRAME_BODIES, JSON_OR_MULTIPART,
+};
 use super::error::{ApiErrors, ApiResult};
 use super::wire::{self, examples};
-use super::{call, call_map, App};
 use crate::camera::quaternion_xyzw;
-use crate::map::localize::Prior;
 use crate::matching::DEFAULT_RATIO;
 use crate::render::{self, Backdrop};
-use crate::service::{FrameInput, FrameSource, PairOptions, ServiceError};
+use crate::server::app::App;
+use crate::server::http::plumbing::{call, call_map};
+use crate::service::{FrameInput, FrameSource, PairOptions, Prior, ServiceError};
 use crate::settings::Access;
 
 /// What a frame is drawn on: its image, or a blank canvas of its keypoint set's size.
@@ -63,7 +65,7 @@ pub async fn describe(
     let body = read_body(req, app.settings.server.max_request_bytes, FRAME_BODIES).await?;
     let out = call(&app, &headers, Access::Read, "Describe", move |a| {
         let j: wire::DescribeRequest = parse_json(&body.json)?;
-        let f = frame(j.frame, body.image, &[], "frame")?;
+        let f = frame_input(j.frame, body.image, &[], "frame")?;
         let d = a.service.describe(f.source)?;
         a.metrics.stages(&d.times);
         Ok(wire::DescribeResponse {
@@ -103,8 +105,8 @@ pub async fn match_pair(
     let body = read_body(req, app.settings.server.max_request_bytes, JSON_OR_MULTIPART).await?;
     call(&app, &headers, Access::Read, "MatchPair", move |a| {
         let j: wire::MatchRequest = parse_json(&body.json)?;
-        let f1 = frame(j.frame1, body.image, &[], "frame1")?;
-        let f2 = frame(j.frame2, body.image2, &[], "frame2")?;
+        let f1 = frame_input(j.frame1, body.image, &[], "frame1")?;
+        let f2 = frame_input(j.frame2, body.image2, &[], "frame2")?;
         let (keep1, keep2) = (keep_for_picture(picture, &f1), keep_for_picture(picture, &f2));
         let options = PairOptions {
             ratio: j.ratio.unwrap_or(DEFAULT_RATIO),
@@ -115,21 +117,9 @@ pub async fn match_pair(
         a.metrics.stages(&o.times);
         if let (Some(f1), Some(f2)) = (keep1, keep2) {
             let pairs: Vec<(usize, usize)> = o.matches.iter().map(|m| (m.query, m.train)).collect();
-            let pose = o.pose.as_ref().map_or("no relative pose".to_string(), |p| {
-                let angle = p.rotation.angle().to_degrees();
-                let t = p.translation;
-                format!("rotation {angle:.1} deg, translation direction ({:.2}, {:.2}, {:.2})", t.x, t.y, t.z)
-            });
-            let caption = [
-                format!("MatchPair, matcher '{}', ratio {}", options.matcher.name(), options.ratio),
-                format!(
-                    "{} putative matches, {} inliers (green), {} outliers (red)",
-                    pairs.len(),
-                    o.inlier_count(),
-                    pairs.len() - o.inlier_count()
-                ),
-                pose,
-            ];
+            let pose = o.pose.as_ref().map(|p| (p.rotation.angle().to_degrees(), p.translation.into()));
+            let caption =
+                render::pair_caption(options.matcher.name(), options.ratio, pairs.len(), o.inlier_count(), pose);
             let drawn = render::pair(
                 &backdrop(&f1),
                 &backdrop(&f2),
@@ -186,29 +176,18 @@ pub async fn localize(
     call_map(&app, &headers, Access::Read, "Localize", &map, move |a| {
         let j: wire::LocalizeRequest = parse_json(&body.json)?;
         let outer = [("intrinsics", j.intrinsics), ("the query string's intrinsics", q.intrinsics())];
-        let f = frame(j.frame, body.image, &outer, "frame")?;
+        let f = frame_input(j.frame, body.image, &outer, "frame")?;
         let kept = keep_for_picture(picture, &f);
         let prior = j.prior.map(|p| Prior { position: [p.x, p.y, p.z], radius: p.radius });
         let o = a.service.localize(&map_id, f, prior)?;
         a.metrics.stages(&o.times);
         if let Some(f) = kept {
             let inliers = o.pose.as_ref().map_or(0, |p| p.inliers.len());
-            let pose = o.pose.as_ref().map_or("not localised".to_string(), |p| {
-                let c = p.camera_to_world.translation.vector;
-                format!(
-                    "camera at ({:.3}, {:.3}, {:.3}), reprojection error {:.2} px, confidence {:.2}",
-                    c.x, c.y, c.z, p.reprojection_error, o.confidence
-                )
-            });
-            let caption = [
-                format!("Localize against map '{map_id}'"),
-                format!(
-                    "{} 2D-3D matches, {inliers} inliers (green; landmarks reprojected in cyan), {} outliers (red)",
-                    o.matches.len(),
-                    o.matches.len() - inliers
-                ),
-                pose,
-            ];
+            let pose = o
+                .pose
+                .as_ref()
+                .map(|p| (p.camera_to_world.translation.vector.into(), p.reprojection_error, o.confidence));
+            let caption = render::localization_caption(&map_id, o.matches.len(), inliers, pose);
             let drawn = render::localization(&backdrop(&f), &o.drawn_points(), &caption).map_err(ServiceError::from)?;
             return Ok(png(drawn));
         }

@@ -9,15 +9,15 @@ use axum::response::{IntoResponse, Response};
 use axum::Json;
 
 use super::body::{
-    base64, bytes_within, frame, json_body, media_type, read_body, too_large, ApiPath, JSON_ONLY, JSON_OR_MULTIPART,
-    MAP_FILE,
+    base64, bytes_within, frame_input, json_body, media_type, read_body, too_large, ApiPath, JSON_ONLY,
+    JSON_OR_MULTIPART, MAP_FILE,
 };
 use super::error::{invalid, ApiError, ApiErrors, ApiResult};
 use super::wire::{self, examples};
-use super::{api_key, call, call_map, App};
 use crate::decode::TUM_DEPTH_SCALE;
-use crate::map::builder::ExternalObservation;
-use crate::service::{KeyframeRequest, ServiceError, DEFAULT_CONTENTS_LANDMARKS};
+use crate::server::app::App;
+use crate::server::http::plumbing::{authorize, call, call_authorized, call_map, call_map_authorized};
+use crate::service::{ExternalObservation, KeyframeRequest, ServiceError, DEFAULT_CONTENTS_LANDMARKS};
 use crate::settings::Access;
 
 /// A new, empty map (rpc Maps.CreateMap).
@@ -134,9 +134,9 @@ pub async fn add_keyframe(
     req: Request,
 ) -> ApiResult<Json<wire::KeyframeAck>> {
     // Authenticate before reading a possibly large body.
-    app.keys.check(api_key(&headers).as_deref(), Access::Write, "AddKeyframe").map_err(ApiError::Service)?;
+    let authorized = authorize(&app, &headers, Access::Write, "AddKeyframe")?;
     let body = read_body(req, app.settings.server.max_request_bytes, JSON_OR_MULTIPART).await?;
-    let out = call_map(&app, &headers, Access::Write, "AddKeyframe", &map_id.clone(), move |a| {
+    let out = call_map_authorized(&app, authorized, "AddKeyframe", &map_id.clone(), move |a| {
         let Some(json) = &body.json else {
             return Err(ServiceError::invalid(
                 "body",
@@ -144,7 +144,7 @@ pub async fn add_keyframe(
             ));
         };
         let j: wire::KeyframeRequest = json_body(json)?;
-        let f = frame(j.frame, body.image, &[("intrinsics", j.intrinsics)], "frame")?;
+        let f = frame_input(j.frame, body.image, &[("intrinsics", j.intrinsics)], "frame")?;
         let depth_png = match (body.depth, j.depth_png_base64) {
             (Some(d), None) => Some(d.to_vec()),
             (None, Some(b)) => Some(base64("depth_png_base64", &b)?),
@@ -238,11 +238,11 @@ pub async fn import_map(
     headers: HeaderMap,
     req: Request,
 ) -> ApiResult<(StatusCode, Json<wire::MapInfo>)> {
-    app.keys.check(api_key(&headers).as_deref(), Access::Write, "ImportMap").map_err(ApiError::Service)?;
+    let authorized = authorize(&app, &headers, Access::Write, "ImportMap")?;
     media_type(&headers, MAP_FILE)?;
     let limit = app.settings.server.max_map_bytes;
     let refusal = ApiError::Service(ServiceError::TooLarge { what: "the map file".into(), limit });
     let bytes = bytes_within(req, limit, refusal).await?;
-    let s = call(&app, &headers, Access::Write, "ImportMap", move |a| a.service.import_map(&id, &bytes)).await?;
+    let s = call_authorized(&app, authorized, "ImportMap", move |a| a.service.import_map(&id, &bytes)).await?;
     Ok((StatusCode::CREATED, Json(s.into())))
 }

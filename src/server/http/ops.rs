@@ -1,12 +1,13 @@
-//! Handlers of the operational routes: liveness, readiness, metrics and this API's OpenAPI document.
+//! Handlers of the operational routes: liveness, readiness and metrics (the OpenAPI document is served by
+//! [`crate::server::http::openapi`]).
 
-use std::sync::{Arc, LazyLock};
+use std::sync::Arc;
 
 use axum::extract::State;
 use axum::http::{header, StatusCode};
 use axum::response::IntoResponse;
 
-use super::App;
+use crate::server::app::App;
 
 /// Liveness: the process answers.
 #[utoipa::path(get, path = "/healthz", tag = "operations",
@@ -35,15 +36,4 @@ pub async fn readyz(State(app): State<Arc<App>>) -> (StatusCode, &'static str) {
 pub async fn metrics(State(app): State<Arc<App>>) -> impl IntoResponse {
     let text = app.metrics.render(app.service.holdings(), app.pool.stats());
     ([(header::CONTENT_TYPE, "application/openmetrics-text; version=1.0.0; charset=utf-8")], text)
-}
-
-/// The document, generated once from the routes and their types.
-static DOCUMENT: LazyLock<String> =
-    LazyLock::new(|| super::openapi().to_pretty_json().expect("the OpenAPI document serialises"));
-
-/// This API's OpenAPI 3.1 document, generated from the code.
-#[utoipa::path(get, path = "/openapi.json", tag = "operations",
-    responses((status = 200, description = "The OpenAPI document", body = Object, content_type = "application/json")))]
-pub async fn openapi() -> impl IntoResponse {
-    ([(header::CONTENT_TYPE, "application/json")], DOCUMENT.as_str())
 }

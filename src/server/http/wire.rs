@@ -8,7 +8,7 @@
 use serde::{Deserialize, Serialize};
 use utoipa::{IntoParams, ToSchema};
 
-use crate::map::store::MapSummary;
+use crate::service::MapSummary;
 
 /// Pinhole intrinsics, pixels.
 #[derive(Debug, Clone, Copy, PartialEq, Deserialize, Serialize, ToSchema)]

@@ -5,11 +5,11 @@
 //! * [`MapJournal`]: the single writer of one open map (append a record durably, compact, check that the copy
 //!   is current), plus the local directory that holds the map's HNSW index dump.
 //!
-//! Two implementations, chosen by [`BackendConfig`](crate::map::store::BackendConfig) (`[store.backend]`):
+//! Two implementations, chosen by [`BackendSettings`](crate::map::storage::BackendSettings) (`[store.backend]`):
 //!
-//! * [`crate::map::local`] (`kind = "local"`, the default): `data_dir/maps/<id>/`, a snapshot plus an
+//! * [`crate::map::storage::local`] (`kind = "local"`, the default): `data_dir/maps/<id>/`, a snapshot plus an
 //!   fsync'd write-ahead log, with the index dump beside them;
-//! * [`crate::map::s3`] (`kind = "s3"`): immutable objects plus a manifest replaced by conditional writes in
+//! * [`crate::map::storage::s3`] (`kind = "s3"`): immutable objects plus a manifest replaced by conditional writes in
 //!   an S3-API bucket, the index dump in a local cache directory.
 //!
 //! Both are synchronous: the store calls them on blocking threads (the CPU pool, `spawn_blocking`), never on

@@ -1,5 +1,5 @@
 //! Maps on the local disk: `data_dir/maps/<id>/` holds one map's `snapshot.bin`, its write-ahead
-//! `log.bin` (byte layouts in [`crate::map::format`]) and its index dump.
+//! `log.bin` (byte layouts in [`crate::map::storage::format`]) and its index dump.
 //!
 //! A write is acknowledged only after its record is appended and `fdatasync` returned, so an acknowledged
 //! write survives `kill -9` and power loss (as far as the disk honours fsync). Loading replays the log
@@ -24,16 +24,16 @@ use std::io::{Read, Seek, SeekFrom, Write};
 use std::path::{Path, PathBuf};
 
 use crate::error::MapError;
-use crate::map::format::{
-    corrupt, decode_snapshot, encode_record, encode_snapshot, injected, injected_full, io_err, io_error, read_frame,
-    readable_version, sync_dir, unreadable, write_atomic, Frame, FORMAT_VERSION, LOG_HEADER, LOG_MAGIC,
-};
-use crate::map::journal::{LoadReport, MapBackend, MapJournal};
 use crate::map::model::{validate_map_id, MapData, MapStats, Record};
+use crate::map::storage::backend::{LoadReport, MapBackend, MapJournal};
+use crate::map::storage::format::{
+    corrupt, decode_snapshot, encode_record, encode_snapshot, injected, injected_full, io_err, io_error, read_frame,
+    readable_version, sync_dir, unreadable, write_atomic, LogEntry, FORMAT_VERSION, LOG_HEADER, LOG_MAGIC,
+};
 
 /// The open log of one map.
 #[derive(Debug)]
-pub struct MapLog {
+pub struct LocalJournal {
     dir: PathBuf,
     file: File,
     /// Bytes of the log that hold whole, durable records (and the header): where the next record goes.
@@ -44,7 +44,7 @@ pub struct MapLog {
     compact_every: usize,
 }
 
-impl MapLog {
+impl LocalJournal {
     fn log_path(dir: &Path) -> PathBuf {
         dir.join("log.bin")
     }
@@ -104,15 +104,15 @@ impl MapLog {
         let mut records = 0;
         while pos < buf.len() {
             let (seq, record, end) = match read_frame(&buf, pos, &log_path)? {
-                Frame::Torn => break,
-                Frame::BadChecksum { end } if end == buf.len() => break, // the last record is torn
-                Frame::BadChecksum { .. } => {
+                LogEntry::Torn => break,
+                LogEntry::BadChecksum { end } if end == buf.len() => break, // the last record is torn
+                LogEntry::BadChecksum { .. } => {
                     return Err(corrupt(
                         &log_path,
                         format!("checksum mismatch in the record at byte {pos}, more records follow"),
                     ))
                 }
-                Frame::Record { seq, record, end } => (seq, record, end),
+                LogEntry::Record { seq, record, end } => (seq, record, end),
             };
             if seq > data.version {
                 if seq != data.version + 1 {
@@ -206,7 +206,7 @@ fn unique_suffix(id: &str) -> String {
     format!("{id}-{:016x}", rand::random::<u64>())
 }
 
-/// Maps in `data_dir/maps/<id>/`, each a [`MapLog`].
+/// Maps in `data_dir/maps/<id>/`, each a [`LocalJournal`].
 #[derive(Debug)]
 pub struct LocalBackend {
     root: PathBuf,
@@ -240,17 +240,17 @@ impl LocalBackend {
     }
 }
 
-impl MapJournal for MapLog {
+impl MapJournal for LocalJournal {
     fn append(&mut self, seq: u64, record: &Record, _after: &MapStats) -> Result<(), MapError> {
-        MapLog::append(self, seq, record)
+        LocalJournal::append(self, seq, record)
     }
 
     fn wants_compaction(&self) -> bool {
-        MapLog::wants_compaction(self)
+        LocalJournal::wants_compaction(self)
     }
 
     fn compact(&mut self, data: &MapData) -> Result<(), MapError> {
-        MapLog::compact(self, data)
+        LocalJournal::compact(self, data)
     }
 
     fn index_dir(&self) -> &Path {
@@ -289,7 +289,7 @@ impl MapBackend for LocalBackend {
             return Err(MapError::MapExists { map: id.to_string() });
         }
         let staging = self.root.join(format!("{CREATING}{}", unique_suffix(id)));
-        let created = MapLog::create(&staging, data, self.compact_every).and_then(|mut log| {
+        let created = LocalJournal::create(&staging, data, self.compact_every).and_then(|mut log| {
             if dir.exists() {
                 return Err(MapError::MapExists { map: id.to_string() });
             }
@@ -314,7 +314,7 @@ impl MapBackend for LocalBackend {
     }
 
     fn open(&self, id: &str) -> Result<(MapData, Box<dyn MapJournal>, LoadReport), MapError> {
-        let (data, log, report) = MapLog::open(&self.dir(id), self.compact_every)?;
+        let (data, log, report) = LocalJournal::open(&self.dir(id), self.compact_every)?;
         Ok((data, Box::new(log), report))
     }
 

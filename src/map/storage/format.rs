@@ -1,4 +1,4 @@
-//! The bytes of stored maps, shared by both backends ([`crate::map::local`], [`crate::map::s3`]):
+//! The bytes of stored maps, shared by both backends ([`crate::map::storage::local`], [`crate::map::storage::s3`]):
 //!
 //! * snapshot (`snapshot.bin`, an S3 snapshot object, and the map's export file): magic `SCONEMAP`, format
 //!   version (u32), payload length (u64), CRC-32 of the payload, then the whole [`MapData`] (bincode).
@@ -280,7 +280,7 @@ pub fn encode_record(seq: u64, record: &Record) -> Result<Vec<u8>, MapError> {
 
 /// What [`read_frame`] found at a position.
 #[derive(Debug)]
-pub enum Frame {
+pub enum LogEntry {
     /// A whole record whose checksum matches; the next frame starts at `end`.
     Record { seq: u64, record: Box<Record>, end: usize },
     /// The buffer ends inside the frame.
@@ -291,9 +291,9 @@ pub enum Frame {
 
 /// Reads the frame starting at byte `pos` of `buf`. A length beyond the limit or a payload that does not
 /// decode is corruption (named by `path`).
-pub fn read_frame(buf: &[u8], pos: usize, path: &Path) -> Result<Frame, MapError> {
+pub fn read_frame(buf: &[u8], pos: usize, path: &Path) -> Result<LogEntry, MapError> {
     if buf.len().saturating_sub(pos) < 16 {
-        return Ok(Frame::Torn);
+        return Ok(LogEntry::Torn);
     }
     let len = u32::from_le_bytes(buf[pos..pos + 4].try_into().expect("4 bytes"));
     let crc = u32::from_le_bytes(buf[pos + 4..pos + 8].try_into().expect("4 bytes"));
@@ -302,16 +302,16 @@ pub fn read_frame(buf: &[u8], pos: usize, path: &Path) -> Result<Frame, MapError
     }
     let end = pos + 16 + len as usize;
     if end > buf.len() {
-        return Ok(Frame::Torn);
+        return Ok(LogEntry::Torn);
     }
     let body = &buf[pos + 8..end];
     if crc32fast::hash(body) != crc {
-        return Ok(Frame::BadChecksum { end });
+        return Ok(LogEntry::BadChecksum { end });
     }
     let seq = u64::from_le_bytes(body[..8].try_into().expect("8 bytes"));
     let record: Box<Record> =
         bincode::deserialize(&body[8..]).map_err(|e| corrupt(path, format!("record at byte {pos}: {e}")))?;
-    Ok(Frame::Record { seq, record, end })
+    Ok(LogEntry::Record { seq, record, end })
 }
 
 /// Encodes an object-storage segment: magic `SCONESEG`, format version (u32), then exactly one record frame.
@@ -335,9 +335,92 @@ pub fn decode_segment(bytes: &[u8], path: &Path) -> Result<(u64, Record), MapErr
         return Err(unreadable(path, "segment", version));
     }
     match read_frame(bytes, 12, path)? {
-        Frame::Record { seq, record, end } if end == bytes.len() => Ok((seq, *record)),
-        Frame::Record { end, .. } => Err(corrupt(path, format!("{} bytes after the record", bytes.len() - end))),
-        Frame::Torn => Err(corrupt(path, "the record is cut short")),
-        Frame::BadChecksum { .. } => Err(corrupt(path, "checksum mismatch")),
+        LogEntry::Record { seq, record, end } if end == bytes.len() => Ok((seq, *record)),
+        LogEntry::Record { end, .. } => Err(corrupt(path, format!("{} bytes after the record", bytes.len() - end))),
+        LogEntry::Torn => Err(corrupt(path, "the record is cut short")),
+        LogEntry::BadChecksum { .. } => Err(corrupt(path, "checksum mismatch")),
+    }
+}
+
+// ---------------------------------------------------------------------------------------------------------
+// Index dumps on disk (written and checked by crate::map::index, moved by the object-storage backend)
+// ---------------------------------------------------------------------------------------------------------
+
+/// `index.json`: which files hold the dump, and what it was built from.
+#[derive(Debug, Serialize, Deserialize, PartialEq)]
+pub(crate) struct DumpManifest {
+    /// Base name of the two files (`<base>.hnsw.graph`, `<base>.hnsw.data`), as hnsw_rs wrote them.
+    pub(crate) base: String,
+    /// Observations `[0, points)` were offered to the graph...
+    pub(crate) points: usize,
+    /// ...of which this many (the live ones then) are in it.
+    pub(crate) in_graph: usize,
+    pub(crate) model_id: String,
+    pub(crate) graph_crc: u32,
+    pub(crate) data_crc: u32,
+    /// CRC-32 of the embeddings of observations `[0, points)` at the dump.
+    pub(crate) embeddings_crc: u32,
+}
+
+/// The manifest of a dump, and the suffixes hnsw_rs gives its two files.
+pub const DUMP_MANIFEST: &str = "index.json";
+pub(crate) const GRAPH_SUFFIX: &str = ".hnsw.graph";
+pub(crate) const DATA_SUFFIX: &str = ".hnsw.data";
+
+/// The dump in `dir`, read (`None` when there is none or it cannot be read whole).
+pub fn read_dump(dir: &Path) -> Option<DumpBytes> {
+    let manifest = std::fs::read(dir.join(DUMP_MANIFEST)).ok()?;
+    let base = serde_json::from_slice::<DumpManifest>(&manifest).ok()?.base;
+    if !valid_base(&base) {
+        return None;
+    }
+    let graph = std::fs::read(dir.join(format!("{base}{GRAPH_SUFFIX}"))).ok()?;
+    let data = std::fs::read(dir.join(format!("{base}{DATA_SUFFIX}"))).ok()?;
+    Some(DumpBytes { manifest, graph, data })
+}
+
+/// Writes a dump read elsewhere ([`read_dump`]) into `dir`: the two files under the manifest's base name, the
+/// manifest last, then the other dumps there are deleted. The loader checks it against the map, so a dump
+/// that does not match is rebuilt, not used.
+pub fn install_dump(dir: &Path, dump: &DumpBytes) -> Result<(), MapError> {
+    let base = serde_json::from_slice::<DumpManifest>(&dump.manifest)
+        .ok()
+        .map(|m| m.base)
+        .filter(|b| valid_base(b))
+        .ok_or_else(|| corrupt(&dir.join(DUMP_MANIFEST), "not an index manifest"))?;
+    let write = write_atomic;
+    write(&dir.join(format!("{base}{GRAPH_SUFFIX}")), &dump.graph)?;
+    write(&dir.join(format!("{base}{DATA_SUFFIX}")), &dump.data)?;
+    write(&dir.join(DUMP_MANIFEST), &dump.manifest)?;
+    remove_dumps_except(dir, Some(&base));
+    Ok(())
+}
+
+/// A base name this module writes (`index-<hex>`, or `index-<n>` as hnsw_rs may pick): no path, no dots.
+pub(crate) fn valid_base(base: &str) -> bool {
+    !base.is_empty() && base.len() <= 64 && base.bytes().all(|b| b.is_ascii_alphanumeric() || b == b'-' || b == b'_')
+}
+
+/// CRC-32 of a whole file.
+pub(crate) fn file_crc(path: &Path) -> Result<u32, MapError> {
+    std::fs::read(path).map(|b| crc32fast::hash(&b)).map_err(|e| io_error(path, e))
+}
+
+/// Removes the two files of the dump `base` in `dir`.
+pub(crate) fn remove_dump(dir: &Path, base: &str) {
+    for suffix in [GRAPH_SUFFIX, DATA_SUFFIX] {
+        let _ = std::fs::remove_file(dir.join(format!("{base}{suffix}")));
+    }
+}
+
+/// Removes every dump file in `dir` but those of `keep` (replaced dumps, and any a crash left behind).
+pub(crate) fn remove_dumps_except(dir: &Path, keep: Option<&str>) {
+    let Ok(entries) = std::fs::read_dir(dir) else { return };
+    for entry in entries.flatten() {
+        let name = entry.file_name().to_string_lossy().into_owned();
+        let base = name.strip_suffix(GRAPH_SUFFIX).or_else(|| name.strip_suffix(DATA_SUFFIX));
+        if base.is_some_and(|b| Some(b) != keep) {
+            let _ = std::fs::remove_file(entry.path());
+        }
     }
 }

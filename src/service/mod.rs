@@ -3,10 +3,12 @@
 //! [`ServiceError`] through [`ServiceError::kind`]. Nothing here knows about tonic, axum or HTTP.
 //!
 //! Every function is synchronous and CPU-bound (OpenCV, ONNX Runtime, index search, fsync): transports call
-//! them on the bounded [`crate::workers::CpuPool`], never on async worker threads.
+//! them on the bounded [`crate::cpu_pool::CpuPool`], never on async worker threads.
 //!
 //! Maps load after the listeners are up (health says NOT_SERVING meanwhile), so the store is attached once it
 //! is ready; map operations before that answer [`ServiceError::NotReady`].
+
+mod error;
 
 use std::sync::{Arc, OnceLock};
 
@@ -16,15 +18,20 @@ use serde::Serialize;
 use crate::camera::validate_camera;
 use crate::camera::Camera;
 use crate::camera::Pose;
-use crate::decode::{check_limits, decode_depth_png, ImageLimits};
-use crate::error::{EmbeddingError, FeatureError, MapError, PoseError};
-use crate::features::{self, Features, Keypoint, KeypointLimits};
-use crate::map::builder::{Depth, ExternalObservation, KeyframeInput};
-use crate::map::localize::{LandmarkMatch, Prior};
-use crate::map::store::{KeyframeAdded, MapContents, MapStore, MapSummary};
+use crate::decode::{check_limits, decode_depth_png, ImageLimitSettings};
+use crate::error::{MapError, PoseError};
+use crate::features::{self, Features, Keypoint, KeypointLimitSettings};
+use crate::map::builder::{Depth, KeyframeInput};
+use crate::map::localize::LandmarkMatch;
+use crate::map::store::{KeyframeAdded, MapContents, MapStore, ModelInfo, StoreSettings};
+// What the transports need of the map layer, so that they import only this module.
+pub use crate::map::builder::ExternalObservation;
+pub use crate::map::localize::Prior;
+pub use crate::map::store::{Map, MapSummary};
 use crate::matching::{match_scone, Match, RatioTest, SconeFrame, SconeMatcher, DEFAULT_RATIO, SAME_CORNER_PX};
-use crate::pipeline::{DescribeError, Describer, StageTimes};
-use crate::pose::{relative_pose, AbsolutePose, RansacParams, RelativePose};
+use crate::pipeline::{Describer, StageTimes};
+use crate::pose::{relative_pose, AbsolutePose, RansacSettings, RelativePose};
+pub use error::{ErrorKind, ServiceError};
 
 /// Keypoints with FREAK descriptors computed by a client (see the client contract in the proto).
 #[derive(Debug, Clone, Default)]
@@ -155,158 +162,6 @@ pub struct KeyframeRequest {
     pub external_landmarks: Vec<ExternalObservation>,
 }
 
-/// What went wrong, for a client; [`ServiceError::kind`] classifies it for the transports.
-#[derive(Debug, thiserror::Error)]
-pub enum ServiceError {
-    #[error("invalid {field}: {reason}")]
-    InvalidArgument { field: String, reason: String },
-    #[error("the keypoints were computed for model {client}, this service runs {server}")]
-    ModelMismatch { client: String, server: String },
-    #[error(transparent)]
-    Feature(#[from] FeatureError),
-    #[error(transparent)]
-    Embedding(#[from] EmbeddingError),
-    #[error(transparent)]
-    Pose(#[from] PoseError),
-    #[error(transparent)]
-    Map(#[from] MapError),
-    #[error("the service is starting: maps are still loading")]
-    NotReady,
-    #[error("the service is shutting down")]
-    ShuttingDown,
-    #[error("the service is saturated ({queued} requests waiting): retry later")]
-    Overloaded { queued: usize },
-    #[error("the request did not finish within {ms} ms")]
-    DeadlineExceeded { ms: u64 },
-    #[error("missing or unknown API key: send one in the x-api-key header")]
-    Unauthenticated,
-    #[error("this API key is read-only; {operation} needs a write key")]
-    PermissionDenied { operation: String },
-    #[error("{what} is larger than the limit of {limit} bytes")]
-    TooLarge { what: String, limit: usize },
-    #[error("internal error: {0}")]
-    Internal(String),
-}
-
-impl From<DescribeError> for ServiceError {
-    fn from(e: DescribeError) -> Self {
-        match e {
-            DescribeError::Feature(f) => Self::Feature(f),
-            DescribeError::Embedding(e) => Self::Embedding(e),
-        }
-    }
-}
-
-/// The classes of failure a transport distinguishes (gRPC codes, HTTP statuses).
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub enum ErrorKind {
-    InvalidArgument,
-    NotFound,
-    AlreadyExists,
-    FailedPrecondition,
-    Unavailable,
-    ResourceExhausted,
-    /// The data volume is full: the write was not made (gRPC RESOURCE_EXHAUSTED, HTTP 507).
-    InsufficientStorage,
-    PayloadTooLarge,
-    DeadlineExceeded,
-    Unauthenticated,
-    PermissionDenied,
-    Internal,
-}
-
-fn feature_kind(e: &FeatureError) -> ErrorKind {
-    match e {
-        FeatureError::EmptyImage
-        | FeatureError::UnsupportedFormat
-        | FeatureError::CorruptImage { .. }
-        | FeatureError::ImageTooLarge { .. }
-        | FeatureError::TooManyKeypoints { .. }
-        | FeatureError::InvalidKeypoint { .. }
-        | FeatureError::InvalidDescriptors { .. } => ErrorKind::InvalidArgument,
-        FeatureError::InvalidConfig { .. } | FeatureError::OpenCv(_) => ErrorKind::Internal,
-    }
-}
-
-fn embedding_kind(e: &EmbeddingError) -> ErrorKind {
-    match e {
-        EmbeddingError::Input { .. } => ErrorKind::InvalidArgument,
-        EmbeddingError::Runtime { .. }
-        | EmbeddingError::Model { .. }
-        | EmbeddingError::Contract { .. }
-        | EmbeddingError::Inference(_) => ErrorKind::Internal,
-    }
-}
-
-fn pose_kind(e: &PoseError) -> ErrorKind {
-    match e {
-        PoseError::Intrinsics { .. } => ErrorKind::InvalidArgument,
-        PoseError::Mismatch { .. } | PoseError::OpenCv(_) => ErrorKind::Internal,
-    }
-}
-
-fn map_kind(e: &MapError) -> ErrorKind {
-    match e {
-        MapError::UnknownMap { .. } | MapError::UnknownKeyframe { .. } => ErrorKind::NotFound,
-        MapError::MapExists { .. } | MapError::KeyframeExists { .. } => ErrorKind::AlreadyExists,
-        MapError::InvalidMapId { .. } | MapError::InvalidInput { .. } => ErrorKind::InvalidArgument,
-        MapError::ModelMismatch { .. } => ErrorKind::FailedPrecondition,
-        MapError::Unavailable { .. } | MapError::WriterConflict { .. } => ErrorKind::Unavailable,
-        MapError::Corrupt { .. } | MapError::Io { .. } => ErrorKind::Internal,
-        MapError::StorageFull { .. } => ErrorKind::InsufficientStorage,
-        MapError::Feature(f) => feature_kind(f),
-        MapError::Embedding(e) => embedding_kind(e),
-        MapError::Pose(p) => pose_kind(p),
-    }
-}
-
-impl ServiceError {
-    pub fn invalid(field: impl Into<String>, reason: impl Into<String>) -> Self {
-        Self::InvalidArgument { field: field.into(), reason: reason.into() }
-    }
-
-    /// The class of the error. Exhaustive on purpose: a new variant anywhere below must be classified.
-    pub fn kind(&self) -> ErrorKind {
-        match self {
-            Self::InvalidArgument { .. } => ErrorKind::InvalidArgument,
-            Self::ModelMismatch { .. } => ErrorKind::FailedPrecondition,
-            Self::Feature(e) => feature_kind(e),
-            Self::Embedding(e) => embedding_kind(e),
-            Self::Pose(e) => pose_kind(e),
-            Self::Map(e) => map_kind(e),
-            Self::NotReady | Self::ShuttingDown => ErrorKind::Unavailable,
-            Self::Overloaded { .. } => ErrorKind::ResourceExhausted,
-            Self::DeadlineExceeded { .. } => ErrorKind::DeadlineExceeded,
-            Self::Unauthenticated => ErrorKind::Unauthenticated,
-            Self::PermissionDenied { .. } => ErrorKind::PermissionDenied,
-            Self::TooLarge { .. } => ErrorKind::PayloadTooLarge,
-            Self::Internal(_) => ErrorKind::Internal,
-        }
-    }
-
-    /// What the client is told: the precise message for its own mistakes, a generic one for ours (the real
-    /// error goes to the log).
-    pub fn client_message(&self) -> String {
-        match self.kind() {
-            ErrorKind::Internal => "internal error; the server log has the details".to_string(),
-            ErrorKind::InsufficientStorage => "insufficient storage: the data volume (store.data_dir) is full; \
-                                               nothing of this write was stored, and writes resume once space \
-                                               is freed"
-                .to_string(),
-            _ => self.to_string(),
-        }
-    }
-
-    /// Seconds a client should wait before retrying, for errors where retrying helps.
-    pub fn retry_after_s(&self) -> Option<u64> {
-        match self {
-            Self::Overloaded { .. } => Some(1),
-            Self::NotReady | Self::ShuttingDown => Some(5),
-            _ => None,
-        }
-    }
-}
-
 /// Loaded maps, and the ids of maps held back with the reason.
 pub type MapListing = (Vec<MapSummary>, Vec<(String, String)>);
 
@@ -325,26 +180,48 @@ pub struct Holdings {
     pub cache_events: Vec<(&'static str, u64)>,
     pub cache_load_seconds: f64,
     /// Calls to the storage service (object storage) since start.
-    pub storage: Vec<crate::map::journal::OperationStats>,
+    pub storage: Vec<crate::map::storage::backend::OperationStats>,
 }
 
 /// The service's core: the description path, the map store and the limits on client input.
 pub struct Service {
     describer: Describer,
-    keypoint_limits: KeypointLimits,
-    ransac: RansacParams,
+    keypoint_limits: KeypointLimitSettings,
+    ransac: RansacSettings,
     store: OnceLock<Arc<MapStore>>,
 }
 
 impl Service {
     /// `ransac`: MatchPair's essential-matrix search (`Settings::relative_pose`).
-    pub fn new(describer: Describer, keypoint_limits: KeypointLimits, ransac: RansacParams) -> Self {
+    pub fn new(describer: Describer, keypoint_limits: KeypointLimitSettings, ransac: RansacSettings) -> Self {
         Self { describer, keypoint_limits, ransac, store: OnceLock::new() }
     }
 
     /// Makes maps available (once, after they loaded).
     pub fn attach_store(&self, store: Arc<MapStore>) {
         let _ = self.store.set(store);
+    }
+
+    /// Opens the maps `config` describes, for the model this service embeds with, and makes them available.
+    /// Blocks: in eager mode every map is loaded here.
+    pub fn open_store(&self, config: StoreSettings) -> Result<(), MapError> {
+        let e = &self.describer.embedder;
+        let info = ModelInfo { model_id: e.model_id().to_string(), k: e.k(), dim: e.dim() };
+        self.attach_store(Arc::new(MapStore::open(config, info)?));
+        Ok(())
+    }
+
+    /// With maps loaded on demand: whether `map` must be loaded before its request runs (`Some(true)`) or is
+    /// in memory (`Some(false)`); `None` when every map is loaded at start (or the maps are not open yet).
+    pub fn map_to_prepare(&self, map: &str) -> Option<bool> {
+        let store = self.store.get()?;
+        store.is_lazy().then(|| !store.is_loaded(map))
+    }
+
+    /// Loads `map` if it is not in memory and checks that it is fresh; holding the result keeps the map from
+    /// being evicted until the request is done. Blocks (a load, a manifest round trip).
+    pub fn prepare(&self, map: &str) -> Result<Arc<Map>, ServiceError> {
+        Ok(self.store()?.prepare(map)?)
     }
 
     pub fn store(&self) -> Result<&Arc<MapStore>, ServiceError> {
@@ -363,7 +240,7 @@ impl Service {
         self.describer.embedder.dim()
     }
 
-    pub fn image_limits(&self) -> &ImageLimits {
+    pub fn image_limits(&self) -> &ImageLimitSettings {
         &self.describer.limits
     }
 
@@ -485,13 +362,14 @@ impl Service {
         prior: Option<Prior>,
     ) -> Result<LocalizeOutcome, ServiceError> {
         let store = self.store()?;
-        store.get(map)?;
+        // Looked up once: an unknown map is refused before any decoding, and the search runs on this copy.
+        let held = store.get(map)?;
         self.check_source(&frame.source)?;
         let cam = Self::camera(&frame, "frame.intrinsics")?;
         let d = self.describe_source(frame.source)?;
         Self::check_frame_size(&d, &cam, "frame.intrinsics")?;
         let mut times = d.times;
-        let l = store.localize(map, &d.features, &d.embeddings, &cam, prior.as_ref())?;
+        let l = store.localize_map(&held, &d.features, &d.embeddings, &cam, prior.as_ref())?;
         times.0.push(("search", l.search_s));
         times.0.push(("pnp", l.pnp_s));
         let pixels = l.matches.iter().map(|m| d.features.keypoints[m.keypoint]).map(|k| (k.x, k.y)).collect();
