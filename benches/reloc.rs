@@ -138,7 +138,9 @@ fn prepare(
     if next > 0 {
         eprintln!("reloc bench: resuming the {target} map at frame {next}");
     }
+    let mut progress = scone::progress::Progress::new(format!("reloc bench: {target} map, observations"), target);
     while store.summary("m").unwrap().observations < target {
+        progress.set(store.summary("m").unwrap().observations);
         let Some(mf) = frames.get(next) else {
             eprintln!("reloc bench: the training scenes ran out of frames before {target} observations");
             break;

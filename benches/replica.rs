@@ -120,8 +120,10 @@ fn main() {
     {
         let writer = store(&endpoint, bucket, &tmp.join("writer"), &model);
         writer.create("m").unwrap();
+        let mut progress = scone::progress::Progress::new("replica bench: writer map, observations", target);
         'scenes: for (si, scene) in [&sun3d, &kitchen].into_iter().enumerate() {
             for f in &scene.frames {
+                progress.set(writer.summary("m").unwrap().observations);
                 if writer.summary("m").unwrap().observations >= target {
                     break 'scenes;
                 }

@@ -12,8 +12,9 @@ pub struct Progress {
     label: String,
     total: u64,
     done: u64,
-    /// The next step at which a log line is written (without a terminal).
+    /// The next step at which a log line is written (without a terminal), and the last one written.
     next_line: u64,
+    logged: u64,
     started: Instant,
 }
 
@@ -30,17 +31,23 @@ impl Progress {
             bar.set_message(label.clone());
             bar
         });
-        Self { bar, label, total, done: 0, next_line: total.div_ceil(10).max(1), started: Instant::now() }
+        Self { bar, label, total, done: 0, next_line: total.div_ceil(10).max(1), logged: 0, started: Instant::now() }
     }
 
     /// One more step done.
     pub fn step(&mut self) {
-        self.done += 1;
+        self.set(self.done as usize + 1);
+    }
+
+    /// `done` steps done so far (a job counted in units it does not take one at a time, e.g. observations).
+    pub fn set(&mut self, done: usize) {
+        self.done = (done as u64).min(self.total);
         match &self.bar {
-            Some(bar) => bar.inc(1),
-            None if self.done >= self.next_line || self.done == self.total => {
+            Some(bar) => bar.set_position(self.done),
+            None if self.done > self.logged && (self.done >= self.next_line || self.done == self.total) => {
                 tracing::info!(job = %self.label, done = self.done, total = self.total,
                     seconds = self.started.elapsed().as_secs(), "progress");
+                self.logged = self.done;
                 self.next_line = self.done + self.total.div_ceil(10).max(1);
             }
             None => {}
@@ -53,5 +60,23 @@ impl Drop for Progress {
         if let Some(bar) = &self.bar {
             bar.finish_and_clear();
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn counts_steps_and_positions_within_the_total() {
+        let mut p = Progress::new("test", 15);
+        for _ in 0..14 {
+            p.step();
+        }
+        assert_eq!(p.done, 14);
+        p.set(40);
+        assert_eq!((p.done, p.logged), (15, 15), "the last step is logged once, and never beyond the total");
+        p.set(15);
+        assert_eq!(p.logged, 15);
     }
 }
