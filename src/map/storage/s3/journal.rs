@@ -54,6 +54,25 @@ impl std::fmt::Debug for ObjectJournal {
 }
 
 impl ObjectJournal {
+    /// The writer of map `id` whose manifest, as read or written, is `manifest` at `version`.
+    pub(super) fn new(
+        shared: &Arc<Shared>,
+        id: &str,
+        manifest: Manifest,
+        version: UpdateVersion,
+        cache_dir: PathBuf,
+    ) -> Self {
+        Self {
+            shared: Arc::clone(shared),
+            id: id.to_string(),
+            manifest,
+            version,
+            cache_dir,
+            fenced: None,
+            wrote: false,
+        }
+    }
+
     fn check_fence(&self) -> Result<(), MapError> {
         match &self.fenced {
             None => Ok(()),

@@ -244,15 +244,7 @@ impl MapBackend for ObjectStorageBackend {
             }
         };
         let cache_dir = s.claim_cache(id, &manifest.map_uid)?;
-        Ok(Box::new(ObjectJournal {
-            shared: Arc::clone(s),
-            id: id.to_string(),
-            manifest,
-            version,
-            cache_dir,
-            fenced: None,
-            wrote: false,
-        }))
+        Ok(Box::new(ObjectJournal::new(s, id, manifest, version, cache_dir)))
     }
 
     fn open(&self, id: &str) -> Result<(MapData, Box<dyn MapJournal>, LoadReport), MapError> {
@@ -290,16 +282,7 @@ impl MapBackend for ObjectStorageBackend {
                 tracing::warn!(map = %id, error = %e, "cannot download the index dump; it is rebuilt");
             }
         }
-        let journal = ObjectJournal {
-            shared: Arc::clone(s),
-            id: id.to_string(),
-            manifest,
-            version,
-            cache_dir,
-            fenced: None,
-            wrote: false,
-        };
-        Ok((data, Box::new(journal), report))
+        Ok((data, Box::new(ObjectJournal::new(s, id, manifest, version, cache_dir)), report))
     }
 
     /// The manifest first (the map is gone for every reader and writer from then on), then every object under
