@@ -26,7 +26,7 @@ use crate::embedding::Embedder;
 use crate::features::ExtractorSettings;
 use crate::matching::{RatioTest, SconeMatcher};
 use crate::offline::eval::methods::{describe, putative_matches, Described, Method};
-use crate::offline::eval::stats::{accuracy, auc, median};
+use crate::offline::eval::stats::{accuracy, auc, markdown_table, median};
 use crate::offline::scene::Scene;
 use crate::pose::{
     ransac_iterations_needed, relative_motion, relative_pose, rotation_error_deg, translation_angle_deg, RansacSettings,
@@ -436,48 +436,74 @@ pub fn markdown(report: &PairsReport) -> String {
         report.config.ransac.max_iters,
         report.config.ransac.confidence
     );
-    s.push_str("| method | AUC@5 | AUC@10 | AUC@20 | acc@5 | acc@10 | acc@20 | med. rot | med. trans | fail | matches | match precision | RANSAC iters needed (median) | describe ms | match ms |\n");
-    s.push_str("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|\n");
-    for m in &report.summaries {
-        s.push_str(&format!(
-            "| {} | {:.3} | {:.3} | {:.3} | {:.2} | {:.2} | {:.2} | {:.2} | {:.2} | {:.0} % | {:.0} | {:.3} | {:.0} | {:.1} | {:.1} |\n",
-            m.method.name(),
-            m.auc5,
-            m.auc10,
-            m.auc20,
-            m.acc5,
-            m.acc10,
-            m.acc20,
-            m.median_rotation_deg,
-            m.median_translation_deg,
-            100.0 * m.failures,
-            m.mean_matches,
-            m.match_precision,
-            m.median_iterations_needed,
-            m.describe_ms,
-            m.match_ms
-        ));
-    }
+    let headers = [
+        "method",
+        "AUC@5",
+        "AUC@10",
+        "AUC@20",
+        "acc@5",
+        "acc@10",
+        "acc@20",
+        "med. rot",
+        "med. trans",
+        "fail",
+        "matches",
+        "match precision",
+        "RANSAC iters needed (median)",
+        "describe ms",
+        "match ms",
+    ];
+    s.push_str(&markdown_table(
+        &headers,
+        report.summaries.iter().map(|m| {
+            vec![
+                m.method.name().to_string(),
+                format!("{:.3}", m.auc5),
+                format!("{:.3}", m.auc10),
+                format!("{:.3}", m.auc20),
+                format!("{:.2}", m.acc5),
+                format!("{:.2}", m.acc10),
+                format!("{:.2}", m.acc20),
+                format!("{:.2}", m.median_rotation_deg),
+                format!("{:.2}", m.median_translation_deg),
+                format!("{:.0} %", 100.0 * m.failures),
+                format!("{:.0}", m.mean_matches),
+                format!("{:.3}", m.match_precision),
+                format!("{:.0}", m.median_iterations_needed),
+                format!("{:.1}", m.describe_ms),
+                format!("{:.1}", m.match_ms),
+            ]
+        }),
+    ));
     if report.config.short_baseline > 0.0 {
         s.push_str(&format!(
             "\nPairs with a baseline under {} (scene units) scored apart, by rotation alone:\n\n",
             report.config.short_baseline
         ));
-        s.push_str("| method | AUC@10, all pairs | AUC@10, longer pairs | short pairs | AUC@10, short pairs (rotation) | med. rot | med. translation error (scaled) |\n");
-        s.push_str("|---|---|---|---|---|---|---|\n");
-        for m in &report.summaries {
-            let opt = |v: Option<f64>| v.map(|x| format!("{x:.3}")).unwrap_or_else(|| "-".into());
-            s.push_str(&format!(
-                "| {} | {:.3} | {} | {} | {} | {:.2} | {:.4} |\n",
-                m.method.name(),
-                m.auc10,
-                opt(m.auc10_long_pairs),
-                m.short_pairs,
-                opt(m.auc10_short_pairs_rotation),
-                m.median_rotation_deg,
-                m.median_translation_error
-            ));
-        }
+        let headers = [
+            "method",
+            "AUC@10, all pairs",
+            "AUC@10, longer pairs",
+            "short pairs",
+            "AUC@10, short pairs (rotation)",
+            "med. rot",
+            "med. translation error (scaled)",
+        ];
+        let opt = |v: Option<f64>| v.map(|x| format!("{x:.3}")).unwrap_or_else(|| "-".into());
+        s.push_str(&markdown_table(
+            &headers,
+            report.summaries.iter().map(|m| {
+                vec![
+                    m.method.name().to_string(),
+                    format!("{:.3}", m.auc10),
+                    opt(m.auc10_long_pairs),
+                    m.short_pairs.to_string(),
+                    opt(m.auc10_short_pairs_rotation),
+                    format!("{:.2}", m.median_rotation_deg),
+                    format!("{:.4}", m.median_translation_error),
+                ]
+            }),
+        ));
     }
     s
 }

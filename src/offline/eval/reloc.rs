@@ -35,7 +35,7 @@ use crate::map::index::{EmbeddingIndex, IndexSettings};
 use crate::map::localize::{localize, LocalizeSettings};
 use crate::map::model::{MapData, MapMeta};
 use crate::offline::eval::methods::{describe, Described, Method};
-use crate::offline::eval::stats::median;
+use crate::offline::eval::stats::{markdown_table, median};
 use crate::offline::scene::Scene;
 use crate::pose::rotation_error_deg;
 use crate::progress::Progress;
@@ -485,46 +485,72 @@ pub fn markdown(r: &RelocReport) -> String {
         "{} (map: {map}; camera path extent {:.2} scene units; thresholds x {}; 2D-3D precision at {} px)\n\n",
         r.scene, r.path_extent, r.config.unit_scale, r.config.precision_px
     );
-    s.push_str("| method | keyframes | landmarks | queries | (0.25 m, 2°) | (0.5 m, 5°) | (5 m, 10°) | not localised | med. t | med. R (deg) | 2D-3D precision | matches | query ms |\n");
-    s.push_str("|---|---|---|---|---|---|---|---|---|---|---|---|---|\n");
-    for m in &r.summaries {
-        s.push_str(&format!(
-            "| {} | {} | {} | {} | {:.2} | {:.2} | {:.2} | {:.2} | {:.3} | {:.2} | {:.3} | {:.0} | {:.0} |\n",
-            m.method.name(),
-            m.map_keyframes,
-            m.landmarks,
-            m.queries,
-            m.within_025m_2deg,
-            m.within_05m_5deg,
-            m.within_5m_10deg,
-            m.not_localised,
-            m.median_translation_error,
-            m.median_rotation_error_deg,
-            m.match_precision,
-            m.mean_matches,
-            m.mean_query_ms
-        ));
-    }
+    let headers = [
+        "method",
+        "keyframes",
+        "landmarks",
+        "queries",
+        "(0.25 m, 2°)",
+        "(0.5 m, 5°)",
+        "(5 m, 10°)",
+        "not localised",
+        "med. t",
+        "med. R (deg)",
+        "2D-3D precision",
+        "matches",
+        "query ms",
+    ];
+    s.push_str(&markdown_table(
+        &headers,
+        r.summaries.iter().map(|m| {
+            vec![
+                m.method.name().to_string(),
+                m.map_keyframes.to_string(),
+                m.landmarks.to_string(),
+                m.queries.to_string(),
+                format!("{:.2}", m.within_025m_2deg),
+                format!("{:.2}", m.within_05m_5deg),
+                format!("{:.2}", m.within_5m_10deg),
+                format!("{:.2}", m.not_localised),
+                format!("{:.3}", m.median_translation_error),
+                format!("{:.2}", m.median_rotation_error_deg),
+                format!("{:.3}", m.match_precision),
+                format!("{:.0}", m.mean_matches),
+                format!("{:.0}", m.mean_query_ms),
+            ]
+        }),
+    ));
     s.push_str("\nBy viewing angle to the most similarly oriented map keyframe (success within (5 cm, 5°) / (0.25 m, 2°) / (0.5 m, 5°); 2D-3D precision):\n\n");
-    s.push_str("| method | distractor obs. | angle (deg) | queries | median baseline | (5 cm, 5°) | (0.25 m, 2°) | (0.5 m, 5°) | precision |\n");
-    s.push_str("|---|---|---|---|---|---|---|---|---|\n");
-    for m in &r.summaries {
-        for b in m.bins.iter().filter(|b| b.queries > 0) {
-            let hi = if b.angle_deg.1.is_finite() { format!("{:.0}", b.angle_deg.1) } else { "inf".into() };
-            s.push_str(&format!(
-                "| {} | {} | {:.0}-{hi} | {} | {:.3} | {:.2} | {:.2} | {:.2} | {:.3} |\n",
-                m.method.name(),
-                m.distractor_observations,
-                b.angle_deg.0,
-                b.queries,
-                b.median_baseline,
-                b.within_5cm_5deg,
-                b.within_025m_2deg,
-                b.within_05m_5deg,
-                b.match_precision
-            ));
-        }
-    }
+    let headers = [
+        "method",
+        "distractor obs.",
+        "angle (deg)",
+        "queries",
+        "median baseline",
+        "(5 cm, 5°)",
+        "(0.25 m, 2°)",
+        "(0.5 m, 5°)",
+        "precision",
+    ];
+    s.push_str(&markdown_table(
+        &headers,
+        r.summaries.iter().flat_map(|m| {
+            m.bins.iter().filter(|b| b.queries > 0).map(move |b| {
+                let hi = if b.angle_deg.1.is_finite() { format!("{:.0}", b.angle_deg.1) } else { "inf".into() };
+                vec![
+                    m.method.name().to_string(),
+                    m.distractor_observations.to_string(),
+                    format!("{:.0}-{hi}", b.angle_deg.0),
+                    b.queries.to_string(),
+                    format!("{:.3}", b.median_baseline),
+                    format!("{:.2}", b.within_5cm_5deg),
+                    format!("{:.2}", b.within_025m_2deg),
+                    format!("{:.2}", b.within_05m_5deg),
+                    format!("{:.3}", b.match_precision),
+                ]
+            })
+        }),
+    ));
     s
 }
 

@@ -1,4 +1,5 @@
-//! Summary statistics of evaluation errors: AUC of the error curve, accuracy under a threshold, median.
+//! Summary statistics of evaluation errors (AUC of the error curve, accuracy under a threshold, median), and
+//! the markdown tables the reports are written as.
 
 /// AUC of the error curve up to `max_deg`: the mean over pairs of `max(0, 1 − err / max_deg)` (failures
 /// count as 180 degrees, so they add 0).
@@ -31,6 +32,15 @@ pub fn median(values: &[f64]) -> f64 {
     }
 }
 
+/// A markdown table: the header row, the separator, then one line per row of cells already formatted.
+pub fn markdown_table(headers: &[&str], rows: impl IntoIterator<Item = Vec<String>>) -> String {
+    let mut s = format!("| {} |\n|{}\n", headers.join(" | "), "---|".repeat(headers.len()));
+    for row in rows {
+        s.push_str(&format!("| {} |\n", row.join(" | ")));
+    }
+    s
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -41,5 +51,11 @@ mod tests {
         assert!((auc(&e, 10.0) - (1.0 + 0.5 + 0.0 + 0.0) / 4.0).abs() < 1e-12);
         assert!((accuracy(&e, 5.0) - 0.5).abs() < 1e-12);
         assert_eq!(median(&e), 7.5);
+    }
+
+    #[test]
+    fn markdown_tables_have_a_header_a_separator_and_a_line_per_row() {
+        let t = markdown_table(&["method", "AUC@10"], [vec!["freak".to_string(), "0.474".to_string()]]);
+        assert_eq!(t, "| method | AUC@10 |\n|---|---|\n| freak | 0.474 |\n");
     }
 }
