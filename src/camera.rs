@@ -102,8 +102,95 @@ impl Pose {
     }
 }
 
+/// How a client expresses a pose. Maps store and compute OpenCV camera-to-world poses (camera x right, y down,
+/// z forward); the transports convert what a client sends and what they answer, so a client never converts by
+/// hand. The world frame is the client's own in every convention (ARKit and ARCore worlds are y-up: a map
+/// made from their poses is y-up as well).
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum PoseConvention {
+    /// OpenCV axes, camera-to-world (the default, as stored).
+    #[default]
+    OpencvCameraToWorld,
+    /// OpenCV axes, world-to-camera (COLMAP, many SLAM exports).
+    OpencvWorldToCamera,
+    /// OpenGL axes (x right, y up, z backward), camera-to-world: ARKit and ARCore.
+    OpenglCameraToWorld,
+}
+
+/// The camera axes of OpenGL in OpenCV's, and back: a half turn about x (its own inverse).
+fn flip_yz() -> UnitQuaternion<f64> {
+    UnitQuaternion::from_axis_angle(&nalgebra::Vector3::x_axis(), std::f64::consts::PI)
+}
+
+impl PoseConvention {
+    /// A pose given in this convention, as OpenCV camera-to-world.
+    pub fn to_opencv_camera_to_world(self, pose: &Isometry3<f64>) -> Isometry3<f64> {
+        match self {
+            Self::OpencvCameraToWorld => *pose,
+            Self::OpencvWorldToCamera => pose.inverse(),
+            Self::OpenglCameraToWorld => pose * flip_yz(),
+        }
+    }
+
+    /// An OpenCV camera-to-world pose, in this convention.
+    pub fn from_opencv_camera_to_world(self, pose: &Isometry3<f64>) -> Isometry3<f64> {
+        match self {
+            Self::OpencvCameraToWorld => *pose,
+            Self::OpencvWorldToCamera => pose.inverse(),
+            Self::OpenglCameraToWorld => pose * flip_yz(),
+        }
+    }
+
+    /// A relative pose between two cameras (points of camera 1 into camera 2) in OpenCV axes, in this
+    /// convention's camera axes (the direction camera 1 into camera 2 is kept in every convention).
+    pub fn relative_from_opencv(
+        self,
+        rotation: &Rotation3<f64>,
+        translation: &nalgebra::Vector3<f64>,
+    ) -> (Rotation3<f64>, nalgebra::Vector3<f64>) {
+        match self {
+            Self::OpencvCameraToWorld | Self::OpencvWorldToCamera => (*rotation, *translation),
+            Self::OpenglCameraToWorld => {
+                let f = flip_yz().to_rotation_matrix();
+                (f * rotation * f, f * translation)
+            }
+        }
+    }
+}
+
 /// (x, y, z, w) of a rotation.
 pub fn quaternion_xyzw(r: &Rotation3<f64>) -> [f64; 4] {
     let q = UnitQuaternion::from_rotation_matrix(r);
     [q.i, q.j, q.k, q.w]
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn conventions_round_trip_and_match_their_definitions() {
+        let p =
+            Isometry3::from_parts(Translation3::new(1.0, -2.0, 0.5), UnitQuaternion::from_euler_angles(0.3, -0.7, 1.1));
+        for c in [
+            PoseConvention::OpencvCameraToWorld,
+            PoseConvention::OpencvWorldToCamera,
+            PoseConvention::OpenglCameraToWorld,
+        ] {
+            let back = c.to_opencv_camera_to_world(&c.from_opencv_camera_to_world(&p));
+            assert!((back.to_homogeneous() - p.to_homogeneous()).abs().max() < 1e-12, "{c:?}");
+        }
+        // World-to-camera maps the camera centre to the origin.
+        let w2c = PoseConvention::OpencvWorldToCamera.from_opencv_camera_to_world(&p);
+        assert!((w2c * nalgebra::Point3::from(p.translation.vector)).coords.norm() < 1e-12);
+        // OpenGL camera-to-world: same centre; its camera looks down -z, OpenCV's down +z, the same ray.
+        let gl = PoseConvention::OpenglCameraToWorld.from_opencv_camera_to_world(&p);
+        assert_eq!(gl.translation, p.translation);
+        let forward_cv = p.rotation * nalgebra::Vector3::z();
+        let forward_gl = gl.rotation * -nalgebra::Vector3::z();
+        assert!((forward_cv - forward_gl).norm() < 1e-12);
+        let up_gl = gl.rotation * nalgebra::Vector3::y();
+        assert!((up_gl + p.rotation * nalgebra::Vector3::y()).norm() < 1e-12, "OpenGL y is OpenCV -y");
+    }
 }

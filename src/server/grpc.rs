@@ -27,7 +27,7 @@ use crate::server::auth::Authorized;
 use crate::server::proto::{self, frame::Source};
 use crate::service::{
     ErrorKind, ExternalObservation, FrameInput, FrameSource, KeyframeRequest, KeypointsInput, MapSummary, PairOptions,
-    Prior, ServiceError,
+    PoseConvention, Prior, ServiceError,
 };
 use crate::settings::Access;
 
@@ -61,6 +61,16 @@ pub fn to_status(e: &ServiceError) -> Status {
 fn key(meta: &MetadataMap) -> Option<String> {
     let get = |name: &str| meta.get(name).and_then(|v| v.to_str().ok());
     super::auth::key_from_headers(get("x-api-key"), get("authorization")).map(str::to_string)
+}
+
+/// A request's `pose_convention` (proto enum value), refused when unknown.
+fn convention(value: i32) -> Result<PoseConvention, ServiceError> {
+    match proto::PoseConvention::try_from(value) {
+        Ok(proto::PoseConvention::OpencvCameraToWorld) => Ok(PoseConvention::OpencvCameraToWorld),
+        Ok(proto::PoseConvention::OpencvWorldToCamera) => Ok(PoseConvention::OpencvWorldToCamera),
+        Ok(proto::PoseConvention::OpenglCameraToWorld) => Ok(PoseConvention::OpenglCameraToWorld),
+        Err(_) => Err(ServiceError::invalid("pose_convention", format!("{value} is not a PoseConvention"))),
+    }
 }
 
 fn invalid(field: &str, reason: &str) -> ServiceError {
@@ -313,6 +323,7 @@ impl proto::maps_server::Maps for GrpcApi {
                             id: msg.keyframe_id,
                             frame: frame_input(msg.frame, "frame")?,
                             pose: Pose { translation: [p.tx, p.ty, p.tz], rotation: [p.qx, p.qy, p.qz, p.qw] },
+                            convention: convention(msg.pose_convention)?,
                             depth_png: (!msg.depth_png.is_empty()).then_some(msg.depth_png),
                             depth_scale: if msg.depth_scale == 0.0 { TUM_DEPTH_SCALE } else { msg.depth_scale },
                             external_landmarks: external_landmarks(msg.external_landmarks)?,
@@ -438,6 +449,7 @@ impl proto::matching_server::Matching for GrpcApi {
                     Ok(proto::PairMatcher::Freak) => SconeMatcher::Freak,
                     Err(_) => return Err(invalid("matcher", &format!("{} is not a PairMatcher", r.matcher))),
                 };
+                let conv = convention(r.pose_convention)?;
                 let options = PairOptions {
                     ratio: if r.ratio == 0.0 { DEFAULT_RATIO } else { r.ratio },
                     mutual: r.mutual,
@@ -463,16 +475,9 @@ impl proto::matching_server::Matching for GrpcApi {
                         .collect(),
                     inliers: o.inlier_count() as u32,
                     pose: o.pose.as_ref().map(|p| {
-                        let [qx, qy, qz, qw] = quaternion_xyzw(&p.rotation);
-                        proto::RelativePose {
-                            qx,
-                            qy,
-                            qz,
-                            qw,
-                            tx: p.translation.x,
-                            ty: p.translation.y,
-                            tz: p.translation.z,
-                        }
+                        let (r, t) = conv.relative_from_opencv(&p.rotation, &p.translation);
+                        let [qx, qy, qz, qw] = quaternion_xyzw(&r);
+                        proto::RelativePose { qx, qy, qz, qw, tx: t.x, ty: t.y, tz: t.z }
                     }),
                 })
             })
@@ -489,12 +494,13 @@ impl proto::matching_server::Matching for GrpcApi {
         let map = r.map_id.clone();
         let out = self
             .call_map("Localize", Access::Read, key.as_deref(), &map, move |a| {
+                let conv = convention(r.pose_convention)?;
                 let prior = r.prior.map(|p| Prior { position: [p.x, p.y, p.z], radius: p.radius });
                 let o = a.service.localize(&r.map_id, frame_input(r.frame, "frame")?, prior)?;
                 a.metrics.stages(&o.times);
                 Ok(proto::LocalizeResponse {
                     localized: o.pose.is_some(),
-                    pose: o.pose.as_ref().map(|p| pose_out(&p.camera_to_world)),
+                    pose: o.pose.as_ref().map(|p| pose_out(&conv.from_opencv_camera_to_world(&p.camera_to_world))),
                     matches: o.matches.len() as u32,
                     inliers: o.pose.as_ref().map_or(0, |p| p.inliers.len() as u32),
                     reprojection_error: o.pose.as_ref().map_or(0.0, |p| p.reprojection_error),

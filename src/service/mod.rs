@@ -18,6 +18,7 @@ use serde::Serialize;
 use crate::camera::validate_camera;
 use crate::camera::Camera;
 use crate::camera::Pose;
+pub use crate::camera::PoseConvention;
 use crate::decode::{check_limits, decode_depth_png, ImageLimitSettings};
 use crate::error::{MapError, PoseError};
 use crate::features::{self, Features, Keypoint, KeypointLimitSettings};
@@ -153,7 +154,9 @@ impl LocalizeOutcome {
 pub struct KeyframeRequest {
     pub id: u64,
     pub frame: FrameInput,
+    /// The keyframe's pose, as the client gave it (`convention`).
     pub pose: Pose,
+    pub convention: PoseConvention,
     /// 16-bit PNG aligned with the image.
     pub depth_png: Option<Vec<u8>>,
     /// Metres per depth unit.
@@ -418,7 +421,8 @@ impl Service {
         let mut times = d.times;
         let input = KeyframeInput {
             id: request.id,
-            pose: request.pose.isometry(),
+            // Checked as given (a non-unit quaternion is refused, not renormalised), then converted.
+            pose: request.convention.to_opencv_camera_to_world(&request.pose.isometry()),
             camera: cam,
             features: &d.features,
             embeddings: &d.embeddings,

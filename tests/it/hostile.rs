@@ -315,6 +315,7 @@ async fn regression_undecodable_images_are_reported_as_images_not_intrinsics() {
                 intrinsics: Some(proto::Intrinsics { fx: 250.0, fy: 250.0, cx: 160.0, cy: 120.0, width: 0, height: 0 }),
             }),
             prior: None,
+            pose_convention: 0,
         })
         .await
         .unwrap_err();
@@ -397,7 +398,7 @@ async fn regression_error_messages_carry_no_rust_debug_output() {
     let mut frame = image_frame(&scene.frames[0].rgb, &scene.camera);
     frame.intrinsics.as_mut().unwrap().fy = f64::NAN;
     let e = matching
-        .localize(proto::LocalizeRequest { map_id: "m".into(), frame: Some(frame), prior: None })
+        .localize(proto::LocalizeRequest { map_id: "m".into(), frame: Some(frame), prior: None, pose_convention: 0 })
         .await
         .unwrap_err();
     assert_eq!(e.code(), Code::InvalidArgument);
@@ -426,7 +427,12 @@ async fn regression_keypoint_sets_are_held_to_the_image_limits() {
     assert!(e.message().contains("too large") && e.message().contains("width is 100000"), "{e:?}");
     let cam = proto::Intrinsics { fx: 500.0, fy: 500.0, cx: 50_000.0, cy: 50_000.0, width: 100_000, height: 100_000 };
     let e = matching
-        .localize(proto::LocalizeRequest { map_id: "m".into(), frame: Some(frame(Some(cam))), prior: None })
+        .localize(proto::LocalizeRequest {
+            map_id: "m".into(),
+            frame: Some(frame(Some(cam))),
+            prior: None,
+            pose_convention: 0,
+        })
         .await
         .unwrap_err();
     assert_eq!(e.code(), Code::InvalidArgument);

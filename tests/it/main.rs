@@ -4,6 +4,7 @@
 mod colmap;
 mod common;
 mod console;
+mod conventions;
 mod durability;
 mod embedding;
 mod full_disk;

@@ -235,6 +235,7 @@ async fn replicas_behind_nginx_share_maps_see_writes_survive_a_kill_and_evict() 
         map_id: "m".into(),
         frame: Some(image_frame(&scene.frames[3].rgb, &scene.camera)),
         prior: None,
+        pose_convention: 0,
     };
     let out = matching.localize(with_map(query.clone(), "m")).await.unwrap().into_inner();
     assert!(out.localized, "gRPC Localize through the proxy");

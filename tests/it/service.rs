@@ -72,6 +72,7 @@ pub(crate) fn keyframe_requests(map: &str, scene: &Scene, frames: &[usize]) -> V
                 depth_png: f.depth.as_ref().map(|d| std::fs::read(d).unwrap()).unwrap_or_default(),
                 depth_scale: 0.0,
                 external_landmarks: Vec::new(),
+                pose_convention: 0,
             }
         })
         .collect()
@@ -123,6 +124,7 @@ async fn grpc_builds_a_map_localises_a_held_out_frame_and_keeps_it_across_restar
         map_id: "scene".into(),
         frame: Some(image_frame(&scene.frames[i].rgb, &scene.camera)),
         prior: None,
+        pose_convention: 0,
     };
     let r = matching.localize(query(5)).await.unwrap().into_inner();
     assert!(r.localized, "{r:?}");
@@ -372,6 +374,7 @@ async fn keyframes_with_external_landmarks_merge_by_id_localise_and_refuse_a_nan
             map_id: "sfm".into(),
             frame: Some(image_frame(&scene.frames[5].rgb, &scene.camera)),
             prior: None,
+            pose_convention: 0,
         })
         .await
         .unwrap()
@@ -473,6 +476,7 @@ async fn every_error_path_gets_its_code_and_a_useful_message_and_changes_nothing
                     intrinsics: Some(intrinsics(&scene.camera)),
                 }),
                 prior: None,
+                pose_convention: 0,
             },
             READ_KEY,
         )
@@ -712,6 +716,7 @@ async fn rgbd_slambook_map_localises_held_out_frames_over_grpc() {
                 map_id: "slam".into(),
                 frame: Some(image_frame(&scene.frames[i].rgb, &scene.camera)),
                 prior: None,
+                pose_convention: 0,
             })
             .await
             .unwrap()
@@ -784,6 +789,7 @@ async fn match_pair_matchers_are_selectable_and_unknown_ones_refused() {
         ratio: 0.0,
         mutual: false,
         matcher,
+        pose_convention: 0,
     };
     let mut counts = Vec::new();
     for m in

@@ -94,8 +94,17 @@ class SconeClient:
     def describe(self, frame: pb.Frame) -> pb.DescribeResponse:
         return self._call(self.matching.Describe, pb.DescribeRequest(frame=frame))
 
-    def localize(self, map_id: str, frame: pb.Frame, prior: pb.PosePrior | None = None) -> pb.LocalizeResponse:
-        request = pb.LocalizeRequest(map_id=map_id, frame=frame)
+    def localize(
+        self,
+        map_id: str,
+        frame: pb.Frame,
+        prior: pb.PosePrior | None = None,
+        *,
+        pose_convention: int = pb.POSE_CONVENTION_OPENCV_CAMERA_TO_WORLD,
+    ) -> pb.LocalizeResponse:
+        """Localizes a frame; the answer's pose is in ``pose_convention`` (e.g. ``POSE_CONVENTION_OPENGL_CAMERA_TO_WORLD``
+        for ARKit / ARCore)."""
+        request = pb.LocalizeRequest(map_id=map_id, frame=frame, pose_convention=pose_convention)
         if prior is not None:
             request.prior.CopyFrom(prior)
         return self._call(self.matching.Localize, request)
@@ -108,9 +117,13 @@ class SconeClient:
         ratio: float = 0.0,
         mutual: bool = False,
         matcher: int = pb.PAIR_MATCHER_DEFAULT,
+        pose_convention: int = pb.POSE_CONVENTION_OPENCV_CAMERA_TO_WORLD,
     ) -> pb.MatchPairResponse:
-        """Matches two frames; ``ratio`` 0 means the server's default (0.8)."""
-        request = pb.MatchPairRequest(frame1=frame1, frame2=frame2, ratio=ratio, mutual=mutual, matcher=matcher)
+        """Matches two frames; ``ratio`` 0 means the server's default (0.8); the relative pose is in the camera
+        axes of ``pose_convention``."""
+        request = pb.MatchPairRequest(
+            frame1=frame1, frame2=frame2, ratio=ratio, mutual=mutual, matcher=matcher, pose_convention=pose_convention
+        )
         return self._call(self.matching.MatchPair, request)
 
     # -- Maps -------------------------------------------------------------------------------------------

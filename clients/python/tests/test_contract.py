@@ -163,6 +163,31 @@ def test_localize_from_client_keypoints_equals_localize_from_the_image(client, r
         assert abs(by_keypoints.inliers - by_image.inliers) <= max(2, by_image.inliers // 100), f"frame {i}"
 
 
+def test_localize_answers_in_the_requested_pose_convention(client, rendered_map):
+    """World-to-camera is the inverse of the default camera-to-world: the same rotation conjugated, and the
+    camera centre mapped to the origin."""
+    scene = rendered_map
+    frame = image_frame(scene.frames[1].rgb.read_bytes(), scene.camera)
+    c2w = client.localize("client-contract", frame)
+    w2c = client.localize("client-contract", frame, pose_convention=pb.POSE_CONVENTION_OPENCV_WORLD_TO_CAMERA)
+    assert c2w.localized and w2c.localized
+    inverse_rotation = pb.Pose(qx=-c2w.pose.qx, qy=-c2w.pose.qy, qz=-c2w.pose.qz, qw=c2w.pose.qw)
+    _, dr = _pose_error(
+        pb.Pose(qx=w2c.pose.qx, qy=w2c.pose.qy, qz=w2c.pose.qz, qw=w2c.pose.qw), inverse_rotation
+    )
+    assert dr < 1e-6, dr
+    q = w2c.pose
+    r = np.array(
+        [
+            [1 - 2 * (q.qy**2 + q.qz**2), 2 * (q.qx * q.qy - q.qz * q.qw), 2 * (q.qx * q.qz + q.qy * q.qw)],
+            [2 * (q.qx * q.qy + q.qz * q.qw), 1 - 2 * (q.qx**2 + q.qz**2), 2 * (q.qy * q.qz - q.qx * q.qw)],
+            [2 * (q.qx * q.qz - q.qy * q.qw), 2 * (q.qy * q.qz + q.qx * q.qw), 1 - 2 * (q.qx**2 + q.qy**2)],
+        ]
+    )
+    centre = np.array([c2w.pose.tx, c2w.pose.ty, c2w.pose.tz])
+    assert np.linalg.norm(r @ centre + np.array([q.tx, q.ty, q.tz])) < 1e-9
+
+
 def test_match_pair_from_client_keypoints_equals_match_pair_from_images(client):
     scene = tum.load(FIXTURES / "rendered")
     a, b = scene.frames[2].rgb.read_bytes(), scene.frames[4].rgb.read_bytes()

@@ -3,7 +3,8 @@
 
 use std::sync::Arc;
 
-use axum::extract::{Request, State};
+use axum::extract::rejection::QueryRejection;
+use axum::extract::{Query, Request, State};
 use axum::http::{header, HeaderMap};
 use axum::response::{IntoResponse, Response};
 use axum::Json;
@@ -12,14 +13,14 @@ use base64::Engine;
 use super::body::{
     frame_input, parse_json, read_body, ApiPath, IntrinsicsQuery, Render, FRAME_BODIES, JSON_OR_MULTIPART,
 };
-use super::error::{ApiErrors, ApiResult};
+use super::error::{invalid, ApiErrors, ApiResult};
 use super::wire::{self, examples};
 use crate::camera::quaternion_xyzw;
 use crate::matching::DEFAULT_RATIO;
 use crate::render::{self, Backdrop};
 use crate::server::app::App;
 use crate::server::http::plumbing::{call, call_map};
-use crate::service::{FrameInput, FrameSource, PairOptions, Prior, ServiceError};
+use crate::service::{FrameInput, FrameSource, PairOptions, PoseConvention, Prior, ServiceError};
 use crate::settings::Access;
 
 /// What a frame is drawn on: its image, or a blank canvas of its keypoint set's size.
@@ -138,9 +139,11 @@ pub async fn match_pair(
             .zip(o.inlier_flags())
             .map(|(m, inlier)| wire::PairMatch { index1: m.query, index2: m.train, distance: m.distance, inlier })
             .collect();
+        let convention: PoseConvention = j.pose_convention.map(Into::into).unwrap_or_default();
         let pose = o.pose.as_ref().map(|p| {
-            let [qx, qy, qz, qw] = quaternion_xyzw(&p.rotation);
-            wire::RelativePose { qx, qy, qz, qw, tx: p.translation.x, ty: p.translation.y, tz: p.translation.z }
+            let (r, t) = convention.relative_from_opencv(&p.rotation, &p.translation);
+            let [qx, qy, qz, qw] = quaternion_xyzw(&r);
+            wire::RelativePose { qx, qy, qz, qw, tx: t.x, ty: t.y, tz: t.z }
         });
         Ok(Json(wire::MatchResponse { matches, pose, inliers: o.inlier_count() }).into_response())
     })
@@ -151,7 +154,8 @@ pub async fn match_pair(
 /// `Accept: image/png`, the frame with its 2D-3D matches (inliers green, outliers red) and the inlier
 /// landmarks reprojected at the estimated pose (cyan rings, residuals in yellow).
 #[utoipa::path(post, path = "/v1/maps/{map_id}/localize", tag = "maps",
-    params(("map_id" = String, Path, description = "The map", example = "office"), IntrinsicsQuery, wire::RenderQuery),
+    params(("map_id" = String, Path, description = "The map", example = "office"), IntrinsicsQuery, wire::RenderQuery,
+        wire::ConventionQuery),
     request_body(description = "A frame: raw image body (intrinsics in the query), multipart, or JSON", content(
         (wire::LocalizeRequest = "application/json", example = examples::localize),
         (wire::FrameForm = "multipart/form-data"),
@@ -168,13 +172,21 @@ pub async fn localize(
     ApiPath(map_id): ApiPath<String>,
     q: IntrinsicsQuery,
     Render(picture): Render,
+    convention: Result<Query<wire::ConventionQuery>, QueryRejection>,
     headers: HeaderMap,
     req: Request,
 ) -> ApiResult<Response> {
+    let Query(cq) = convention.map_err(|e| invalid("query string", e.body_text()))?;
     let body = read_body(req, app.settings.server.max_request_bytes, FRAME_BODIES).await?;
     let map = map_id.clone();
     call_map(&app, &headers, Access::Read, "Localize", &map, move |a| {
         let j: wire::LocalizeRequest = parse_json(&body.json)?;
+        let convention: PoseConvention = match (j.pose_convention, cq.pose_convention) {
+            (Some(a), Some(b)) if a != b => {
+                return Err(ServiceError::invalid("pose_convention", "the body and the query string disagree"))
+            }
+            (a, b) => a.or(b).map(Into::into).unwrap_or_default(),
+        };
         let outer = [("intrinsics", j.intrinsics), ("the query string's intrinsics", q.intrinsics())];
         let f = frame_input(j.frame, body.image, &outer, "frame")?;
         let kept = keep_for_picture(picture, &f);
@@ -193,7 +205,10 @@ pub async fn localize(
         }
         Ok(Json(wire::LocalizeResponse {
             localized: o.pose.is_some(),
-            pose: o.pose.as_ref().map(|p| wire::Pose::from_isometry(&p.camera_to_world)),
+            pose: o
+                .pose
+                .as_ref()
+                .map(|p| wire::Pose::from_isometry(&convention.from_opencv_camera_to_world(&p.camera_to_world))),
             matches: o.matches.len(),
             inliers: o.pose.as_ref().map_or(0, |p| p.inliers.len()),
             reprojection_error: o.pose.as_ref().map_or(0.0, |p| p.reprojection_error),

@@ -17,7 +17,7 @@ use super::wire::{self, examples};
 use crate::decode::TUM_DEPTH_SCALE;
 use crate::server::app::App;
 use crate::server::http::plumbing::{authorize, call, call_authorized, call_map, call_map_authorized};
-use crate::service::{ExternalObservation, KeyframeRequest, ServiceError, DEFAULT_CONTENTS_LANDMARKS};
+use crate::service::{ExternalObservation, KeyframeRequest, PoseConvention, ServiceError, DEFAULT_CONTENTS_LANDMARKS};
 use crate::settings::Access;
 
 /// A new, empty map (rpc Maps.CreateMap).
@@ -87,6 +87,7 @@ pub async fn map_contents(
 ) -> ApiResult<Json<wire::MapContents>> {
     let Query(q) = query.map_err(|e| invalid("query string", e.body_text()))?;
     let max = q.max_landmarks.unwrap_or(DEFAULT_CONTENTS_LANDMARKS);
+    let convention: PoseConvention = q.pose_convention.map(Into::into).unwrap_or_default();
     let out = call_map(&app, &headers, Access::Read, "MapContents", &id.clone(), move |a| {
         let c = a.service.map_contents(&id, max)?;
         Ok(wire::MapContents {
@@ -97,7 +98,7 @@ pub async fn map_contents(
                 .iter()
                 .map(|(kf, pose, cam)| wire::KeyframeView {
                     keyframe_id: *kf,
-                    pose: wire::Pose::from_isometry(&pose.isometry()),
+                    pose: wire::Pose::from_isometry(&convention.from_opencv_camera_to_world(&pose.isometry())),
                     intrinsics: wire::Intrinsics {
                         fx: cam.fx,
                         fy: cam.fy,
@@ -155,6 +156,7 @@ pub async fn add_keyframe(
             id: j.keyframe_id,
             frame: f,
             pose: j.pose.domain(),
+            convention: j.pose_convention.map(Into::into).unwrap_or_default(),
             depth_png,
             depth_scale: j.depth_scale.unwrap_or(TUM_DEPTH_SCALE),
             external_landmarks: j

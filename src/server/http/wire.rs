@@ -110,6 +110,37 @@ impl Pose {
     }
 }
 
+/// How the poses of a request and of its answer are expressed (default `opencv_camera_to_world`, as maps store
+/// them). The world frame is the client's own in every convention.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Deserialize, Serialize, ToSchema)]
+#[serde(rename_all = "snake_case")]
+pub enum PoseConvention {
+    /// Camera x right, y down, z forward (OpenCV); camera-to-world.
+    OpencvCameraToWorld,
+    /// OpenCV camera axes; world-to-camera (COLMAP, many SLAM exports).
+    OpencvWorldToCamera,
+    /// Camera x right, y up, z backward (OpenGL); camera-to-world: ARKit and ARCore poses.
+    OpenglCameraToWorld,
+}
+
+impl From<PoseConvention> for crate::camera::PoseConvention {
+    fn from(c: PoseConvention) -> Self {
+        match c {
+            PoseConvention::OpencvCameraToWorld => Self::OpencvCameraToWorld,
+            PoseConvention::OpencvWorldToCamera => Self::OpencvWorldToCamera,
+            PoseConvention::OpenglCameraToWorld => Self::OpenglCameraToWorld,
+        }
+    }
+}
+
+/// `?pose_convention=` on routes whose poses can come as a raw body or go out in a picture.
+#[derive(Debug, Default, Deserialize, IntoParams)]
+#[into_params(parameter_in = Query)]
+pub struct ConventionQuery {
+    /// How the answer's poses are expressed (default `opencv_camera_to_world`).
+    pub pose_convention: Option<PoseConvention>,
+}
+
 /// Where the camera is believed to be: only landmarks within `radius` of (x, y, z) are matched.
 #[derive(Debug, Clone, Copy, Deserialize, Serialize, ToSchema)]
 #[serde(deny_unknown_fields)]
@@ -173,6 +204,10 @@ pub struct MatchRequest {
     /// Absent: the server's default (`rerank`).
     #[serde(default)]
     pub matcher: Option<Matcher>,
+    /// The camera axes of the answer's relative pose (OpenGL: y up, z backward); it maps camera 1 into camera 2
+    /// in every convention.
+    #[serde(default)]
+    pub pose_convention: Option<PoseConvention>,
 }
 
 /// Localize: the camera-to-world pose of a frame against a map.
@@ -187,6 +222,9 @@ pub struct LocalizeRequest {
     pub intrinsics: Option<Intrinsics>,
     #[serde(default)]
     pub prior: Option<Prior>,
+    /// The convention of the answer's pose (or give `?pose_convention=`; both must agree).
+    #[serde(default)]
+    pub pose_convention: Option<PoseConvention>,
 }
 
 /// A 3D point in map units.
@@ -214,7 +252,10 @@ pub struct ExternalObservation {
 #[serde(deny_unknown_fields)]
 pub struct KeyframeRequest {
     pub keyframe_id: u64,
+    /// In `pose_convention` (default OpenCV camera-to-world).
     pub pose: Pose,
+    #[serde(default)]
+    pub pose_convention: Option<PoseConvention>,
     /// Absent when the image comes as a multipart `image` part.
     #[serde(default)]
     pub frame: Option<Frame>,
@@ -407,6 +448,8 @@ pub struct MapContents {
 pub struct ContentsQuery {
     /// Landmarks returned at most (default 20,000; at most 200,000).
     pub max_landmarks: Option<usize>,
+    /// How the keyframe poses are expressed (default `opencv_camera_to_world`).
+    pub pose_convention: Option<PoseConvention>,
 }
 
 /// Query of the routes that can answer with a picture.

@@ -7,6 +7,12 @@ from typing import ClassVar as _ClassVar, Optional as _Optional, Union as _Union
 
 DESCRIPTOR: _descriptor.FileDescriptor
 
+class PoseConvention(int, metaclass=_enum_type_wrapper.EnumTypeWrapper):
+    __slots__ = ()
+    POSE_CONVENTION_OPENCV_CAMERA_TO_WORLD: _ClassVar[PoseConvention]
+    POSE_CONVENTION_OPENCV_WORLD_TO_CAMERA: _ClassVar[PoseConvention]
+    POSE_CONVENTION_OPENGL_CAMERA_TO_WORLD: _ClassVar[PoseConvention]
+
 class PairMatcher(int, metaclass=_enum_type_wrapper.EnumTypeWrapper):
     __slots__ = ()
     PAIR_MATCHER_DEFAULT: _ClassVar[PairMatcher]
@@ -14,6 +20,9 @@ class PairMatcher(int, metaclass=_enum_type_wrapper.EnumTypeWrapper):
     PAIR_MATCHER_UNION: _ClassVar[PairMatcher]
     PAIR_MATCHER_RERANK: _ClassVar[PairMatcher]
     PAIR_MATCHER_FREAK: _ClassVar[PairMatcher]
+POSE_CONVENTION_OPENCV_CAMERA_TO_WORLD: PoseConvention
+POSE_CONVENTION_OPENCV_WORLD_TO_CAMERA: PoseConvention
+POSE_CONVENTION_OPENGL_CAMERA_TO_WORLD: PoseConvention
 PAIR_MATCHER_DEFAULT: PairMatcher
 PAIR_MATCHER_PLAIN: PairMatcher
 PAIR_MATCHER_UNION: PairMatcher
@@ -167,7 +176,7 @@ class DeleteMapResponse(_message.Message):
     def __init__(self) -> None: ...
 
 class AddKeyframeRequest(_message.Message):
-    __slots__ = ("map_id", "keyframe_id", "frame", "pose", "depth_png", "depth_scale", "external_landmarks")
+    __slots__ = ("map_id", "keyframe_id", "frame", "pose", "depth_png", "depth_scale", "external_landmarks", "pose_convention")
     MAP_ID_FIELD_NUMBER: _ClassVar[int]
     KEYFRAME_ID_FIELD_NUMBER: _ClassVar[int]
     FRAME_FIELD_NUMBER: _ClassVar[int]
@@ -175,6 +184,7 @@ class AddKeyframeRequest(_message.Message):
     DEPTH_PNG_FIELD_NUMBER: _ClassVar[int]
     DEPTH_SCALE_FIELD_NUMBER: _ClassVar[int]
     EXTERNAL_LANDMARKS_FIELD_NUMBER: _ClassVar[int]
+    POSE_CONVENTION_FIELD_NUMBER: _ClassVar[int]
     map_id: str
     keyframe_id: int
     frame: Frame
@@ -182,7 +192,8 @@ class AddKeyframeRequest(_message.Message):
     depth_png: bytes
     depth_scale: float
     external_landmarks: _containers.RepeatedCompositeFieldContainer[ExternalObservation]
-    def __init__(self, map_id: _Optional[str] = ..., keyframe_id: _Optional[int] = ..., frame: _Optional[_Union[Frame, _Mapping]] = ..., pose: _Optional[_Union[Pose, _Mapping]] = ..., depth_png: _Optional[bytes] = ..., depth_scale: _Optional[float] = ..., external_landmarks: _Optional[_Iterable[_Union[ExternalObservation, _Mapping]]] = ...) -> None: ...
+    pose_convention: PoseConvention
+    def __init__(self, map_id: _Optional[str] = ..., keyframe_id: _Optional[int] = ..., frame: _Optional[_Union[Frame, _Mapping]] = ..., pose: _Optional[_Union[Pose, _Mapping]] = ..., depth_png: _Optional[bytes] = ..., depth_scale: _Optional[float] = ..., external_landmarks: _Optional[_Iterable[_Union[ExternalObservation, _Mapping]]] = ..., pose_convention: _Optional[_Union[PoseConvention, str]] = ...) -> None: ...
 
 class Point3(_message.Message):
     __slots__ = ("x", "y", "z")
@@ -277,18 +288,20 @@ class Match(_message.Message):
     def __init__(self, index1: _Optional[int] = ..., index2: _Optional[int] = ..., distance: _Optional[float] = ..., inlier: _Optional[bool] = ...) -> None: ...
 
 class MatchPairRequest(_message.Message):
-    __slots__ = ("frame1", "frame2", "ratio", "mutual", "matcher")
+    __slots__ = ("frame1", "frame2", "ratio", "mutual", "matcher", "pose_convention")
     FRAME1_FIELD_NUMBER: _ClassVar[int]
     FRAME2_FIELD_NUMBER: _ClassVar[int]
     RATIO_FIELD_NUMBER: _ClassVar[int]
     MUTUAL_FIELD_NUMBER: _ClassVar[int]
     MATCHER_FIELD_NUMBER: _ClassVar[int]
+    POSE_CONVENTION_FIELD_NUMBER: _ClassVar[int]
     frame1: Frame
     frame2: Frame
     ratio: float
     mutual: bool
     matcher: PairMatcher
-    def __init__(self, frame1: _Optional[_Union[Frame, _Mapping]] = ..., frame2: _Optional[_Union[Frame, _Mapping]] = ..., ratio: _Optional[float] = ..., mutual: _Optional[bool] = ..., matcher: _Optional[_Union[PairMatcher, str]] = ...) -> None: ...
+    pose_convention: PoseConvention
+    def __init__(self, frame1: _Optional[_Union[Frame, _Mapping]] = ..., frame2: _Optional[_Union[Frame, _Mapping]] = ..., ratio: _Optional[float] = ..., mutual: _Optional[bool] = ..., matcher: _Optional[_Union[PairMatcher, str]] = ..., pose_convention: _Optional[_Union[PoseConvention, str]] = ...) -> None: ...
 
 class RelativePose(_message.Message):
     __slots__ = ("qx", "qy", "qz", "qw", "tx", "ty", "tz")
@@ -331,14 +344,16 @@ class PosePrior(_message.Message):
     def __init__(self, x: _Optional[float] = ..., y: _Optional[float] = ..., z: _Optional[float] = ..., radius: _Optional[float] = ...) -> None: ...
 
 class LocalizeRequest(_message.Message):
-    __slots__ = ("map_id", "frame", "prior")
+    __slots__ = ("map_id", "frame", "prior", "pose_convention")
     MAP_ID_FIELD_NUMBER: _ClassVar[int]
     FRAME_FIELD_NUMBER: _ClassVar[int]
     PRIOR_FIELD_NUMBER: _ClassVar[int]
+    POSE_CONVENTION_FIELD_NUMBER: _ClassVar[int]
     map_id: str
     frame: Frame
     prior: PosePrior
-    def __init__(self, map_id: _Optional[str] = ..., frame: _Optional[_Union[Frame, _Mapping]] = ..., prior: _Optional[_Union[PosePrior, _Mapping]] = ...) -> None: ...
+    pose_convention: PoseConvention
+    def __init__(self, map_id: _Optional[str] = ..., frame: _Optional[_Union[Frame, _Mapping]] = ..., prior: _Optional[_Union[PosePrior, _Mapping]] = ..., pose_convention: _Optional[_Union[PoseConvention, str]] = ...) -> None: ...
 
 class LocalizeResponse(_message.Message):
     __slots__ = ("localized", "pose", "matches", "inliers", "reprojection_error", "confidence")
