@@ -92,6 +92,24 @@ impl App {
         self.run_on_pool(operation, f).await
     }
 
+    /// [`App::call_map`] for a request on `map`, [`App::call`] without one.
+    pub async fn call_on<R, F>(
+        self: &Arc<Self>,
+        authorized: Authorized,
+        operation: &str,
+        map: Option<&str>,
+        f: F,
+    ) -> Result<R, ServiceError>
+    where
+        R: Send + 'static,
+        F: FnOnce(&App) -> Result<R, ServiceError> + Send + 'static,
+    {
+        match map {
+            Some(map) => self.call_map(authorized, operation, map, f).await,
+            None => self.call(authorized, operation, f).await,
+        }
+    }
+
     /// Refuses with [`ServiceError::Overloaded`] when every slot of the CPU pool is taken. The transports
     /// call this before they read a body that the pool would refuse anyway; it reserves nothing.
     pub fn check_room(&self) -> Result<(), ServiceError> {

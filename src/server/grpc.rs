@@ -204,26 +204,8 @@ impl GrpcApi {
         F: FnOnce(&App) -> Result<R, ServiceError> + Send + 'static,
     {
         let t = Instant::now();
-        let r = self.run(route, authorized, map, f).await;
+        let r = self.app.call_on(authorized, route, map, f).await;
         self.answer(route, t, r)
-    }
-
-    /// Runs `f` on the CPU pool, on map `map` if given.
-    async fn run<R, F>(
-        &self,
-        route: &'static str,
-        authorized: Authorized,
-        map: Option<&str>,
-        f: F,
-    ) -> Result<R, ServiceError>
-    where
-        R: Send + 'static,
-        F: FnOnce(&App) -> Result<R, ServiceError> + Send + 'static,
-    {
-        match map {
-            Some(map) => self.app.call_map(authorized, route, map, f).await,
-            None => self.app.call(authorized, route, f).await,
-        }
     }
 
     /// Counts and logs the outcome of `route` started at `t`, as a gRPC answer.

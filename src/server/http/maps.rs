@@ -16,7 +16,7 @@ use super::error::{invalid, ApiError, ApiErrors, ApiResult};
 use super::wire::{self, examples};
 use crate::decode::TUM_DEPTH_SCALE;
 use crate::server::app::App;
-use crate::server::http::plumbing::{authorize, call, call_authorized, call_map, call_map_authorized};
+use crate::server::http::plumbing::{authorize, call, call_authorized, call_map};
 use crate::service::{ExternalObservation, KeyframeRequest, PoseConvention, ServiceError, DEFAULT_CONTENTS_LANDMARKS};
 use crate::settings::Access;
 
@@ -137,7 +137,7 @@ pub async fn add_keyframe(
     // Authenticate before reading a possibly large body.
     let authorized = authorize(&app, &headers, Access::Write, "AddKeyframe")?;
     let body = read_body(req, app.settings.server.max_request_bytes, JSON_OR_MULTIPART).await?;
-    let out = call_map_authorized(&app, authorized, "AddKeyframe", &map_id.clone(), move |a| {
+    let out = call_authorized(&app, authorized, "AddKeyframe", Some(&map_id.clone()), move |a| {
         let Some(json) = &body.json else {
             return Err(ServiceError::invalid(
                 "body",
@@ -245,6 +245,6 @@ pub async fn import_map(
     let limit = app.settings.server.max_map_bytes;
     let refusal = ApiError::Service(ServiceError::TooLarge { what: "the map file".into(), limit });
     let bytes = bytes_within(req, limit, refusal).await?;
-    let s = call_authorized(&app, authorized, "ImportMap", move |a| a.service.import_map(&id, &bytes)).await?;
+    let s = call_authorized(&app, authorized, "ImportMap", None, move |a| a.service.import_map(&id, &bytes)).await?;
     Ok((StatusCode::CREATED, Json(s.into())))
 }

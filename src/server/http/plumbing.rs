@@ -34,7 +34,7 @@ where
     F: FnOnce(&App) -> Result<R, ServiceError> + Send + 'static,
 {
     let authorized = authorize(app, headers, access, op)?;
-    app.call(authorized, op, f).await.map_err(|e| failed(app, op, e))
+    call_authorized(app, authorized, op, None, f).await
 }
 
 /// Checks the key, then runs `f` for a request on map `map` ([`App::call_map`]).
@@ -51,29 +51,20 @@ where
     F: FnOnce(&App) -> Result<R, ServiceError> + Send + 'static,
 {
     let authorized = authorize(app, headers, access, op)?;
-    call_map_authorized(app, authorized, op, map, f).await
+    call_authorized(app, authorized, op, Some(map), f).await
 }
 
-/// [`call_map`] for a handler that checked the key before it read the body.
-pub async fn call_map_authorized<R, F>(
+/// [`call`] (or [`call_map`] with `map`) for a handler that checked the key before it read the body.
+pub async fn call_authorized<R, F>(
     app: &Arc<App>,
     authorized: Authorized,
     op: &str,
-    map: &str,
+    map: Option<&str>,
     f: F,
 ) -> ApiResult<R>
 where
     R: Send + 'static,
     F: FnOnce(&App) -> Result<R, ServiceError> + Send + 'static,
 {
-    app.call_map(authorized, op, map, f).await.map_err(|e| failed(app, op, e))
-}
-
-/// [`call`] for a handler that checked the key before it read the body.
-pub async fn call_authorized<R, F>(app: &Arc<App>, authorized: Authorized, op: &str, f: F) -> ApiResult<R>
-where
-    R: Send + 'static,
-    F: FnOnce(&App) -> Result<R, ServiceError> + Send + 'static,
-{
-    app.call(authorized, op, f).await.map_err(|e| failed(app, op, e))
+    app.call_on(authorized, op, map, f).await.map_err(|e| failed(app, op, e))
 }
