@@ -272,7 +272,7 @@ impl MapCache {
         }
     }
 
-    /// Takes a map out of memory and off the held-back list; whether it was in either.
+    /// Takes a map out of memory and off the held-back list (not out of the backend); whether it was in either.
     pub fn remove(&self, id: &str) -> bool {
         self.maps.write().remove(id).is_some() | self.held_back.write().remove(id).is_some()
     }
@@ -497,12 +497,6 @@ impl MapCache {
                 tracing::info!(map = %victim, bytes = m.bytes.load(Ordering::Relaxed), total, budget, "map evicted");
             }
         }
-    }
-
-    /// Drops a map from memory and from the held-back list (not from the backend).
-    pub fn forget(&self, id: &str) {
-        self.maps.write().remove(id);
-        self.held_back.write().remove(id);
     }
 
     /// After another writer replaced a map in object storage ([`MapError::WriterConflict`]), this copy is

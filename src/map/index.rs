@@ -24,7 +24,6 @@ use serde::{Deserialize, Serialize};
 
 use crate::error::MapError;
 use crate::map::model::MapData;
-pub use crate::map::storage::format::DumpBytes;
 use crate::map::storage::format::{
     file_crc, io_error, remove_dump, remove_dumps_except, valid_base, DumpManifest, DATA_SUFFIX, DUMP_MANIFEST,
     GRAPH_SUFFIX,

@@ -218,7 +218,7 @@ impl MapStore {
         // Lazy mode: what the backend does not hold is gone (deleted through another server), whatever the
         // cache says. Eager mode: this server is the only one, and its registry is the truth.
         if self.cache.is_lazy() {
-            self.cache.forget(id);
+            self.cache.remove(id);
         } else if self.cache.is_loaded(id) || self.cache.is_held_back(id) {
             return Err(MapError::MapExists { map: id.to_string() });
         }
