@@ -326,7 +326,11 @@ fn main() {
             let (mut localised, mut within) = (0, 0);
             for i in 0..=runs {
                 let (jpg, gt) = &queries[i % queries.len()];
-                let frame = FrameInput { source: FrameSource::Image(jpg.clone()), camera: Some(camera) };
+                let frame = FrameInput {
+                    source: FrameSource::Image(jpg.clone()),
+                    camera: Some(camera),
+                    distortion: Default::default(),
+                };
                 let t = Instant::now();
                 let o = service.localize("m", frame, None).unwrap();
                 if i == 0 {

@@ -1,8 +1,10 @@
-//! Cameras and poses, shared by every part of the crate: pinhole intrinsics ([`Camera`]) and their checks,
-//! camera-to-world poses as stored in maps and sent by clients ([`Pose`], translation + quaternion x, y, z, w),
-//! and the quaternion conversions the transports use.
+//! Cameras and poses, shared by every part of the crate: pinhole intrinsics ([`Camera`]) and their checks, lens
+//! distortion a client may declare ([`Distortion`]: keypoints are undistorted with OpenCV before anything else
+//! uses them), camera-to-world poses as stored in maps and sent by clients ([`Pose`], translation + quaternion
+//! x, y, z, w), and the quaternion conversions the transports use.
 
 use nalgebra::{Isometry3, Quaternion, Rotation3, Translation3, UnitQuaternion};
+use opencv::prelude::MatTraitConst;
 use serde::{Deserialize, Serialize};
 
 use crate::error::PoseError;
@@ -28,6 +30,152 @@ impl Camera {
     pub fn project(&self, p: &nalgebra::Point3<f64>) -> Option<(f64, f64)> {
         (p.z > 0.0).then(|| (self.fx * p.x / p.z + self.cx, self.fy * p.y / p.z + self.cy))
     }
+
+    /// Whether the focal length is unknown (`fx` and `fy` both 0: not given). Only Localize accepts such a
+    /// camera; it estimates the focal length with the pose.
+    pub fn focal_unknown(&self) -> bool {
+        self.fx == 0.0 && self.fy == 0.0
+    }
+
+    /// Intrinsics as a client may leave them out: `fy` absent (0) takes `fx`, and a principal point of (0, 0)
+    /// (absent) is the image centre, `((width - 1) / 2, (height - 1) / 2)` in this API's pixel convention.
+    pub fn with_defaults(mut self) -> Self {
+        if self.fy == 0.0 && self.fx != 0.0 {
+            self.fy = self.fx;
+        }
+        if self.cx == 0.0 && self.cy == 0.0 {
+            self.cx = (f64::from(self.width) - 1.0) / 2.0;
+            self.cy = (f64::from(self.height) - 1.0) / 2.0;
+        }
+        self
+    }
+
+    /// This camera with focal length `f` (both axes).
+    pub fn with_focal(self, f: f64) -> Self {
+        Self { fx: f, fy: f, ..self }
+    }
+}
+
+/// A lens distortion model with its coefficients, OpenCV's definitions.
+#[derive(Debug, Clone, PartialEq, Default, Serialize, Deserialize)]
+pub enum Distortion {
+    /// No distortion (the keypoints are those of a pinhole camera).
+    #[default]
+    None,
+    /// OpenCV's radial-tangential model (Kalibr's `radtan`): `k1, k2, p1, p2`, optionally `k3`, optionally
+    /// `k4, k5, k6` (4, 5 or 8 coefficients).
+    RadialTangential(Vec<f64>),
+    /// OpenCV's fisheye model (Kalibr's `equidistant`): `k1, k2, k3, k4`.
+    Fisheye([f64; 4]),
+}
+
+/// Largest absolute distortion coefficient accepted: real lenses stay within single digits; beyond this a
+/// value is a unit or ordering mistake.
+pub const MAX_DISTORTION_COEFFICIENT: f64 = 100.0;
+
+impl Distortion {
+    /// The model from its wire name and coefficients, checked: the count the model takes, finite values
+    /// within [`MAX_DISTORTION_COEFFICIENT`].
+    pub fn new(model: DistortionModel, coefficients: &[f64]) -> Result<Self, PoseError> {
+        let bad = |reason: String| Err(PoseError::Intrinsics { reason });
+        if let Some(c) = coefficients.iter().find(|c| !(c.is_finite() && c.abs() <= MAX_DISTORTION_COEFFICIENT)) {
+            return bad(format!(
+                "distortion coefficients must be finite and within ±{MAX_DISTORTION_COEFFICIENT} (got {c})"
+            ));
+        }
+        match model {
+            DistortionModel::None if coefficients.is_empty() => Ok(Self::None),
+            DistortionModel::None => {
+                bad(format!("{} distortion coefficients given without a distortion model", coefficients.len()))
+            }
+            DistortionModel::RadialTangential if matches!(coefficients.len(), 4 | 5 | 8) => {
+                Ok(Self::RadialTangential(coefficients.to_vec()))
+            }
+            DistortionModel::RadialTangential => bad(format!(
+                "the radial-tangential model takes 4, 5 or 8 coefficients (k1, k2, p1, p2[, k3[, k4, k5, k6]]), got {}",
+                coefficients.len()
+            )),
+            DistortionModel::Fisheye => match coefficients {
+                &[a, b, c, d] => Ok(Self::Fisheye([a, b, c, d])),
+                _ => {
+                    bad(format!("the fisheye model takes 4 coefficients (k1, k2, k3, k4), got {}", coefficients.len()))
+                }
+            },
+        }
+    }
+
+    pub fn is_none(&self) -> bool {
+        matches!(self, Self::None)
+    }
+
+    fn matrices(&self, cam: &Camera) -> opencv::Result<(opencv::core::Mat, opencv::core::Mat)> {
+        let k = opencv::core::Mat::from_slice_2d(&cam.k())?;
+        let d = match self {
+            Self::None => opencv::core::Mat::default(),
+            Self::RadialTangential(c) => opencv::core::Mat::from_slice(c)?.try_clone()?,
+            Self::Fisheye(c) => opencv::core::Mat::from_slice(c)?.try_clone()?,
+        };
+        Ok((k, d))
+    }
+
+    /// Pixels of a camera with this distortion, as the pinhole camera `cam` would see them (OpenCV
+    /// `undistortPoints` with `P = K`, iterated to 1e-10 normalised units; the fisheye model with its own
+    /// `fisheye::undistortPoints`).
+    pub fn undistort(&self, cam: &Camera, points: &[(f32, f32)]) -> Result<Vec<(f32, f32)>, PoseError> {
+        use opencv::core::{Mat, Point2d, TermCriteria, TermCriteria_Type, Vector};
+        if self.is_none() || points.is_empty() {
+            return Ok(points.to_vec());
+        }
+        let (k, d) = self.matrices(cam)?;
+        let src: Vector<Point2d> = points.iter().map(|&(x, y)| Point2d::new(x.into(), y.into())).collect();
+        let mut dst = Vector::<Point2d>::new();
+        let criteria = TermCriteria::new(TermCriteria_Type::COUNT as i32 + TermCriteria_Type::EPS as i32, 100, 1e-10)?;
+        match self {
+            Self::None => unreachable!(),
+            Self::RadialTangential(_) => {
+                opencv::calib3d::undistort_points_iter(&src, &mut dst, &k, &d, &Mat::default(), &k, criteria)?
+            }
+            Self::Fisheye(_) => {
+                opencv::calib3d::fisheye_undistort_points(&src, &mut dst, &k, &d, &Mat::default(), &k, criteria)?
+            }
+        }
+        Ok(dst.iter().map(|p| (p.x as f32, p.y as f32)).collect())
+    }
+
+    /// The inverse of [`Distortion::undistort`]: where a pinhole pixel of `cam` lands through this lens
+    /// (OpenCV `projectPoints` / `fisheye::distortPoints`). For tests and synthetic data.
+    pub fn distort(&self, cam: &Camera, points: &[(f64, f64)]) -> Result<Vec<(f64, f64)>, PoseError> {
+        use opencv::core::{Mat, Point2d, Point3d, Vector};
+        if self.is_none() || points.is_empty() {
+            return Ok(points.to_vec());
+        }
+        let (k, d) = self.matrices(cam)?;
+        let normalised = points.iter().map(|&(x, y)| ((x - cam.cx) / cam.fx, (y - cam.cy) / cam.fy));
+        let mut out = Vector::<Point2d>::new();
+        match self {
+            Self::None => unreachable!(),
+            Self::RadialTangential(_) => {
+                let rays: Vector<Point3d> = normalised.map(|(x, y)| Point3d::new(x, y, 1.0)).collect();
+                let zero = Mat::from_slice(&[0.0f64; 3])?.try_clone()?;
+                opencv::calib3d::project_points_def(&rays, &zero, &zero, &k, &d, &mut out)?;
+            }
+            Self::Fisheye(_) => {
+                let src: Vector<Point2d> = normalised.map(|(x, y)| Point2d::new(x, y)).collect();
+                opencv::calib3d::fisheye_distort_points_def(&src, &mut out, &k, &d)?;
+            }
+        }
+        Ok(out.iter().map(|p| (p.x, p.y)).collect())
+    }
+}
+
+/// The distortion models a client may name (the wire enums of both transports).
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum DistortionModel {
+    #[default]
+    None,
+    RadialTangential,
+    Fisheye,
 }
 
 /// Largest focal length accepted, pixels (a 100-megapixel sensor behind a long lens stays far below).

@@ -5,7 +5,9 @@
 //! `ratio` times the distance to the nearest *other* landmark (several observations of one landmark do not
 //! make it ambiguous); when all `knn` hits belong to one landmark it is accepted. One query keypoint per
 //! landmark is kept (the closest). The 2D-3D matches go to solvePnPRansac + refinement; fewer than
-//! `min_inliers` inliers means "not localised": no pose rather than a wrong one.
+//! `min_inliers` inliers means "not localised": no pose rather than a wrong one. A camera without a focal
+//! length ([`Camera::focal_unknown`]) has it estimated with the pose (`pose::absolute_pose_unknown_focal`).
+//! The pose comes with the covariance of its refinement, scaled by `covariance_scale`.
 //!
 //! Confidence in [0, 1] is a heuristic of the support, `(1 - exp(-inliers / 20)) * min(1, inlier ratio / 0.3)`:
 //! it is not a calibrated probability.
@@ -17,7 +19,7 @@ use crate::error::MapError;
 use crate::features::Features;
 use crate::map::index::EmbeddingIndex;
 use crate::map::model::MapData;
-use crate::pose::{absolute_pose, AbsolutePose, RansacSettings};
+use crate::pose::{absolute_pose, absolute_pose_unknown_focal, AbsolutePose, RansacSettings};
 
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields, default)]
@@ -35,6 +37,11 @@ pub struct LocalizeSettings {
     /// Keypoints of equal response keep their order, so client keypoints without responses are searched in
     /// the order sent.
     pub max_query_keypoints: usize,
+    /// Multiplies the pose covariance of the refinement (`σ² (JᵀJ)⁻¹`), which counts only the query's pixel
+    /// noise: the map's landmarks have errors of their own, so the raw ellipsoid is too small. Chosen on the
+    /// selection split so that 95 % of the true errors fall in the 95 % ellipsoid (BENCHMARKS.md, "How sure
+    /// is the pose").
+    pub covariance_scale: f64,
 }
 
 impl Default for LocalizeSettings {
@@ -45,6 +52,7 @@ impl Default for LocalizeSettings {
             ransac: RansacSettings { threshold_px: 4.0, confidence: 0.999, max_iters: 2000, ..Default::default() },
             min_inliers: 15,
             max_query_keypoints: usize::MAX,
+            covariance_scale: 1.0,
         }
     }
 }
@@ -57,6 +65,9 @@ impl LocalizeSettings {
                 "max_query_keypoints ({}) is below min_inliers ({}): no pose could ever be found",
                 self.max_query_keypoints, self.min_inliers
             ));
+        }
+        if !(self.covariance_scale.is_finite() && self.covariance_scale > 0.0) {
+            return Err(format!("covariance_scale must be a positive number, got {}", self.covariance_scale));
         }
         Ok(())
     }
@@ -196,7 +207,14 @@ pub fn localize(
     let p3: Vec<[f64; 3]> = matches.iter().map(|m| data.landmarks[&m.landmark].point).collect();
     let p2: Vec<(f32, f32)> =
         matches.iter().map(|m| (features.keypoints[m.keypoint].x, features.keypoints[m.keypoint].y)).collect();
-    let pose = absolute_pose(&p3, &p2, camera, &params.ransac, params.min_inliers)?;
+    let mut pose = if camera.focal_unknown() {
+        absolute_pose_unknown_focal(&p3, &p2, camera, &params.ransac, params.min_inliers)?
+    } else {
+        absolute_pose(&p3, &p2, camera, &params.ransac, params.min_inliers)?
+    };
+    if let Some(c) = pose.as_mut().and_then(|p| p.covariance_w2c.as_mut()) {
+        *c *= params.covariance_scale;
+    }
     let confidence = pose.as_ref().map_or(0.0, |p| {
         let n = p.inliers.len() as f64;
         (1.0 - (-n / 20.0).exp()) * (n / matches.len().max(1) as f64 / 0.3).min(1.0)

@@ -26,8 +26,8 @@ use crate::server::app::App;
 use crate::server::auth::Authorized;
 use crate::server::proto::{self, frame::Source};
 use crate::service::{
-    ErrorKind, ExternalObservation, FrameInput, FrameSource, KeyframeRequest, KeypointsInput, MapSummary, PairOptions,
-    PoseConvention, Prior, ServiceError,
+    Distortion, DistortionModel, ErrorKind, ExternalObservation, FrameInput, FrameSource, KeyframeRequest,
+    KeypointsInput, MapSummary, PairOptions, PoseConvention, Prior, ServiceError,
 };
 use crate::settings::Access;
 
@@ -81,6 +81,23 @@ pub(crate) fn camera(i: &proto::Intrinsics) -> Camera {
     Camera { fx: i.fx, fy: i.fy, cx: i.cx, cy: i.cy, width: i.width, height: i.height }
 }
 
+/// The lens model of wire intrinsics, checked.
+fn distortion(i: &proto::Intrinsics, field: &str) -> Result<Distortion, ServiceError> {
+    let model = match proto::DistortionModel::try_from(i.distortion_model) {
+        Ok(proto::DistortionModel::None) => DistortionModel::None,
+        Ok(proto::DistortionModel::RadialTangential) => DistortionModel::RadialTangential,
+        Ok(proto::DistortionModel::Fisheye) => DistortionModel::Fisheye,
+        Err(_) => {
+            return Err(invalid(
+                &format!("{field}.intrinsics.distortion_model"),
+                &format!("{} is not a DistortionModel", i.distortion_model),
+            ))
+        }
+    };
+    Distortion::new(model, &i.distortion)
+        .map_err(|e| invalid(&format!("{field}.intrinsics.distortion"), &e.to_string()))
+}
+
 fn keypoint(k: &proto::Keypoint) -> Keypoint {
     Keypoint { x: k.x, y: k.y, size: k.size, angle: k.angle, response: k.response, octave: k.octave }
 }
@@ -103,7 +120,11 @@ pub fn frame_input(f: Option<proto::Frame>, field: &str) -> Result<FrameInput, S
         Some(Source::Keypoints(k)) => FrameSource::Keypoints(keypoints_input(k)),
         None => return Err(invalid(field, "needs an image or keypoints")),
     };
-    Ok(FrameInput { source, camera: f.intrinsics.as_ref().map(camera) })
+    let distortion = match &f.intrinsics {
+        Some(i) => distortion(i, field)?,
+        None => Distortion::None,
+    };
+    Ok(FrameInput { source, camera: f.intrinsics.as_ref().map(camera), distortion })
 }
 
 /// External SfM observations as the service's input (a missing point is the client's error, named).
@@ -487,6 +508,9 @@ impl proto::matching_server::Matching for GrpcApi {
                     inliers: o.pose.as_ref().map_or(0, |p| p.inliers.len() as u32),
                     reprojection_error: o.pose.as_ref().map_or(0.0, |p| p.reprojection_error),
                     confidence: o.confidence,
+                    focal_length: o.pose.as_ref().map_or(0.0, |p| p.focal),
+                    focal_estimated: o.focal_estimated,
+                    covariance: o.covariance(conv),
                 })
             })
             .await?;

@@ -18,7 +18,7 @@ use serde::Serialize;
 use crate::camera::validate_camera;
 use crate::camera::Camera;
 use crate::camera::Pose;
-pub use crate::camera::PoseConvention;
+pub use crate::camera::{Distortion, DistortionModel, PoseConvention};
 use crate::decode::{check_limits, decode_depth_png, ImageLimitSettings};
 use crate::error::{MapError, PoseError};
 use crate::features::{self, Features, Keypoint, KeypointLimitSettings};
@@ -54,11 +54,15 @@ pub enum FrameSource {
     Keypoints(KeypointsInput),
 }
 
-/// A frame with its intrinsics (required to estimate a pose).
+/// A frame with its intrinsics (required to estimate a pose, except by Localize, which estimates an unknown
+/// focal length) and its lens distortion.
 #[derive(Debug, Clone)]
 pub struct FrameInput {
     pub source: FrameSource,
+    /// As the client gave it: 0 for what it left out ([`Camera::with_defaults`] fills the defaults).
     pub camera: Option<Camera>,
+    /// The keypoints are undistorted with it before constellations, triangulation and PnP.
+    pub distortion: Distortion,
 }
 
 /// Landmarks a contents request may ask for at most.
@@ -129,10 +133,23 @@ pub struct LocalizeOutcome {
     /// The query keypoint of each match (pixels) and its landmark's position, in the order of `matches`.
     pub pixels: Vec<(f32, f32)>,
     pub points: Vec<[f64; 3]>,
+    /// The query's camera; with an estimated focal length, the estimate (when localised).
     pub camera: Camera,
+    /// Whether the query came without a focal length (the pose's `focal` is then the estimate).
+    pub focal_estimated: bool,
 }
 
 impl LocalizeOutcome {
+    /// The pose's covariance in `convention`, row-major 6x6 ([`crate::pose::pose_covariance`]); empty without
+    /// a pose or when the refinement gave none.
+    pub fn covariance(&self, convention: PoseConvention) -> Vec<f64> {
+        let Some(p) = &self.pose else { return Vec::new() };
+        let Some(c) = &p.covariance_w2c else { return Vec::new() };
+        let m = crate::pose::pose_covariance(convention, &p.camera_to_world, c);
+        // nalgebra is column-major; the covariance is symmetric, but write rows explicitly.
+        (0..6).flat_map(|r| (0..6).map(move |col| m[(r, col)])).collect()
+    }
+
     /// Each match as drawn: its pixel, whether it is an inlier, and its landmark reprojected at the pose.
     pub fn drawn_points(&self) -> Vec<crate::render::LocalizedPoint> {
         let inliers: std::collections::HashSet<usize> =
@@ -267,9 +284,24 @@ impl Service {
         }
     }
 
-    fn describe_source(&self, source: FrameSource) -> Result<Description, ServiceError> {
+    /// Features and embeddings of a frame; with a lens (`camera`, `distortion`), the keypoints are undistorted
+    /// first, so that constellations, triangulation and PnP see a pinhole camera's.
+    fn describe_source(
+        &self,
+        source: FrameSource,
+        lens: Option<(&Camera, &Distortion)>,
+    ) -> Result<Description, ServiceError> {
         let mut times = StageTimes::default();
-        let features = self.features(source, &mut times)?;
+        let mut features = self.features(source, &mut times)?;
+        if let Some((cam, distortion)) = lens.filter(|(_, d)| !d.is_none()) {
+            times.time("undistort", || -> Result<(), ServiceError> {
+                let moved = distortion.undistort(cam, &features.points())?;
+                for (k, (x, y)) in features.keypoints.iter_mut().zip(moved) {
+                    (k.x, k.y) = (x, y);
+                }
+                Ok(())
+            })?;
+        }
         let d = self.describer.embed(features, &mut times)?;
         Ok(Description {
             features: d.features,
@@ -282,18 +314,48 @@ impl Service {
 
     /// Keypoints, FREAK descriptors and SConE embeddings of a frame.
     pub fn describe(&self, source: FrameSource) -> Result<Description, ServiceError> {
-        self.describe_source(source)
+        self.describe_source(source, None)
     }
 
-    /// The frame's intrinsics, checked. Called after [`Service::check_source`], so a frame whose image cannot
-    /// be read is reported as such, not as intrinsics without a size.
+    /// The frame's intrinsics with their defaults, checked. Called after [`Service::check_source`], so a
+    /// frame whose image cannot be read is reported as such, not as intrinsics without a size.
     fn camera(frame: &FrameInput, field: &str) -> Result<Camera, ServiceError> {
-        let cam = frame.camera.ok_or_else(|| ServiceError::invalid(field, "intrinsics are required"))?;
-        validate_camera(&cam).map_err(|e| match e {
+        let cam = frame.camera.ok_or_else(|| ServiceError::invalid(field, "intrinsics are required"))?.with_defaults();
+        if cam.focal_unknown() {
+            return Err(ServiceError::invalid(
+                field,
+                "fx and fy are required here (only Localize estimates an unknown focal length)",
+            ));
+        }
+        Self::checked(cam, field)
+    }
+
+    fn checked(cam: Camera, field: &str) -> Result<Camera, ServiceError> {
+        validate_camera(&cam).map_err(|e| Self::intrinsics_error(e, field))?;
+        Ok(cam)
+    }
+
+    fn intrinsics_error(e: PoseError, field: &str) -> ServiceError {
+        match e {
             PoseError::Intrinsics { reason } => ServiceError::invalid(field, reason),
             other => ServiceError::Pose(other),
-        })?;
-        Ok(cam)
+        }
+    }
+
+    /// A Localize query's intrinsics: as [`Service::camera`], except that the focal length may be unknown
+    /// (`fx`, `fy` absent, or no intrinsics at all: then the size is the frame's and the principal point its
+    /// centre). An unknown focal length with a distortion model is refused: undistorting needs the focal length.
+    fn query_camera(frame: &FrameInput, size: (u32, u32), field: &str) -> Result<Camera, ServiceError> {
+        let given =
+            frame.camera.unwrap_or(Camera { fx: 0.0, fy: 0.0, cx: 0.0, cy: 0.0, width: size.0, height: size.1 });
+        let cam = given.with_defaults();
+        if !cam.focal_unknown() {
+            return Self::checked(cam, field);
+        }
+        if !frame.distortion.is_none() {
+            return Err(ServiceError::invalid(field, "a distortion model needs fx and fy (the focal length)"));
+        }
+        Self::checked(cam.with_focal(1.0), field).map(|_| cam)
     }
 
     /// Cheap checks of a frame's source before anything else looks at the frame: an image's size and header
@@ -337,9 +399,9 @@ impl Service {
         self.check_source(&b.source)?;
         let cam1 = Self::camera(&a, "frame1.intrinsics")?;
         let cam2 = Self::camera(&b, "frame2.intrinsics")?;
-        let d1 = self.describe_source(a.source)?;
+        let d1 = self.describe_source(a.source, Some((&cam1, &a.distortion)))?;
         Self::check_frame_size(&d1, &cam1, "frame1.intrinsics")?;
-        let d2 = self.describe_source(b.source)?;
+        let d2 = self.describe_source(b.source, Some((&cam2, &b.distortion)))?;
         Self::check_frame_size(&d2, &cam2, "frame2.intrinsics")?;
         let mut times = d1.times.clone();
         times.add(&d2.times);
@@ -368,15 +430,27 @@ impl Service {
         // Looked up once: an unknown map is refused before any decoding, and the search runs on this copy.
         let held = store.get(map)?;
         self.check_source(&frame.source)?;
-        let cam = Self::camera(&frame, "frame.intrinsics")?;
-        let d = self.describe_source(frame.source)?;
+        let size = match &frame.source {
+            FrameSource::Keypoints(k) => (k.width, k.height),
+            FrameSource::Image(bytes) => {
+                crate::decode::read_header(bytes).map(|h| (h.width, h.height)).unwrap_or((0, 0))
+            }
+        };
+        let cam = Self::query_camera(&frame, size, "frame.intrinsics")?;
+        let d = self.describe_source(frame.source, Some((&cam, &frame.distortion)))?;
         Self::check_frame_size(&d, &cam, "frame.intrinsics")?;
         let mut times = d.times;
         let l = store.localize_map(&held, &d.features, &d.embeddings, &cam, prior.as_ref())?;
         times.0.push(("search", l.search_s));
         times.0.push(("pnp", l.pnp_s));
         let pixels = l.matches.iter().map(|m| d.features.keypoints[m.keypoint]).map(|k| (k.x, k.y)).collect();
+        let focal_estimated = cam.focal_unknown();
+        let cam = match &l.pose {
+            Some(p) if focal_estimated => cam.with_focal(p.focal),
+            _ => cam,
+        };
         Ok(LocalizeOutcome {
+            focal_estimated,
             pose: l.pose,
             matches: l.matches,
             confidence: l.confidence,
@@ -408,7 +482,24 @@ impl Service {
             ),
             None => None,
         };
-        let d = self.describe_source(request.frame.source)?;
+        let distortion = &request.frame.distortion;
+        if depth.is_some() && !distortion.is_none() {
+            return Err(ServiceError::invalid(
+                "depth",
+                "depth with a distortion model is not supported (the depth image is aligned with the distorted \
+                 image): undistort the image and depth on the client, or send no depth",
+            ));
+        }
+        let mut external = request.external_landmarks;
+        if !distortion.is_none() && !external.is_empty() {
+            let pixels: Vec<(f32, f32)> = external.iter().map(|o| (o.x as f32, o.y as f32)).collect();
+            let moved =
+                distortion.undistort(&cam, &pixels).map_err(|e| Self::intrinsics_error(e, "frame.intrinsics"))?;
+            for (o, (x, y)) in external.iter_mut().zip(moved) {
+                (o.x, o.y) = (x.into(), y.into());
+            }
+        }
+        let d = self.describe_source(request.frame.source, Some((&cam, distortion)))?;
         Self::check_frame_size(&d, &cam, "frame.intrinsics")?;
         if let Some(m) = &depth {
             if m.cols() as u32 != cam.width || m.rows() as u32 != cam.height {
@@ -427,7 +518,7 @@ impl Service {
             features: &d.features,
             embeddings: &d.embeddings,
             depth: depth.as_ref().map(|image| Depth { image, scale: request.depth_scale }),
-            external: (!request.external_landmarks.is_empty()).then_some(&request.external_landmarks[..]),
+            external: (!external.is_empty()).then_some(&external[..]),
         };
         let added = times.time("write", || store.add_keyframe(map, &input))?;
         Ok((added, times))

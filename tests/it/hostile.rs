@@ -312,7 +312,15 @@ async fn regression_undecodable_images_are_reported_as_images_not_intrinsics() {
             map_id: "m".into(),
             frame: Some(proto::Frame {
                 source: Some(Source::Image(proto::Image { data: junk })),
-                intrinsics: Some(proto::Intrinsics { fx: 250.0, fy: 250.0, cx: 160.0, cy: 120.0, width: 0, height: 0 }),
+                intrinsics: Some(proto::Intrinsics {
+                    fx: 250.0,
+                    fy: 250.0,
+                    cx: 160.0,
+                    cy: 120.0,
+                    width: 0,
+                    height: 0,
+                    ..Default::default()
+                }),
             }),
             prior: None,
             pose_convention: 0,
@@ -425,7 +433,15 @@ async fn regression_keypoint_sets_are_held_to_the_image_limits() {
     let e = matching.describe(proto::DescribeRequest { frame: Some(frame(None)) }).await.unwrap_err();
     assert_eq!(e.code(), Code::InvalidArgument);
     assert!(e.message().contains("too large") && e.message().contains("width is 100000"), "{e:?}");
-    let cam = proto::Intrinsics { fx: 500.0, fy: 500.0, cx: 50_000.0, cy: 50_000.0, width: 100_000, height: 100_000 };
+    let cam = proto::Intrinsics {
+        fx: 500.0,
+        fy: 500.0,
+        cx: 50_000.0,
+        cy: 50_000.0,
+        width: 100_000,
+        height: 100_000,
+        ..Default::default()
+    };
     let e = matching
         .localize(proto::LocalizeRequest {
             map_id: "m".into(),

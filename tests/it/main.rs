@@ -10,6 +10,7 @@ mod embedding;
 mod full_disk;
 mod hostile;
 mod input_bounds;
+mod lenses;
 mod object_store;
 
 mod pipeline;

@@ -43,7 +43,7 @@ pub(crate) fn keyed<T>(msg: T, key: &str) -> Request<T> {
 }
 
 pub(crate) fn intrinsics(c: &Camera) -> proto::Intrinsics {
-    proto::Intrinsics { fx: c.fx, fy: c.fy, cx: c.cx, cy: c.cy, width: c.width, height: c.height }
+    proto::Intrinsics { fx: c.fx, fy: c.fy, cx: c.cx, cy: c.cy, width: c.width, height: c.height, ..Default::default() }
 }
 
 fn pose_msg(p: &Isometry3<f64>) -> proto::Pose {

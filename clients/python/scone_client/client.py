@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 from collections.abc import Iterable, Iterator
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import cv2
 import grpc
@@ -13,12 +13,26 @@ from scone_client._proto.scone.v1 import scone_pb2 as pb
 from scone_client._proto.scone.v1 import scone_pb2_grpc as pb_grpc
 from scone_client.contract import DESCRIPTOR_BYTES, Features
 
-__all__ = ["Camera", "SconeClient", "features_from_describe", "image_frame", "keypoint_frame", "keypoint_set", "pb"]
+__all__ = [
+    "Camera",
+    "SconeClient",
+    "covariance",
+    "features_from_describe",
+    "image_frame",
+    "keypoint_frame",
+    "keypoint_set",
+    "pb",
+]
 
 
 @dataclass(frozen=True)
 class Camera:
-    """Pinhole intrinsics without distortion, pixels ((0, 0) is the centre of the top-left pixel)."""
+    """Intrinsics, pixels ((0, 0) is the centre of the top-left pixel), with an optional lens model.
+
+    ``fx = fy = 0`` leaves the focal length unknown: Localize then estimates it with the pose (every other call
+    refuses it). ``cx = cy = 0`` is the image centre. ``distortion_model`` is ``pb.DISTORTION_MODEL_*`` with
+    ``distortion`` its coefficients in OpenCV's order (radial-tangential k1, k2, p1, p2[, k3[, k4, k5, k6]];
+    fisheye k1..k4): the server undistorts the keypoint positions."""
 
     fx: float
     fy: float
@@ -26,9 +40,28 @@ class Camera:
     cy: float
     width: int
     height: int
+    distortion_model: int = pb.DISTORTION_MODEL_NONE
+    distortion: tuple[float, ...] = field(default=())
 
     def to_proto(self) -> pb.Intrinsics:
-        return pb.Intrinsics(fx=self.fx, fy=self.fy, cx=self.cx, cy=self.cy, width=self.width, height=self.height)
+        return pb.Intrinsics(
+            fx=self.fx,
+            fy=self.fy,
+            cx=self.cx,
+            cy=self.cy,
+            width=self.width,
+            height=self.height,
+            distortion_model=self.distortion_model,
+            distortion=list(self.distortion),
+        )
+
+
+def covariance(response: pb.LocalizeResponse) -> np.ndarray | None:
+    """The 6x6 pose covariance of a Localize answer (translation, then rotation vector; in the request's pose
+    convention), or None when it has none."""
+    if len(response.covariance) != 36:
+        return None
+    return np.asarray(response.covariance, dtype=np.float64).reshape(6, 6)
 
 
 def keypoint_set(features: Features, model_id: str = "") -> pb.KeypointSet:

@@ -3,6 +3,7 @@ frames of client keypoints localise and match like the images they come from."""
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import os
 import subprocess
@@ -15,7 +16,7 @@ from conftest import FIXTURES, REPO
 
 from scone_client import contract, extract, extract_encoded, tum
 from scone_client.agreement import compare, deviation, grey_for
-from scone_client.client import features_from_describe, image_frame, keypoint_frame, pb
+from scone_client.client import Camera, covariance, features_from_describe, image_frame, keypoint_frame, pb
 
 #: The contract's acceptance figure: server keypoints with a client keypoint within 1 px and identical bytes.
 MIN_AGREEMENT = 0.999
@@ -186,6 +187,38 @@ def test_localize_answers_in_the_requested_pose_convention(client, rendered_map)
     )
     centre = np.array([c2w.pose.tx, c2w.pose.ty, c2w.pose.tz])
     assert np.linalg.norm(r @ centre + np.array([q.tx, q.ty, q.tz])) < 1e-9
+
+
+def test_a_declared_lens_and_an_unknown_focal_length(client, rendered_map):
+    """Client keypoints moved through a fisheye lens localise, with the lens declared, where the pinhole
+    keypoints do; a query without a focal length gets the focal length estimated; the answer carries a 6x6
+    covariance."""
+    scene = rendered_map
+    cam = scene.camera
+    data = scene.frames[3].rgb.read_bytes()
+    ours = extract_encoded(data)
+    pinhole = client.localize("client-contract", keypoint_frame(ours, cam))
+    assert pinhole.localized
+    k = (0.1, -0.03, 0.01, 0.0)
+    normalised = (ours.xy - [cam.cx, cam.cy]) / [cam.fx, cam.fy]
+    distorted = cv2.fisheye.distortPoints(
+        normalised.reshape(-1, 1, 2).astype(np.float64),
+        np.array([[cam.fx, 0, cam.cx], [0, cam.fy, cam.cy], [0, 0, 1]]),
+        np.array(k),
+    ).reshape(-1, 2)
+    moved = dataclasses.replace(ours, xy=distorted.astype(np.float32))
+    lens = Camera(cam.fx, cam.fy, cam.cx, cam.cy, cam.width, cam.height, pb.DISTORTION_MODEL_FISHEYE, k)
+    declared = client.localize("client-contract", keypoint_frame(moved, lens))
+    assert declared.localized
+    dt, dr = _pose_error(declared.pose, pinhole.pose)
+    assert dt < 1e-3 and dr < 0.02, (dt, dr)
+    sigma = covariance(declared)
+    assert sigma is not None and np.all(np.linalg.eigvalsh(sigma) > 0)
+
+    unknown = Camera(0.0, 0.0, 0.0, 0.0, cam.width, cam.height)
+    estimated = client.localize("client-contract", image_frame(data, unknown))
+    assert estimated.localized and estimated.focal_estimated
+    assert abs(estimated.focal_length - cam.fx) < 0.05 * cam.fx, estimated.focal_length
 
 
 def test_match_pair_from_client_keypoints_equals_match_pair_from_images(client):

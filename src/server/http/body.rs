@@ -13,7 +13,7 @@ use super::error::{invalid, ApiError, ApiResult};
 use super::wire::{Frame, Intrinsics};
 use crate::camera::Camera;
 use crate::decode::read_header;
-use crate::service::{FrameInput, FrameSource, KeypointsInput, ServiceError};
+use crate::service::{Distortion, FrameInput, FrameSource, KeypointsInput, ServiceError};
 
 /// What a request body carried.
 #[derive(Default)]
@@ -258,14 +258,16 @@ pub fn base64(field: &str, s: &str) -> Result<Vec<u8>, ServiceError> {
 /// query string): one of them, or several that agree. A size given in one and left out in another agrees.
 pub fn agreed_intrinsics(given: &[(&str, Option<Intrinsics>)]) -> Result<Option<Intrinsics>, ServiceError> {
     let mut chosen: Option<(&str, Intrinsics)> = None;
-    for &(name, i) in given {
-        let Some(i) = i else { continue };
+    for (name, i) in given {
+        let (name, Some(i)) = (*name, i.clone()) else { continue };
         let Some((first, c)) = chosen else {
             chosen = Some((name, i));
             continue;
         };
         let same_size = |a: Option<u32>, b: Option<u32>| a.is_none() || b.is_none() || a == b;
         let agree = (c.fx, c.fy, c.cx, c.cy) == (i.fx, i.fy, i.cx, i.cy)
+            && (c.distortion_model.unwrap_or_default(), &c.distortion)
+                == (i.distortion_model.unwrap_or_default(), &i.distortion)
             && same_size(c.width, i.width)
             && same_size(c.height, i.height);
         if !agree {
@@ -320,14 +322,19 @@ pub fn frame_input(
         (None, None, None) => return Err(ServiceError::invalid(field, "needs an image or keypoints")),
         _ => return Err(ServiceError::invalid(field, "give exactly one of an image or keypoints")),
     };
+    let distortion = match &intrinsics {
+        Some(i) => i.lens().map_err(|e| ServiceError::invalid(format!("{own}.distortion"), e.to_string()))?,
+        None => Distortion::None,
+    };
     let camera = intrinsics.map(|i| {
         let (w, h) = size.unwrap_or((0, 0));
         Camera { fx: i.fx, fy: i.fy, cx: i.cx, cy: i.cy, width: i.width.unwrap_or(w), height: i.height.unwrap_or(h) }
     });
-    Ok(FrameInput { source, camera })
+    Ok(FrameInput { source, camera, distortion })
 }
 
-/// Intrinsics in the query string, for a raw image body (`?fx=&fy=&cx=&cy=&width=&height=`).
+/// Intrinsics in the query string, for a raw image body (`?fx=&fy=&cx=&cy=&width=&height=`, and
+/// `distortion_model=&distortion=k1,k2,...`).
 #[derive(Debug, Default, utoipa::IntoParams)]
 #[into_params(parameter_in = Query)]
 pub struct IntrinsicsQuery {
@@ -343,6 +350,10 @@ pub struct IntrinsicsQuery {
     width: Option<u32>,
     /// Image height (defaults to the image's).
     height: Option<u32>,
+    /// Lens model: `none`, `radial_tangential` or `fisheye`.
+    distortion_model: Option<String>,
+    /// The model's coefficients, comma-separated, OpenCV's order.
+    distortion: Option<String>,
 }
 
 impl IntrinsicsQuery {
@@ -372,21 +383,52 @@ impl IntrinsicsQuery {
                 "cy" => set(&mut q.cy, &key, &value, number)?,
                 "width" => set(&mut q.width, &key, &value, pixels)?,
                 "height" => set(&mut q.height, &key, &value, pixels)?,
+                "distortion_model" => set(&mut q.distortion_model, &key, &value, "a model name")?,
+                "distortion" => set(&mut q.distortion, &key, &value, "a list")?,
                 _ => {}
             }
         }
         Ok(q)
     }
 
-    pub fn intrinsics(&self) -> Option<Intrinsics> {
-        Some(Intrinsics {
-            fx: self.fx?,
-            fy: self.fy.or(self.fx)?,
-            cx: self.cx?,
-            cy: self.cy?,
+    /// The intrinsics the query string gives (`None` when it names none of them); what it leaves out is 0, as
+    /// in a JSON body.
+    pub fn intrinsics(&self) -> Result<Option<Intrinsics>, ServiceError> {
+        let any = [self.fx, self.fy, self.cx, self.cy].iter().any(Option::is_some)
+            || self.width.is_some()
+            || self.height.is_some()
+            || self.distortion_model.is_some()
+            || self.distortion.is_some();
+        if !any {
+            return Ok(None);
+        }
+        let distortion_model = match self.distortion_model.as_deref().map(str::trim) {
+            None => None,
+            Some(name) => Some(serde_json::from_value(serde_json::Value::String(name.to_string())).map_err(|_| {
+                ServiceError::invalid("distortion_model", format!("'{name}' is not none, radial_tangential or fisheye"))
+            })?),
+        };
+        let distortion = match self.distortion.as_deref().map(str::trim).filter(|s| !s.is_empty()) {
+            None => Vec::new(),
+            Some(list) => list
+                .split(',')
+                .map(|v| {
+                    v.trim()
+                        .parse::<f64>()
+                        .map_err(|_| ServiceError::invalid("distortion", format!("'{v}' is not a number")))
+                })
+                .collect::<Result<_, _>>()?,
+        };
+        Ok(Some(Intrinsics {
+            fx: self.fx.unwrap_or(0.0),
+            fy: self.fy.unwrap_or(0.0),
+            cx: self.cx.unwrap_or(0.0),
+            cy: self.cy.unwrap_or(0.0),
             width: self.width,
             height: self.height,
-        })
+            distortion_model,
+            distortion,
+        }))
     }
 }
 
@@ -526,13 +568,29 @@ mod tests {
 
     #[test]
     fn intrinsics_given_twice_must_agree() {
-        let a = Intrinsics { fx: 250.0, fy: 250.0, cx: 159.5, cy: 119.5, width: None, height: None };
-        let sized = Intrinsics { width: Some(320), height: Some(240), ..a };
-        let got = agreed_intrinsics(&[("frame.intrinsics", Some(a)), ("intrinsics", Some(sized))]).unwrap().unwrap();
+        let a = Intrinsics {
+            fx: 250.0,
+            fy: 250.0,
+            cx: 159.5,
+            cy: 119.5,
+            width: None,
+            height: None,
+            distortion_model: None,
+            distortion: Vec::new(),
+        };
+        let sized = Intrinsics { width: Some(320), height: Some(240), ..a.clone() };
+        let got =
+            agreed_intrinsics(&[("frame.intrinsics", Some(a.clone())), ("intrinsics", Some(sized))]).unwrap().unwrap();
         assert_eq!((got.width, got.height), (Some(320), Some(240)));
         assert!(agreed_intrinsics(&[("frame.intrinsics", None), ("intrinsics", None)]).unwrap().is_none());
-        let other = Intrinsics { cx: 160.0, ..a };
-        let e = agreed_intrinsics(&[("frame.intrinsics", Some(a)), ("intrinsics", Some(other))]).unwrap_err();
+        let other = Intrinsics { cx: 160.0, ..a.clone() };
+        let e = agreed_intrinsics(&[("frame.intrinsics", Some(a.clone())), ("intrinsics", Some(other))]).unwrap_err();
         assert!(e.to_string().contains("frame.intrinsics and intrinsics"), "{e}");
+        let lens = Intrinsics {
+            distortion_model: Some(super::super::wire::DistortionModel::Fisheye),
+            distortion: vec![0.1, 0.0, 0.0, 0.0],
+            ..a.clone()
+        };
+        assert!(agreed_intrinsics(&[("frame.intrinsics", Some(a)), ("intrinsics", Some(lens))]).is_err());
     }
 }

@@ -187,7 +187,7 @@ pub async fn localize(
             }
             (a, b) => a.or(b).map(Into::into).unwrap_or_default(),
         };
-        let outer = [("intrinsics", j.intrinsics), ("the query string's intrinsics", q.intrinsics())];
+        let outer = [("intrinsics", j.intrinsics), ("the query string's intrinsics", q.intrinsics()?)];
         let f = frame_input(j.frame, body.image, &outer, "frame")?;
         let kept = keep_for_picture(picture, &f);
         let prior = j.prior.map(|p| Prior { position: [p.x, p.y, p.z], radius: p.radius });
@@ -213,6 +213,9 @@ pub async fn localize(
             inliers: o.pose.as_ref().map_or(0, |p| p.inliers.len()),
             reprojection_error: o.pose.as_ref().map_or(0.0, |p| p.reprojection_error),
             confidence: o.confidence,
+            focal_length: o.pose.as_ref().map_or(0.0, |p| p.focal),
+            focal_estimated: o.focal_estimated,
+            covariance: o.covariance(convention),
         })
         .into_response())
     })

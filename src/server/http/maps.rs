@@ -106,6 +106,9 @@ pub async fn map_contents(
                         cy: cam.cy,
                         width: Some(cam.width),
                         height: Some(cam.height),
+                        // Keyframes are stored undistorted.
+                        distortion_model: None,
+                        distortion: Vec::new(),
                     },
                 })
                 .collect(),

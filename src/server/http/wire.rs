@@ -10,14 +10,23 @@ use utoipa::{IntoParams, ToSchema};
 
 use crate::service::MapSummary;
 
-/// Pinhole intrinsics, pixels.
-#[derive(Debug, Clone, Copy, PartialEq, Deserialize, Serialize, ToSchema)]
+/// Pinhole intrinsics, pixels, with an optional lens distortion model. Left out: `fy` takes `fx`; a principal
+/// point left out (or (0, 0)) is the image centre. Localize alone accepts intrinsics without `fx` and `fy`
+/// (or none at all): it estimates the focal length with the pose and returns it.
+#[derive(Debug, Clone, PartialEq, Deserialize, Serialize, ToSchema)]
 #[serde(deny_unknown_fields)]
 #[schema(example = json!({"fx": 525.0, "fy": 525.0, "cx": 319.5, "cy": 239.5}))]
 pub struct Intrinsics {
+    /// Focal length, pixels (absent: unknown; Localize only).
+    #[serde(default)]
     pub fx: f64,
+    /// Focal length, pixels (absent: `fx`).
+    #[serde(default)]
     pub fy: f64,
+    /// Principal point, pixels (absent with `cy`: the image centre).
+    #[serde(default)]
     pub cx: f64,
+    #[serde(default)]
     pub cy: f64,
     /// Defaults to the image's (or the keypoint set's) width.
     #[serde(default, skip_serializing_if = "Option::is_none")]
@@ -25,6 +34,44 @@ pub struct Intrinsics {
     /// Defaults to the image's (or the keypoint set's) height.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub height: Option<u32>,
+    /// The lens model of the frame's pixels (default none). With a model, keypoint positions are undistorted
+    /// (OpenCV) before constellations, triangulation and PnP; refused with depth and without a focal length.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub distortion_model: Option<DistortionModel>,
+    /// The model's coefficients in OpenCV's order: `radial_tangential` k1, k2, p1, p2[, k3[, k4, k5, k6]]
+    /// (4, 5 or 8); `fisheye` k1, k2, k3, k4.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub distortion: Vec<f64>,
+}
+
+impl Intrinsics {
+    /// The lens model, checked.
+    pub fn lens(&self) -> Result<crate::service::Distortion, crate::error::PoseError> {
+        crate::service::Distortion::new(self.distortion_model.unwrap_or_default().into(), &self.distortion)
+    }
+}
+
+/// A lens distortion model, OpenCV's definitions.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Deserialize, Serialize, ToSchema)]
+#[serde(rename_all = "snake_case")]
+pub enum DistortionModel {
+    /// A pinhole camera (or keypoints the client undistorted).
+    #[default]
+    None,
+    /// OpenCV's default model (Brown-Conrady; Kalibr `radtan`).
+    RadialTangential,
+    /// OpenCV's `cv::fisheye` (Kalibr `equidistant`).
+    Fisheye,
+}
+
+impl From<DistortionModel> for crate::service::DistortionModel {
+    fn from(m: DistortionModel) -> Self {
+        match m {
+            DistortionModel::None => Self::None,
+            DistortionModel::RadialTangential => Self::RadialTangential,
+            DistortionModel::Fisheye => Self::Fisheye,
+        }
+    }
 }
 
 /// A FAST keypoint as the service extracts it (the client contract of `proto/scone/v1/scone.proto`).
@@ -339,6 +386,15 @@ pub struct LocalizeResponse {
     /// In [0, 1]: grows with the inlier count (`1 - exp(-inliers / 20)`) times the inlier share over 0.3
     /// (capped at 1); 0 without a pose.
     pub confidence: f64,
+    /// The focal length of the pose, pixels: the request's `fx`, or the estimate when it left it out.
+    pub focal_length: f64,
+    /// Whether `focal_length` is the server's estimate.
+    pub focal_estimated: bool,
+    /// When localised: the pose's 6x6 covariance, row-major (36 values), in the request's convention, over
+    /// (tx, ty, tz, rx, ry, rz): translation in map units, then a rotation vector in radians perturbing the
+    /// returned rotation on the left (`R_true = exp([r]x) R`). Scaled so that about 95 % of true errors lie in
+    /// its 95 % ellipsoid (calibrated on real scenes); empty when it cannot be computed.
+    pub covariance: Vec<f64>,
 }
 
 /// A keyframe write, durable when this is answered.

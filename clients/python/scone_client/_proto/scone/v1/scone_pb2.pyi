@@ -7,6 +7,12 @@ from typing import ClassVar as _ClassVar, Optional as _Optional, Union as _Union
 
 DESCRIPTOR: _descriptor.FileDescriptor
 
+class DistortionModel(int, metaclass=_enum_type_wrapper.EnumTypeWrapper):
+    __slots__ = ()
+    DISTORTION_MODEL_NONE: _ClassVar[DistortionModel]
+    DISTORTION_MODEL_RADIAL_TANGENTIAL: _ClassVar[DistortionModel]
+    DISTORTION_MODEL_FISHEYE: _ClassVar[DistortionModel]
+
 class PoseConvention(int, metaclass=_enum_type_wrapper.EnumTypeWrapper):
     __slots__ = ()
     POSE_CONVENTION_OPENCV_CAMERA_TO_WORLD: _ClassVar[PoseConvention]
@@ -20,6 +26,9 @@ class PairMatcher(int, metaclass=_enum_type_wrapper.EnumTypeWrapper):
     PAIR_MATCHER_UNION: _ClassVar[PairMatcher]
     PAIR_MATCHER_RERANK: _ClassVar[PairMatcher]
     PAIR_MATCHER_FREAK: _ClassVar[PairMatcher]
+DISTORTION_MODEL_NONE: DistortionModel
+DISTORTION_MODEL_RADIAL_TANGENTIAL: DistortionModel
+DISTORTION_MODEL_FISHEYE: DistortionModel
 POSE_CONVENTION_OPENCV_CAMERA_TO_WORLD: PoseConvention
 POSE_CONVENTION_OPENCV_WORLD_TO_CAMERA: PoseConvention
 POSE_CONVENTION_OPENGL_CAMERA_TO_WORLD: PoseConvention
@@ -30,20 +39,24 @@ PAIR_MATCHER_RERANK: PairMatcher
 PAIR_MATCHER_FREAK: PairMatcher
 
 class Intrinsics(_message.Message):
-    __slots__ = ("fx", "fy", "cx", "cy", "width", "height")
+    __slots__ = ("fx", "fy", "cx", "cy", "width", "height", "distortion_model", "distortion")
     FX_FIELD_NUMBER: _ClassVar[int]
     FY_FIELD_NUMBER: _ClassVar[int]
     CX_FIELD_NUMBER: _ClassVar[int]
     CY_FIELD_NUMBER: _ClassVar[int]
     WIDTH_FIELD_NUMBER: _ClassVar[int]
     HEIGHT_FIELD_NUMBER: _ClassVar[int]
+    DISTORTION_MODEL_FIELD_NUMBER: _ClassVar[int]
+    DISTORTION_FIELD_NUMBER: _ClassVar[int]
     fx: float
     fy: float
     cx: float
     cy: float
     width: int
     height: int
-    def __init__(self, fx: _Optional[float] = ..., fy: _Optional[float] = ..., cx: _Optional[float] = ..., cy: _Optional[float] = ..., width: _Optional[int] = ..., height: _Optional[int] = ...) -> None: ...
+    distortion_model: DistortionModel
+    distortion: _containers.RepeatedScalarFieldContainer[float]
+    def __init__(self, fx: _Optional[float] = ..., fy: _Optional[float] = ..., cx: _Optional[float] = ..., cy: _Optional[float] = ..., width: _Optional[int] = ..., height: _Optional[int] = ..., distortion_model: _Optional[_Union[DistortionModel, str]] = ..., distortion: _Optional[_Iterable[float]] = ...) -> None: ...
 
 class Pose(_message.Message):
     __slots__ = ("tx", "ty", "tz", "qx", "qy", "qz", "qw")
@@ -356,17 +369,23 @@ class LocalizeRequest(_message.Message):
     def __init__(self, map_id: _Optional[str] = ..., frame: _Optional[_Union[Frame, _Mapping]] = ..., prior: _Optional[_Union[PosePrior, _Mapping]] = ..., pose_convention: _Optional[_Union[PoseConvention, str]] = ...) -> None: ...
 
 class LocalizeResponse(_message.Message):
-    __slots__ = ("localized", "pose", "matches", "inliers", "reprojection_error", "confidence")
+    __slots__ = ("localized", "pose", "matches", "inliers", "reprojection_error", "confidence", "focal_length", "focal_estimated", "covariance")
     LOCALIZED_FIELD_NUMBER: _ClassVar[int]
     POSE_FIELD_NUMBER: _ClassVar[int]
     MATCHES_FIELD_NUMBER: _ClassVar[int]
     INLIERS_FIELD_NUMBER: _ClassVar[int]
     REPROJECTION_ERROR_FIELD_NUMBER: _ClassVar[int]
     CONFIDENCE_FIELD_NUMBER: _ClassVar[int]
+    FOCAL_LENGTH_FIELD_NUMBER: _ClassVar[int]
+    FOCAL_ESTIMATED_FIELD_NUMBER: _ClassVar[int]
+    COVARIANCE_FIELD_NUMBER: _ClassVar[int]
     localized: bool
     pose: Pose
     matches: int
     inliers: int
     reprojection_error: float
     confidence: float
-    def __init__(self, localized: _Optional[bool] = ..., pose: _Optional[_Union[Pose, _Mapping]] = ..., matches: _Optional[int] = ..., inliers: _Optional[int] = ..., reprojection_error: _Optional[float] = ..., confidence: _Optional[float] = ...) -> None: ...
+    focal_length: float
+    focal_estimated: bool
+    covariance: _containers.RepeatedScalarFieldContainer[float]
+    def __init__(self, localized: _Optional[bool] = ..., pose: _Optional[_Union[Pose, _Mapping]] = ..., matches: _Optional[int] = ..., inliers: _Optional[int] = ..., reprojection_error: _Optional[float] = ..., confidence: _Optional[float] = ..., focal_length: _Optional[float] = ..., focal_estimated: _Optional[bool] = ..., covariance: _Optional[_Iterable[float]] = ...) -> None: ...
