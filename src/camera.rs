@@ -250,6 +250,41 @@ impl Pose {
     }
 }
 
+/// A similarity between two world frames, `X_to = scale * R * X_from + t` (R a unit quaternion x, y, z, w):
+/// how a client gives the transform of a map merge, and how the answer reports it. World frames are the
+/// same in every pose convention, so it has none.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct Similarity {
+    pub translation: [f64; 3],
+    pub rotation: [f64; 4],
+    pub scale: f64,
+}
+
+/// Scales a merge transform may have: (1e-6, 1e6). Map units differ (metres, an SfM's arbitrary units), but
+/// not by more than that.
+pub const SCALE_RANGE: (f64, f64) = (1e-6, 1e6);
+
+impl Similarity {
+    /// As [`Pose::validate`] for the rotation and translation, and a finite scale within [`SCALE_RANGE`].
+    pub fn checked(&self) -> Result<nalgebra::Similarity3<f64>, String> {
+        let pose = Pose { translation: self.translation, rotation: self.rotation };
+        pose.validate().map_err(|e| e.replace("pose", "transform"))?;
+        if !(self.scale.is_finite() && self.scale > SCALE_RANGE.0 && self.scale < SCALE_RANGE.1) {
+            return Err(format!(
+                "transform scale must lie in ({}, {}) (got {})",
+                SCALE_RANGE.0, SCALE_RANGE.1, self.scale
+            ));
+        }
+        let iso = pose.isometry();
+        Ok(nalgebra::Similarity3::from_isometry(iso, self.scale))
+    }
+
+    pub fn from_nalgebra(s: &nalgebra::Similarity3<f64>) -> Self {
+        let p = Pose::from_isometry(&s.isometry);
+        Self { translation: p.translation, rotation: p.rotation, scale: s.scaling() }
+    }
+}
+
 /// How a client expresses a pose. Maps store and compute OpenCV camera-to-world poses (camera x right, y down,
 /// z forward); the transports convert what a client sends and what they answer, so a client never converts by
 /// hand. The world frame is the client's own in every convention (ARKit and ARCore worlds are y-up: a map

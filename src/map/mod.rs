@@ -4,7 +4,7 @@
 //! Who imports whom, top to bottom (nothing imports back up): [`store`] (the registry commands and the service
 //! go through) -> [`cache`] (which maps are in memory, and how fresh) -> [`storage`] (where maps are kept:
 //! the backends, their traits and their bytes) -> [`model`]; beside them [`index`] (which reads and writes its
-//! dumps through [`storage::format`]), [`localize`] and [`builder`], which the store calls.
+//! dumps through [`storage::format`]), [`localize`], [`merge`] and [`builder`], which the store calls.
 //!
 //! - [`store`]: create, list, delete, write keyframes, localise, export and import;
 //! - [`cache`]: the loaded maps: eager or lazy loading, eviction within a memory budget, freshness checks;
@@ -13,7 +13,8 @@
 //! - [`model`]: keyframes, landmarks, observations, the records that change them, map ids;
 //! - [`index`]: exact / HNSW nearest-neighbour search over observation embeddings, and its dump;
 //! - [`builder`]: which landmarks a posed keyframe observes or creates (depth or triangulation);
-//! - [`localize`]: 2D-3D matching and PnP against a map.
+//! - [`localize`]: 2D-3D matching and PnP against a map;
+//! - [`merge`]: one map merged into another (the transform between them estimated from localised keyframes).
 
 pub mod builder;
 pub mod cache;
@@ -23,6 +24,7 @@ mod cache_tests;
 mod fault_tests;
 pub mod index;
 pub mod localize;
+pub mod merge;
 pub mod model;
 pub mod storage;
 pub mod store;

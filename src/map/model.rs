@@ -107,6 +107,16 @@ pub enum Record {
         observations: Vec<NewObservation>,
         external_ids: Vec<(u64, u64)>,
     },
+    /// Another map merged into this one (`MergeMaps`), as one record so that it is all or nothing: its
+    /// keyframes (re-expressed in this map's frame, ids moved past this map's), the landmarks it adds, and
+    /// every observation of its keyframes (of new landmarks, or of this map's landmarks it was fused with).
+    /// Appended last, so that earlier records keep their tags.
+    Merge {
+        source: String,
+        keyframes: Vec<Keyframe>,
+        new_landmarks: Vec<(u64, [f64; 3])>,
+        observations: Vec<NewObservation>,
+    },
 }
 
 /// A map's counts and version, as listings report them; also recorded in object storage's manifest, so a
@@ -190,6 +200,23 @@ impl MapData {
                 s.live_observations -= self.observations.iter().filter(|o| o.keyframe == *id && o.live).count();
             }
             Record::Reembed { model_id, .. } => s.model_id = model_id.clone(),
+            Record::Merge { keyframes, new_landmarks, observations, .. } => {
+                s.keyframes += keyframes.len();
+                s.landmarks += new_landmarks.len();
+                s.observations += observations.len();
+                s.live_observations += observations.len();
+                s.memory_bytes += (keyframes
+                    .iter()
+                    .map(|k| {
+                        std::mem::size_of::<Keyframe>()
+                            + k.keypoints.len() * std::mem::size_of::<Keypoint>()
+                            + k.descriptors.len()
+                            + k.embeddings.len() * 4
+                    })
+                    .sum::<usize>()
+                    + observations.len() * (Self::OBSERVATION_BYTES + self.meta.dim * 4 * 2)
+                    + new_landmarks.len() * Self::LANDMARK_BYTES) as u64;
+            }
         }
         s
     }
@@ -231,39 +258,45 @@ impl MapData {
         self.observations.iter().filter(|o| o.live).count()
     }
 
-    /// The checks shared by both kinds of keyframe record.
-    fn check_keyframe(
+    /// The checks shared by the records that add keyframes (one, or a merged map's).
+    fn check_keyframes(
         &self,
-        keyframe: &Keyframe,
+        keyframes: &[Keyframe],
         new_landmarks: &[(u64, [f64; 3])],
         observations: &[NewObservation],
     ) -> Result<(), String> {
-        if self.keyframes.contains_key(&keyframe.id) {
-            return Err(format!("keyframe {} exists", keyframe.id));
+        let mut sizes = std::collections::HashMap::new();
+        for keyframe in keyframes {
+            if self.keyframes.contains_key(&keyframe.id) || sizes.contains_key(&keyframe.id) {
+                return Err(format!("keyframe {} exists", keyframe.id));
+            }
+            let n = keyframe.keypoints.len();
+            // Empty descriptors: keypoints of another detector (evaluation baselines); no re-embedding then.
+            if !keyframe.descriptors.is_empty() && keyframe.descriptors.len() != n * DESCRIPTOR_BYTES {
+                return Err("descriptor bytes do not match the keypoint count".into());
+            }
+            if keyframe.embeddings.len() != n * self.meta.dim {
+                return Err(format!(
+                    "expected {} embedding values, got {}",
+                    n * self.meta.dim,
+                    keyframe.embeddings.len()
+                ));
+            }
+            keyframe.pose.validate()?;
+            sizes.insert(keyframe.id, n);
         }
-        let n = keyframe.keypoints.len();
-        // Empty descriptors: keypoints of another detector (evaluation baselines); no re-embedding then.
-        if !keyframe.descriptors.is_empty() && keyframe.descriptors.len() != n * DESCRIPTOR_BYTES {
-            return Err("descriptor bytes do not match the keypoint count".into());
-        }
-        if keyframe.embeddings.len() != n * self.meta.dim {
-            return Err(format!("expected {} embedding values, got {}", n * self.meta.dim, keyframe.embeddings.len()));
-        }
-        keyframe.pose.validate()?;
+        let mut fresh_landmarks = std::collections::HashSet::new();
         for (id, p) in new_landmarks {
-            if self.landmarks.contains_key(id) || !p.iter().all(|v| v.is_finite()) {
+            if self.landmarks.contains_key(id) || !fresh_landmarks.insert(*id) || !p.iter().all(|v| v.is_finite()) {
                 return Err(format!("new landmark {id} exists or is not finite"));
             }
         }
         let mut seen = std::collections::HashSet::new();
         let observed = self.observed_keypoints();
         for o in observations {
-            let known = self.landmarks.contains_key(&o.landmark) || new_landmarks.iter().any(|l| l.0 == o.landmark);
-            let size = if o.keyframe == keyframe.id {
-                Some(n)
-            } else {
-                self.keyframes.get(&o.keyframe).map(|k| k.keypoints.len())
-            };
+            let known = self.landmarks.contains_key(&o.landmark) || fresh_landmarks.contains(&o.landmark);
+            let size =
+                sizes.get(&o.keyframe).copied().or_else(|| self.keyframes.get(&o.keyframe).map(|k| k.keypoints.len()));
             let in_range = size.is_some_and(|s| (o.keypoint as usize) < s);
             let fresh = seen.insert((o.keyframe, o.keypoint)) && !observed.contains_key(&(o.keyframe, o.keypoint));
             if !known || !in_range || !fresh {
@@ -280,10 +313,13 @@ impl MapData {
     pub fn check(&self, record: &Record) -> Result<(), String> {
         match record {
             Record::AddKeyframe { keyframe, new_landmarks, observations } => {
-                self.check_keyframe(keyframe, new_landmarks, observations)
+                self.check_keyframes(std::slice::from_ref(keyframe), new_landmarks, observations)
+            }
+            Record::Merge { keyframes, new_landmarks, observations, .. } => {
+                self.check_keyframes(keyframes, new_landmarks, observations)
             }
             Record::AddExternalKeyframe { keyframe, new_landmarks, observations, external_ids } => {
-                self.check_keyframe(keyframe, new_landmarks, observations)?;
+                self.check_keyframes(std::slice::from_ref(keyframe), new_landmarks, observations)?;
                 let mut seen = std::collections::HashSet::new();
                 for (external, landmark) in external_ids {
                     if self.external_ids.contains_key(external) || !seen.insert(*external) {
@@ -322,9 +358,9 @@ impl MapData {
         self.observations.iter().filter(|o| o.live).map(|o| ((o.keyframe, o.keypoint), o.landmark)).collect()
     }
 
-    fn apply_keyframe(
+    fn apply_keyframes(
         &mut self,
-        keyframe: &Keyframe,
+        keyframes: &[Keyframe],
         new_landmarks: &[(u64, [f64; 3])],
         observations: &[NewObservation],
     ) {
@@ -332,7 +368,9 @@ impl MapData {
             self.landmarks.insert(*id, Landmark { point: *p, observations: Vec::new() });
             self.next_landmark = self.next_landmark.max(id + 1);
         }
-        self.keyframes.insert(keyframe.id, keyframe.clone());
+        for keyframe in keyframes {
+            self.keyframes.insert(keyframe.id, keyframe.clone());
+        }
         let dim = self.meta.dim;
         for o in observations {
             let oid = self.observations.len() as u64;
@@ -354,10 +392,13 @@ impl MapData {
     pub fn apply(&mut self, record: &Record) {
         match record {
             Record::AddKeyframe { keyframe, new_landmarks, observations } => {
-                self.apply_keyframe(keyframe, new_landmarks, observations)
+                self.apply_keyframes(std::slice::from_ref(keyframe), new_landmarks, observations)
+            }
+            Record::Merge { keyframes, new_landmarks, observations, .. } => {
+                self.apply_keyframes(keyframes, new_landmarks, observations)
             }
             Record::AddExternalKeyframe { keyframe, new_landmarks, observations, external_ids } => {
-                self.apply_keyframe(keyframe, new_landmarks, observations);
+                self.apply_keyframes(std::slice::from_ref(keyframe), new_landmarks, observations);
                 self.external_ids.extend(external_ids.iter().copied());
             }
             Record::RemoveKeyframe { id } => {

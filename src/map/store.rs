@@ -26,6 +26,8 @@ pub use crate::map::cache::{CacheSettings, CacheStats, Map, MapSummary};
 use crate::map::cache::{MapCache, MapState};
 use crate::map::index::{EmbeddingIndex, IndexSettings};
 use crate::map::localize::{localize, Localization, LocalizeSettings, Prior};
+use crate::map::merge::plan_merge;
+pub use crate::map::merge::MergePlan;
 use crate::map::model::{validate_map_id, MapData, MapMeta, MapStats, Record};
 use crate::map::storage::backend::{LoadReport, MapBackend, MapJournal, OperationStats};
 use crate::map::storage::format::{decode_export, encode_export, install_dump, read_dump, write_atomic};
@@ -401,6 +403,34 @@ impl MapStore {
         map.state.write().index.reset();
         self.commit(&map, log.as_mut(), record)?;
         Ok(map.summary())
+    }
+
+    /// Merges map `source` into map `target` (`map::merge`): one durable record on the target; the source is
+    /// read, never written. `transform` takes source coordinates to the target's; without it, it is estimated.
+    pub fn merge(
+        &self,
+        target: &str,
+        source: &str,
+        transform: Option<nalgebra::Similarity3<f64>>,
+    ) -> Result<(MergePlan, MapSummary), MapError> {
+        if target == source {
+            return Err(MapError::InvalidInput {
+                field: "source_map_id".into(),
+                reason: "a map cannot be merged into itself".into(),
+            });
+        }
+        let into = self.get(target)?;
+        self.check_model(&into)?;
+        let from = self.get(source)?;
+        self.check_model(&from)?;
+        // A copy of the source, so that no lock of the source is held while the target's are: merges in both
+        // directions at once cannot wait on each other.
+        let source_data = from.read(|data, _| data.clone());
+        let mut log = into.journal.lock();
+        let plan = into.read(|data, index| plan_merge(data, index, &source_data, transform, &self.config.localize))?;
+        self.commit(&into, log.as_mut(), plan.record.clone())?;
+        drop(log);
+        Ok((plan, into.summary()))
     }
 
     /// Log (fsync) then apply; compacts and dumps the index when the log is long. Returns the new version.

@@ -27,7 +27,7 @@ use crate::server::auth::Authorized;
 use crate::server::proto::{self, frame::Source};
 use crate::service::{
     Distortion, DistortionModel, ErrorKind, ExternalObservation, FrameInput, FrameSource, KeyframeRequest,
-    KeypointsInput, MapSummary, PairOptions, PoseConvention, Prior, ServiceError,
+    KeypointsInput, MapSummary, PairOptions, PoseConvention, Prior, ServiceError, Similarity,
 };
 use crate::settings::Access;
 
@@ -365,6 +365,46 @@ impl proto::maps_server::Maps for GrpcApi {
             })
             .await?;
         Ok(Response::new(map_info(s)))
+    }
+
+    async fn merge_maps(
+        &self,
+        req: Request<proto::MergeMapsRequest>,
+    ) -> Result<Response<proto::MergeMapsResponse>, Status> {
+        let key = key(req.metadata());
+        let r = req.into_inner();
+        let map = r.target_map_id.clone();
+        let o = self
+            .call_map("MergeMaps", Access::Write, key.as_deref(), &map, move |a| {
+                let transform = r.transform.map(|t| Similarity {
+                    translation: [t.tx, t.ty, t.tz],
+                    rotation: [t.qx, t.qy, t.qz, t.qw],
+                    scale: t.scale,
+                });
+                a.service.merge_maps(&r.target_map_id, &r.source_map_id, transform)
+            })
+            .await?;
+        let t = o.transform;
+        Ok(Response::new(proto::MergeMapsResponse {
+            target: Some(map_info(o.target)),
+            transform: Some(proto::Similarity {
+                tx: t.translation[0],
+                ty: t.translation[1],
+                tz: t.translation[2],
+                qx: t.rotation[0],
+                qy: t.rotation[1],
+                qz: t.rotation[2],
+                qw: t.rotation[3],
+                scale: t.scale,
+            }),
+            transform_estimated: o.estimated,
+            source_keyframes: o.source_keyframes as u32,
+            keyframes_localised: o.localised as u32,
+            transform_inliers: o.inliers as u32,
+            keyframe_id_offset: o.keyframe_id_offset,
+            landmarks_fused: o.landmarks_fused as u64,
+            landmarks_added: o.landmarks_added as u64,
+        }))
     }
 
     type ExportMapStream = BoxStream<proto::MapChunk>;

@@ -18,7 +18,7 @@ use serde::Serialize;
 use crate::camera::validate_camera;
 use crate::camera::Camera;
 use crate::camera::Pose;
-pub use crate::camera::{Distortion, DistortionModel, PoseConvention};
+pub use crate::camera::{Distortion, DistortionModel, PoseConvention, Similarity};
 use crate::decode::{check_limits, decode_depth_png, ImageLimitSettings};
 use crate::error::{MapError, PoseError};
 use crate::features::{self, Features, Keypoint, KeypointLimitSettings};
@@ -180,6 +180,25 @@ pub struct KeyframeRequest {
     pub depth_scale: f64,
     /// Landmarks given by an external SfM (empty: none; then depth or triangulation).
     pub external_landmarks: Vec<ExternalObservation>,
+}
+
+/// What a merge did.
+#[derive(Debug, Clone)]
+pub struct MergeOutcome {
+    /// The target after the merge.
+    pub target: MapSummary,
+    /// Source coordinates to target coordinates (given, or estimated).
+    pub transform: Similarity,
+    pub estimated: bool,
+    pub source_keyframes: usize,
+    /// Source keyframes localised in the target, and (when estimated) those the transform agrees with.
+    pub localised: usize,
+    pub inliers: usize,
+    /// Added to every source keyframe id (0 when none collided with the target's).
+    pub keyframe_id_offset: u64,
+    /// Source landmarks fused with a target landmark, and those added as new.
+    pub landmarks_fused: usize,
+    pub landmarks_added: usize,
 }
 
 /// Loaded maps, and the ids of maps held back with the reason.
@@ -522,6 +541,30 @@ impl Service {
         };
         let added = times.time("write", || store.add_keyframe(map, &input))?;
         Ok((added, times))
+    }
+
+    /// Merges map `source` into map `target` (`map::merge`); `transform` takes source coordinates to the
+    /// target's (estimated when absent). Returns once the merge is durable.
+    pub fn merge_maps(
+        &self,
+        target: &str,
+        source: &str,
+        transform: Option<Similarity>,
+    ) -> Result<MergeOutcome, ServiceError> {
+        let transform =
+            transform.map(|t| t.checked().map_err(|reason| ServiceError::invalid("transform", reason))).transpose()?;
+        let (plan, target) = self.store()?.merge(target, source, transform)?;
+        Ok(MergeOutcome {
+            target,
+            transform: Similarity::from_nalgebra(&plan.transform),
+            estimated: plan.estimated,
+            source_keyframes: plan.source_keyframes,
+            localised: plan.localised,
+            inliers: plan.inliers,
+            keyframe_id_offset: plan.keyframe_id_offset,
+            landmarks_fused: plan.landmarks_fused,
+            landmarks_added: plan.landmarks_added,
+        })
     }
 
     pub fn create_map(&self, id: &str) -> Result<MapSummary, ServiceError> {

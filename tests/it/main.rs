@@ -11,6 +11,7 @@ mod full_disk;
 mod hostile;
 mod input_bounds;
 mod lenses;
+mod merge;
 mod object_store;
 
 mod pipeline;

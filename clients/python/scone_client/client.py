@@ -171,6 +171,16 @@ class SconeClient:
         """Streams keyframes; yields one acknowledgement per keyframe once it is durable."""
         return self.maps.AddKeyframes(iter(requests), timeout=self.timeout, metadata=self._metadata)
 
+    def merge_maps(
+        self, target_map_id: str, source_map_id: str, transform: pb.Similarity | None = None
+    ) -> pb.MergeMapsResponse:
+        """Merges map ``source_map_id`` into ``target_map_id``; without ``transform`` (source to target
+        coordinates) the server estimates it from the source keyframes it localises in the target."""
+        request = pb.MergeMapsRequest(target_map_id=target_map_id, source_map_id=source_map_id)
+        if transform is not None:
+            request.transform.CopyFrom(transform)
+        return self._call(self.maps.MergeMaps, request)
+
     def model_id(self) -> str:
         """The server's model id (from Describe of a blank image), for KeypointSet.model_id."""
         ok, png = cv2.imencode(".png", np.zeros((32, 32), np.uint8))

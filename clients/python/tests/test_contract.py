@@ -221,6 +221,38 @@ def test_a_declared_lens_and_an_unknown_focal_length(client, rendered_map):
     assert abs(estimated.focal_length - cam.fx) < 0.05 * cam.fx, estimated.focal_length
 
 
+def test_merge_maps_estimates_the_shift_between_two_runs(client):
+    """The odd frames, mapped in a world shifted by a known translation, merge into a map of the even frames:
+    the estimated transform undoes the shift and the target then holds every frame."""
+    scene = tum.load(FIXTURES / "rendered")
+    shift = (1.0, -2.0, 0.5)
+
+    def keyframes(map_id, frames, offset):
+        for i in frames:
+            pose = _gt(scene.frames[i])
+            pose.tx, pose.ty, pose.tz = pose.tx + offset[0], pose.ty + offset[1], pose.tz + offset[2]
+            yield pb.AddKeyframeRequest(
+                map_id=map_id,
+                keyframe_id=i,
+                frame=image_frame(scene.frames[i].rgb.read_bytes(), scene.camera),
+                pose=pose,
+                depth_png=scene.frames[i].depth.read_bytes(),
+            )
+
+    client.create_map("merge-even")
+    client.create_map("merge-odd")
+    even, odd = range(0, len(scene.frames), 2), range(1, len(scene.frames), 2)
+    assert len(list(client.add_keyframes(keyframes("merge-even", even, (0.0, 0.0, 0.0))))) == len(even)
+    assert len(list(client.add_keyframes(keyframes("merge-odd", odd, shift)))) == len(odd)
+    merged = client.merge_maps("merge-even", "merge-odd")
+    assert merged.transform_estimated and merged.keyframes_localised == len(odd)
+    t = merged.transform
+    assert abs(t.scale - 1.0) < 0.01, t
+    assert math.dist((t.tx, t.ty, t.tz), tuple(-v for v in shift)) < 0.03, t
+    assert merged.target.keyframes == len(scene.frames)
+    assert client.get_map("merge-odd").keyframes == len(odd)
+
+
 def test_match_pair_from_client_keypoints_equals_match_pair_from_images(client):
     scene = tum.load(FIXTURES / "rendered")
     a, b = scene.frames[2].rgb.read_bytes(), scene.frames[4].rgb.read_bytes()

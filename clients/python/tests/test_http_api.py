@@ -36,6 +36,7 @@ OPERATIONS = [
     ("POST", "/v1/maps/{map_id}/localize"),
     ("GET", "/v1/maps/{map_id}/export"),
     ("POST", "/v1/maps/{map_id}/import"),
+    ("POST", "/v1/maps/{map_id}/merge"),
     ("DELETE", "/v1/maps/{map_id}/keyframes/{keyframe_id}"),
     ("DELETE", "/v1/maps/{map_id}"),
 ]

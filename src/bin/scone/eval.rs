@@ -103,6 +103,12 @@ pub enum EvalCommand {
         /// Multiplies the success thresholds (for scenes whose units are not metres).
         #[arg(long, default_value_t = 1.0)]
         unit_scale: f64,
+        /// Localise without the queries' focal length (estimated with the pose; principal point at the centre).
+        #[arg(long)]
+        unknown_focal: bool,
+        /// Multiplies the pose covariance (default: the service's `store.localize.covariance_scale`).
+        #[arg(long)]
+        covariance_scale: Option<f64>,
         #[command(flatten)]
         report: ReportArgs,
         #[command(flatten)]
@@ -190,6 +196,8 @@ pub fn run(cmd: EvalCommand) -> anyhow::Result<()> {
             distractor_observations,
             distractor_stride,
             unit_scale,
+            unknown_focal,
+            covariance_scale,
             report: out,
             extractor,
         } => {
@@ -203,7 +211,7 @@ pub fn run(cmd: EvalCommand) -> anyhow::Result<()> {
             }
             let s = Scene::load(&scene)?;
             let embedder = load_embedder(methods.contains(&Method::Scone), &out)?;
-            let rc = reloc::RelocConfig {
+            let mut rc = reloc::RelocConfig {
                 methods,
                 stride: map_stride,
                 extractor: cfg,
@@ -212,8 +220,13 @@ pub fn run(cmd: EvalCommand) -> anyhow::Result<()> {
                 distractor_observations,
                 distractor_stride,
                 unit_scale,
+                unknown_focal,
                 ..Default::default()
             };
+            if let Some(c) = covariance_scale {
+                rc.localize.covariance_scale = c;
+            }
+            rc.localize.validate().map_err(|e| anyhow::anyhow!(e))?;
             let report = reloc::evaluate(&s, &rc, embedder.as_ref()).map_err(|e| anyhow::anyhow!("{e}"))?;
             print!("{}", reloc::markdown(&report));
             out.write_json(&report)?;

@@ -56,6 +56,18 @@ pub enum MapCommand {
         #[arg(long)]
         model: Option<PathBuf>,
     },
+    /// Merge map SOURCE into map TARGET (as the MergeMaps RPC: the transform estimated from the source
+    /// keyframes localised in the target), printing "merged <target keyframes>" once the merge is durable.
+    Merge {
+        #[arg(long)]
+        data_dir: PathBuf,
+        #[arg(long)]
+        target: String,
+        #[arg(long)]
+        source: String,
+        #[arg(long)]
+        model: Option<PathBuf>,
+    },
     /// Print the maps of a data directory as JSON (and any held back with the reason).
     Info {
         #[arg(long)]
@@ -151,6 +163,18 @@ pub fn run(cmd: MapCommand) -> anyhow::Result<()> {
                 return Err(e.into());
             }
             writeln!(stdout, "{}", serde_json::to_string_pretty(&summary)?)?;
+            flush(&store)?;
+        }
+        MapCommand::Merge { data_dir, target, source, model } => {
+            let (store, _) = open_store(data_dir, model)?;
+            let (plan, summary) = store.merge(&target, &source, None)?;
+            let mut stdout = std::io::stdout().lock();
+            writeln!(stdout, "merged {}", summary.keyframes)?;
+            stdout.flush()?;
+            eprintln!(
+                "{} of {} source keyframes localised, {} agree; {} landmarks fused, {} added",
+                plan.localised, plan.source_keyframes, plan.inliers, plan.landmarks_fused, plan.landmarks_added
+            );
             flush(&store)?;
         }
         MapCommand::Info { data_dir, model } => {

@@ -21,12 +21,21 @@
 //!   observations; the nearest neighbours must then be found among many look-alikes. With distractors the
 //!   index is the service's (HNSW above `IndexSettings::exact_below` observations), as a deployment's is.
 //! * `unit_scale`: the success thresholds are multiplied by it (scenes whose units are not metres).
+//!
+//! **What a client without calibration gets, and how sure a pose is** (issue 28):
+//! * `unknown_focal`: every query is localised without its focal length (principal point at the image
+//!   centre), as Localize does for a client that leaves `fx`, `fy` out; each record keeps the focal length
+//!   used, and the summary the median relative error against the scene's.
+//! * Every localised query records `mahalanobis2`, the squared Mahalanobis distance of the true pose under the
+//!   pose's covariance (`localize.covariance_scale` applied): the summary's `covariance_coverage` is the share
+//!   of localised queries within the 95 % ellipsoid (`pose::CHI2_6_95`), which should be close to 0.95.
 
 use std::time::Instant;
 
 use opencv::prelude::*;
 use serde::{Deserialize, Serialize};
 
+use crate::camera::{Camera, PoseConvention};
 use crate::decode::{decode_depth_png, decode_grey, ImageLimitSettings};
 use crate::embedding::Embedder;
 use crate::features::{ExtractorSettings, Features};
@@ -37,7 +46,7 @@ use crate::map::model::{MapData, MapMeta};
 use crate::offline::eval::methods::{describe, Described, Method};
 use crate::offline::eval::stats::{markdown_table, median};
 use crate::offline::scene::Scene;
-use crate::pose::rotation_error_deg;
+use crate::pose::{pose_covariance, pose_difference, rotation_error_deg, CHI2_6_95};
 use crate::progress::Progress;
 
 type BoxError = Box<dyn std::error::Error + Send + Sync>;
@@ -65,6 +74,9 @@ pub struct RelocConfig {
     /// Multiplies the success thresholds (1 for scenes in metres).
     #[serde(default = "one_f")]
     pub unit_scale: f64,
+    /// Localise the queries without their focal length (estimated with the pose).
+    #[serde(default)]
+    pub unknown_focal: bool,
 }
 
 fn one() -> usize {
@@ -96,6 +108,7 @@ impl Default for RelocConfig {
             distractor_observations: 0,
             distractor_stride: 1,
             unit_scale: 1.0,
+            unknown_focal: false,
         }
     }
 }
@@ -117,6 +130,12 @@ pub struct QueryRecord {
     /// Viewing angle to the most similarly oriented map keyframe (degrees).
     #[serde(default)]
     pub angle_to_map_deg: f64,
+    /// The focal length the pose was estimated with (the scene's, or the estimate with `unknown_focal`).
+    #[serde(default)]
+    pub focal: Option<f64>,
+    /// Squared Mahalanobis distance of the true pose under the pose's covariance (6 degrees of freedom).
+    #[serde(default)]
+    pub mahalanobis2: Option<f64>,
 }
 
 /// Success of the queries whose viewing angle to the map falls in one bin.
@@ -157,6 +176,12 @@ pub struct RelocSummary {
     /// The queries by viewing angle to the map.
     #[serde(default)]
     pub bins: Vec<BinSummary>,
+    /// Share of the localised queries whose true pose lies in the covariance's 95 % ellipsoid.
+    #[serde(default)]
+    pub covariance_coverage: f64,
+    /// Median relative error of the focal length over the localised queries (0 when it was given).
+    #[serde(default)]
+    pub median_focal_error: f64,
 }
 
 #[derive(Debug, Clone, Serialize, Deserialize)]
@@ -273,13 +298,18 @@ pub fn evaluate(scene: &Scene, cfg: &RelocConfig, embedder: Option<&Embedder>) -
         index.sync(&data);
         let build_seconds = t0.elapsed().as_secs_f64();
         let mut recs = Vec::new();
+        let query_camera = if cfg.unknown_focal {
+            Camera { fx: 0.0, fy: 0.0, cx: 0.0, cy: 0.0, ..scene.camera }.with_defaults()
+        } else {
+            scene.camera
+        };
         for &i in &query_frames {
             progress.step();
             let d = &described[i];
             let features =
                 Features { width: d.width, height: d.height, keypoints: d.keypoints.clone(), descriptors: vec![] };
             let t = Instant::now();
-            let out = localize(&data, &index, &features, &vecs[i].0, &scene.camera, None, &loc)?;
+            let out = localize(&data, &index, &features, &vecs[i].0, &query_camera, None, &loc)?;
             let seconds = t.elapsed().as_secs_f64() + d.seconds;
             let gt = scene.frames[i].pose.unwrap();
             let gt_cw = gt.inverse();
@@ -308,6 +338,11 @@ pub fn evaluate(scene: &Scene, cfg: &RelocConfig, embedder: Option<&Embedder>) -
                 ),
                 None => (false, f64::INFINITY, 180.0, 0),
             };
+            let mahalanobis2 = out.pose.as_ref().and_then(|p| {
+                let sigma = pose_covariance(PoseConvention::default(), &p.camera_to_world, p.covariance_w2c.as_ref()?);
+                let e = pose_difference(&gt, &p.camera_to_world);
+                sigma.try_inverse().map(|inv| (e.transpose() * inv * e)[0])
+            });
             recs.push(QueryRecord {
                 frame: scene.frames[i].stamp.clone(),
                 localised,
@@ -320,6 +355,8 @@ pub fn evaluate(scene: &Scene, cfg: &RelocConfig, embedder: Option<&Embedder>) -
                 seconds,
                 baseline_to_map,
                 angle_to_map_deg,
+                focal: out.pose.as_ref().map(|p| p.focal),
+                mahalanobis2,
             });
         }
         let q = recs.len().max(1) as f64;
@@ -351,6 +388,14 @@ pub fn evaluate(scene: &Scene, cfg: &RelocConfig, embedder: Option<&Embedder>) -
             distractor_observations,
             within_5cm_5deg: within(0.05, 5.0),
             bins,
+            covariance_coverage: {
+                let d2: Vec<f64> = recs.iter().filter_map(|r| r.mahalanobis2).collect();
+                d2.iter().filter(|&&d| d <= CHI2_6_95).count() as f64 / d2.len().max(1) as f64
+            },
+            median_focal_error: {
+                let truth = (scene.camera.fx + scene.camera.fy) / 2.0;
+                median(&recs.iter().filter_map(|r| r.focal).map(|f| (f - truth).abs() / truth).collect::<Vec<_>>())
+            },
         });
         queries.extend(recs.into_iter().map(|r| (method, r)));
     }
@@ -499,6 +544,8 @@ pub fn markdown(r: &RelocReport) -> String {
         "2D-3D precision",
         "matches",
         "query ms",
+        "cov. 95 %",
+        "focal err.",
     ];
     s.push_str(&markdown_table(
         &headers,
@@ -517,6 +564,8 @@ pub fn markdown(r: &RelocReport) -> String {
                 format!("{:.3}", m.match_precision),
                 format!("{:.0}", m.mean_matches),
                 format!("{:.0}", m.mean_query_ms),
+                format!("{:.2}", m.covariance_coverage),
+                format!("{:.3}", m.median_focal_error),
             ]
         }),
     ));
@@ -585,6 +634,8 @@ mod tests {
             seconds: 0.0,
             baseline_to_map: 1.0,
             angle_to_map_deg: angle,
+            focal: None,
+            mahalanobis2: None,
         };
         let recs = [rec(5.0, 0.01), rec(15.0, 0.3), rec(50.0, 0.1)];
         let bins = bin_summaries(&recs, 1.0);

@@ -208,6 +208,39 @@ pub async fn remove_keyframe(
     Ok(Json(s.into()))
 }
 
+/// Merges another map into this one (rpc Maps.MergeMaps): without a transform, the server estimates it from
+/// the source keyframes it localises here. One durable write; the source is not changed.
+#[utoipa::path(post, path = "/v1/maps/{map_id}/merge", tag = "maps",
+    params(("map_id" = String, Path, description = "The target map", example = "office")),
+    request_body(content((wire::MergeMapsRequest = "application/json", example = examples::merge_maps))),
+    responses((status = 200, description = "What the merge did", body = wire::MergeMapsResponse), ApiErrors))]
+pub async fn merge_maps(
+    State(app): State<Arc<App>>,
+    ApiPath(id): ApiPath<String>,
+    headers: HeaderMap,
+    req: Request,
+) -> ApiResult<Json<wire::MergeMapsResponse>> {
+    media_type(&headers, JSON_ONLY)?;
+    let limit = app.settings.server.max_request_bytes;
+    let body = bytes_within(req, limit, too_large(limit)).await?;
+    let j: wire::MergeMapsRequest = json_body(&body)?;
+    let o = call_map(&app, &headers, Access::Write, "MergeMaps", &id.clone(), move |a| {
+        a.service.merge_maps(&id, &j.source_map_id, j.transform.map(Into::into))
+    })
+    .await?;
+    Ok(Json(wire::MergeMapsResponse {
+        target: o.target.into(),
+        transform: o.transform.into(),
+        transform_estimated: o.estimated,
+        source_keyframes: o.source_keyframes,
+        keyframes_localised: o.localised,
+        transform_inliers: o.inliers,
+        keyframe_id_offset: o.keyframe_id_offset,
+        landmarks_fused: o.landmarks_fused,
+        landmarks_added: o.landmarks_added,
+    }))
+}
+
 /// The map as one versioned, checksummed file (rpc Maps.ExportMap).
 #[utoipa::path(get, path = "/v1/maps/{map_id}/export", tag = "maps",
     params(("map_id" = String, Path, description = "The map", example = "office")),

@@ -70,6 +70,7 @@ pub fn pool_routes(map_limit: usize) -> OpenApiRouter<Arc<App>> {
         .routes(routes!(maps::remove_keyframe))
         .routes(routes!(frames::localize))
         .routes(routes!(maps::export_map))
+        .routes(routes!(maps::merge_maps))
         .routes((schemas, paths, import.layer(DefaultBodyLimit::max(map_limit))))
 }
 

@@ -397,6 +397,67 @@ pub struct LocalizeResponse {
     pub covariance: Vec<f64>,
 }
 
+/// A similarity between two maps' world frames, `X_target = scale * R * X_source + t` (R a unit quaternion x,
+/// y, z, w within 1e-3; scale in (1e-6, 1e6)).
+#[derive(Debug, Clone, Copy, PartialEq, Deserialize, Serialize, ToSchema)]
+#[serde(deny_unknown_fields)]
+#[schema(example = json!({"tx": 0.0, "ty": 0.0, "tz": 0.0, "qx": 0.0, "qy": 0.0, "qz": 0.0, "qw": 1.0, "scale": 1.0}))]
+pub struct Similarity {
+    pub tx: f64,
+    pub ty: f64,
+    pub tz: f64,
+    pub qx: f64,
+    pub qy: f64,
+    pub qz: f64,
+    pub qw: f64,
+    pub scale: f64,
+}
+
+impl From<Similarity> for crate::service::Similarity {
+    fn from(s: Similarity) -> Self {
+        Self { translation: [s.tx, s.ty, s.tz], rotation: [s.qx, s.qy, s.qz, s.qw], scale: s.scale }
+    }
+}
+
+impl From<crate::service::Similarity> for Similarity {
+    fn from(s: crate::service::Similarity) -> Self {
+        let ([tx, ty, tz], [qx, qy, qz, qw]) = (s.translation, s.rotation);
+        Self { tx, ty, tz, qx, qy, qz, qw, scale: s.scale }
+    }
+}
+
+/// Merge another map into this one (rpc Maps.MergeMaps).
+#[derive(Debug, Deserialize, Serialize, ToSchema)]
+#[serde(deny_unknown_fields)]
+pub struct MergeMapsRequest {
+    /// The map merged into this one; read, never changed.
+    pub source_map_id: String,
+    /// Source to target coordinates; estimated from the source keyframes localised in the target when absent.
+    #[serde(default)]
+    pub transform: Option<Similarity>,
+}
+
+/// What a merge did.
+#[derive(Debug, Serialize, ToSchema)]
+pub struct MergeMapsResponse {
+    /// The target after the merge.
+    pub target: MapInfo,
+    /// Given or estimated.
+    pub transform: Similarity,
+    pub transform_estimated: bool,
+    pub source_keyframes: usize,
+    /// Source keyframes localised in the target.
+    pub keyframes_localised: usize,
+    /// Of those, the ones the estimated transform agrees with (0 when given).
+    pub transform_inliers: usize,
+    /// Added to every source keyframe id (0 when none collided with the target's).
+    pub keyframe_id_offset: u64,
+    /// Source landmarks fused with a target landmark.
+    pub landmarks_fused: usize,
+    /// Source landmarks added as new.
+    pub landmarks_added: usize,
+}
+
 /// A keyframe write, durable when this is answered.
 #[derive(Debug, Serialize, ToSchema)]
 pub struct KeyframeAck {
@@ -568,6 +629,11 @@ pub mod examples {
 
     pub fn create_map() -> Value {
         json!({"map_id": "office"})
+    }
+
+    pub fn merge_maps() -> Value {
+        json!({"source_map_id": "office-copy",
+               "transform": {"tx": 0.0, "ty": 0.0, "tz": 0.0, "qx": 0.0, "qy": 0.0, "qz": 0.0, "qw": 1.0, "scale": 1.0}})
     }
 }
 

@@ -254,6 +254,58 @@ class RemoveKeyframeRequest(_message.Message):
     keyframe_id: int
     def __init__(self, map_id: _Optional[str] = ..., keyframe_id: _Optional[int] = ...) -> None: ...
 
+class Similarity(_message.Message):
+    __slots__ = ("tx", "ty", "tz", "qx", "qy", "qz", "qw", "scale")
+    TX_FIELD_NUMBER: _ClassVar[int]
+    TY_FIELD_NUMBER: _ClassVar[int]
+    TZ_FIELD_NUMBER: _ClassVar[int]
+    QX_FIELD_NUMBER: _ClassVar[int]
+    QY_FIELD_NUMBER: _ClassVar[int]
+    QZ_FIELD_NUMBER: _ClassVar[int]
+    QW_FIELD_NUMBER: _ClassVar[int]
+    SCALE_FIELD_NUMBER: _ClassVar[int]
+    tx: float
+    ty: float
+    tz: float
+    qx: float
+    qy: float
+    qz: float
+    qw: float
+    scale: float
+    def __init__(self, tx: _Optional[float] = ..., ty: _Optional[float] = ..., tz: _Optional[float] = ..., qx: _Optional[float] = ..., qy: _Optional[float] = ..., qz: _Optional[float] = ..., qw: _Optional[float] = ..., scale: _Optional[float] = ...) -> None: ...
+
+class MergeMapsRequest(_message.Message):
+    __slots__ = ("target_map_id", "source_map_id", "transform")
+    TARGET_MAP_ID_FIELD_NUMBER: _ClassVar[int]
+    SOURCE_MAP_ID_FIELD_NUMBER: _ClassVar[int]
+    TRANSFORM_FIELD_NUMBER: _ClassVar[int]
+    target_map_id: str
+    source_map_id: str
+    transform: Similarity
+    def __init__(self, target_map_id: _Optional[str] = ..., source_map_id: _Optional[str] = ..., transform: _Optional[_Union[Similarity, _Mapping]] = ...) -> None: ...
+
+class MergeMapsResponse(_message.Message):
+    __slots__ = ("target", "transform", "transform_estimated", "source_keyframes", "keyframes_localised", "transform_inliers", "keyframe_id_offset", "landmarks_fused", "landmarks_added")
+    TARGET_FIELD_NUMBER: _ClassVar[int]
+    TRANSFORM_FIELD_NUMBER: _ClassVar[int]
+    TRANSFORM_ESTIMATED_FIELD_NUMBER: _ClassVar[int]
+    SOURCE_KEYFRAMES_FIELD_NUMBER: _ClassVar[int]
+    KEYFRAMES_LOCALISED_FIELD_NUMBER: _ClassVar[int]
+    TRANSFORM_INLIERS_FIELD_NUMBER: _ClassVar[int]
+    KEYFRAME_ID_OFFSET_FIELD_NUMBER: _ClassVar[int]
+    LANDMARKS_FUSED_FIELD_NUMBER: _ClassVar[int]
+    LANDMARKS_ADDED_FIELD_NUMBER: _ClassVar[int]
+    target: MapInfo
+    transform: Similarity
+    transform_estimated: bool
+    source_keyframes: int
+    keyframes_localised: int
+    transform_inliers: int
+    keyframe_id_offset: int
+    landmarks_fused: int
+    landmarks_added: int
+    def __init__(self, target: _Optional[_Union[MapInfo, _Mapping]] = ..., transform: _Optional[_Union[Similarity, _Mapping]] = ..., transform_estimated: _Optional[bool] = ..., source_keyframes: _Optional[int] = ..., keyframes_localised: _Optional[int] = ..., transform_inliers: _Optional[int] = ..., keyframe_id_offset: _Optional[int] = ..., landmarks_fused: _Optional[int] = ..., landmarks_added: _Optional[int] = ...) -> None: ...
+
 class ExportMapRequest(_message.Message):
     __slots__ = ("map_id",)
     MAP_ID_FIELD_NUMBER: _ClassVar[int]

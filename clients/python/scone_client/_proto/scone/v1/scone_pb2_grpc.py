@@ -89,6 +89,11 @@ class MapsStub:
                 request_serializer=scone__client_dot___proto_dot_scone_dot_v1_dot_scone__pb2.MapChunk.SerializeToString,
                 response_deserializer=scone__client_dot___proto_dot_scone_dot_v1_dot_scone__pb2.MapInfo.FromString,
                 _registered_method=True)
+        self.MergeMaps = channel.unary_unary(
+                '/scone.v1.Maps/MergeMaps',
+                request_serializer=scone__client_dot___proto_dot_scone_dot_v1_dot_scone__pb2.MergeMapsRequest.SerializeToString,
+                response_deserializer=scone__client_dot___proto_dot_scone_dot_v1_dot_scone__pb2.MergeMapsResponse.FromString,
+                _registered_method=True)
 
 
 class MapsServicer:
@@ -167,6 +172,21 @@ class MapsServicer:
         context.set_details('Method not implemented!')
         raise NotImplementedError('Method not implemented!')
 
+    def MergeMaps(self, request, context):
+        """Merges map source_map_id into map target_map_id (two mapping runs of one place become one map). Without a
+        transform, the server localises every source keyframe in the target and fits the similarity (rotation,
+        translation, scale) that takes source coordinates to the target's: RANSAC over pairs of localised
+        keyframes, then Umeyama over the inliers' camera centres; INVALID_ARGUMENT saying how many keyframes
+        localised when fewer than 3 agree. Source keyframes and landmarks are then
+        re-expressed in the target's frame (keyframe ids moved past the target's when any collides, by
+        keyframe_id_offset); a source landmark whose observations matched a target landmark (PnP inliers) is
+        fused with it. The merge is one durable write to the target (all or nothing, kill -9 included); the
+        source is read, never changed (delete it when done). Both maps must be embedded by the server's model.
+        """
+        context.set_code(grpc.StatusCode.UNIMPLEMENTED)
+        context.set_details('Method not implemented!')
+        raise NotImplementedError('Method not implemented!')
+
 
 def add_MapsServicer_to_server(servicer, server):
     rpc_method_handlers = {
@@ -209,6 +229,11 @@ def add_MapsServicer_to_server(servicer, server):
                     servicer.ImportMap,
                     request_deserializer=scone__client_dot___proto_dot_scone_dot_v1_dot_scone__pb2.MapChunk.FromString,
                     response_serializer=scone__client_dot___proto_dot_scone_dot_v1_dot_scone__pb2.MapInfo.SerializeToString,
+            ),
+            'MergeMaps': grpc.unary_unary_rpc_method_handler(
+                    servicer.MergeMaps,
+                    request_deserializer=scone__client_dot___proto_dot_scone_dot_v1_dot_scone__pb2.MergeMapsRequest.FromString,
+                    response_serializer=scone__client_dot___proto_dot_scone_dot_v1_dot_scone__pb2.MergeMapsResponse.SerializeToString,
             ),
     }
     generic_handler = grpc.method_handlers_generic_handler(
@@ -442,6 +467,33 @@ class Maps:
             '/scone.v1.Maps/ImportMap',
             scone__client_dot___proto_dot_scone_dot_v1_dot_scone__pb2.MapChunk.SerializeToString,
             scone__client_dot___proto_dot_scone_dot_v1_dot_scone__pb2.MapInfo.FromString,
+            options,
+            channel_credentials,
+            insecure,
+            call_credentials,
+            compression,
+            wait_for_ready,
+            timeout,
+            metadata,
+            _registered_method=True)
+
+    @staticmethod
+    def MergeMaps(request,
+            target,
+            options=(),
+            channel_credentials=None,
+            call_credentials=None,
+            insecure=False,
+            compression=None,
+            wait_for_ready=None,
+            timeout=None,
+            metadata=None):
+        return grpc.experimental.unary_unary(
+            request,
+            target,
+            '/scone.v1.Maps/MergeMaps',
+            scone__client_dot___proto_dot_scone_dot_v1_dot_scone__pb2.MergeMapsRequest.SerializeToString,
+            scone__client_dot___proto_dot_scone_dot_v1_dot_scone__pb2.MergeMapsResponse.FromString,
             options,
             channel_credentials,
             insecure,
