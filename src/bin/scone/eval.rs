@@ -103,9 +103,12 @@ pub enum EvalCommand {
         /// Multiplies the success thresholds (for scenes whose units are not metres).
         #[arg(long, default_value_t = 1.0)]
         unit_scale: f64,
-        /// Localise without the queries' focal length (estimated with the pose; principal point at the centre).
+        /// Localise without the queries' focal length (estimated with the pose).
         #[arg(long)]
         unknown_focal: bool,
+        /// With --unknown-focal: the principal point is the image centre, not the scene's.
+        #[arg(long)]
+        centre_principal_point: bool,
         /// Multiplies the pose covariance (default: the service's `store.localize.covariance_scale`).
         #[arg(long)]
         covariance_scale: Option<f64>,
@@ -113,6 +116,21 @@ pub enum EvalCommand {
         report: ReportArgs,
         #[command(flatten)]
         extractor: ExtractorArgs,
+    },
+    /// Map merging: two mapping runs of a scene, each in its own random world frame, merged as MergeMaps
+    /// does (transform estimated); the transform's and the merged keyframes' errors against the truth.
+    Merge {
+        /// Scene directories in the TUM RGB-D layout.
+        #[arg(long, value_delimiter = ',')]
+        scenes: Vec<PathBuf>,
+        /// How the frames are split into the two runs.
+        #[arg(long, value_delimiter = ',', default_value = "interleaved,overlap")]
+        splits: Vec<scone::offline::eval::merge::Split>,
+        /// Seeds of the two world frames (one run per seed).
+        #[arg(long, value_delimiter = ',', default_value = "1")]
+        seeds: Vec<u64>,
+        #[command(flatten)]
+        report: ReportArgs,
     },
 }
 
@@ -197,6 +215,7 @@ pub fn run(cmd: EvalCommand) -> anyhow::Result<()> {
             distractor_stride,
             unit_scale,
             unknown_focal,
+            centre_principal_point,
             covariance_scale,
             report: out,
             extractor,
@@ -221,6 +240,7 @@ pub fn run(cmd: EvalCommand) -> anyhow::Result<()> {
                 distractor_stride,
                 unit_scale,
                 unknown_focal,
+                centre_principal_point,
                 ..Default::default()
             };
             if let Some(c) = covariance_scale {
@@ -231,7 +251,30 @@ pub fn run(cmd: EvalCommand) -> anyhow::Result<()> {
             print!("{}", reloc::markdown(&report));
             out.write_json(&report)?;
         }
+        EvalCommand::Merge { scenes, splits, seeds, report } => run_merge(scenes, splits, seeds, report)?,
     }
+    Ok(())
+}
+
+fn run_merge(
+    scenes: Vec<PathBuf>,
+    splits: Vec<scone::offline::eval::merge::Split>,
+    seeds: Vec<u64>,
+    out: ReportArgs,
+) -> anyhow::Result<()> {
+    use scone::offline::eval::merge;
+    let embedder = load_embedder(true, &out)?.expect("requested");
+    let mut reports = Vec::new();
+    for scene in &scenes {
+        let s = Scene::load(scene)?;
+        for &split in &splits {
+            for &seed in &seeds {
+                reports.push(merge::evaluate(&s, split, seed, &embedder).map_err(|e| anyhow::anyhow!("{e}"))?);
+            }
+        }
+    }
+    print!("{}", merge::markdown(&reports));
+    out.write_json(&reports)?;
     Ok(())
 }
 

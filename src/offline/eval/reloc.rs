@@ -23,9 +23,9 @@
 //! * `unit_scale`: the success thresholds are multiplied by it (scenes whose units are not metres).
 //!
 //! **What a client without calibration gets, and how sure a pose is** (issue 28):
-//! * `unknown_focal`: every query is localised without its focal length (principal point at the image
-//!   centre), as Localize does for a client that leaves `fx`, `fy` out; each record keeps the focal length
-//!   used, and the summary the median relative error against the scene's.
+//! * `unknown_focal`: every query is localised without its focal length, as Localize does for a client that
+//!   leaves `fx`, `fy` out (with `centre_principal_point`, the principal point is the image centre as well);
+//!   each record keeps the focal length used, and the summary the median relative error against the scene's.
 //! * Every localised query records `mahalanobis2`, the squared Mahalanobis distance of the true pose under the
 //!   pose's covariance (`localize.covariance_scale` applied): the summary's `covariance_coverage` is the share
 //!   of localised queries within the 95 % ellipsoid (`pose::CHI2_6_95`), which should be close to 0.95.
@@ -41,7 +41,9 @@ use crate::embedding::Embedder;
 use crate::features::{ExtractorSettings, Features};
 use crate::map::builder::{plan_keyframe, BuildSettings, Depth, KeyframeInput};
 use crate::map::index::{EmbeddingIndex, IndexSettings};
-use crate::map::localize::{localize, LocalizeSettings};
+use crate::map::localize::{
+    localize, median_inlier_depth, LocalizeSettings, CONFIDENCE_DEPTH_FRACTION, CONFIDENCE_ROTATION_DEG,
+};
 use crate::map::model::{MapData, MapMeta};
 use crate::offline::eval::methods::{describe, Described, Method};
 use crate::offline::eval::stats::{markdown_table, median};
@@ -77,6 +79,10 @@ pub struct RelocConfig {
     /// Localise the queries without their focal length (estimated with the pose).
     #[serde(default)]
     pub unknown_focal: bool,
+    /// With `unknown_focal`: the principal point is the image centre too (a client that knows nothing of its
+    /// camera), not the scene's.
+    #[serde(default)]
+    pub centre_principal_point: bool,
 }
 
 fn one() -> usize {
@@ -109,6 +115,7 @@ impl Default for RelocConfig {
             distractor_stride: 1,
             unit_scale: 1.0,
             unknown_focal: false,
+            centre_principal_point: false,
         }
     }
 }
@@ -136,6 +143,10 @@ pub struct QueryRecord {
     /// Squared Mahalanobis distance of the true pose under the pose's covariance (6 degrees of freedom).
     #[serde(default)]
     pub mahalanobis2: Option<f64>,
+    /// Whether the pose is within the tolerances its confidence is the probability of (`localize::confidence`:
+    /// 2° and 5 % of the inliers' median depth).
+    #[serde(default)]
+    pub within_confidence_tolerance: Option<bool>,
 }
 
 /// Success of the queries whose viewing angle to the map falls in one bin.
@@ -182,6 +193,12 @@ pub struct RelocSummary {
     /// Median relative error of the focal length over the localised queries (0 when it was given).
     #[serde(default)]
     pub median_focal_error: f64,
+    /// Over the localised queries: the mean confidence, and the share within the confidence's tolerances
+    /// (they agree when the confidence is calibrated).
+    #[serde(default)]
+    pub mean_confidence: f64,
+    #[serde(default)]
+    pub within_confidence_tolerance: f64,
 }
 
 #[derive(Debug, Clone, Serialize, Deserialize)]
@@ -298,10 +315,10 @@ pub fn evaluate(scene: &Scene, cfg: &RelocConfig, embedder: Option<&Embedder>) -
         index.sync(&data);
         let build_seconds = t0.elapsed().as_secs_f64();
         let mut recs = Vec::new();
-        let query_camera = if cfg.unknown_focal {
-            Camera { fx: 0.0, fy: 0.0, cx: 0.0, cy: 0.0, ..scene.camera }.with_defaults()
-        } else {
-            scene.camera
+        let query_camera = match (cfg.unknown_focal, cfg.centre_principal_point) {
+            (false, _) => scene.camera,
+            (true, false) => Camera { fx: 0.0, fy: 0.0, ..scene.camera },
+            (true, true) => Camera { fx: 0.0, fy: 0.0, cx: 0.0, cy: 0.0, ..scene.camera }.with_defaults(),
         };
         for &i in &query_frames {
             progress.step();
@@ -338,6 +355,12 @@ pub fn evaluate(scene: &Scene, cfg: &RelocConfig, embedder: Option<&Embedder>) -
                 ),
                 None => (false, f64::INFINITY, 180.0, 0),
             };
+            let within_confidence_tolerance = out.pose.as_ref().map(|p| {
+                let depth = median_inlier_depth(p, &out.points);
+                (p.camera_to_world.translation.vector - gt.translation.vector).norm()
+                    <= CONFIDENCE_DEPTH_FRACTION * depth
+                    && p.camera_to_world.rotation.angle_to(&gt.rotation).to_degrees() <= CONFIDENCE_ROTATION_DEG
+            });
             let mahalanobis2 = out.pose.as_ref().and_then(|p| {
                 let sigma = pose_covariance(PoseConvention::default(), &p.camera_to_world, p.covariance_w2c.as_ref()?);
                 let e = pose_difference(&gt, &p.camera_to_world);
@@ -357,6 +380,7 @@ pub fn evaluate(scene: &Scene, cfg: &RelocConfig, embedder: Option<&Embedder>) -
                 angle_to_map_deg,
                 focal: out.pose.as_ref().map(|p| p.focal),
                 mahalanobis2,
+                within_confidence_tolerance,
             });
         }
         let q = recs.len().max(1) as f64;
@@ -391,6 +415,14 @@ pub fn evaluate(scene: &Scene, cfg: &RelocConfig, embedder: Option<&Embedder>) -
             covariance_coverage: {
                 let d2: Vec<f64> = recs.iter().filter_map(|r| r.mahalanobis2).collect();
                 d2.iter().filter(|&&d| d <= CHI2_6_95).count() as f64 / d2.len().max(1) as f64
+            },
+            mean_confidence: {
+                let c: Vec<f64> = recs.iter().filter(|r| r.localised).map(|r| r.confidence).collect();
+                c.iter().sum::<f64>() / c.len().max(1) as f64
+            },
+            within_confidence_tolerance: {
+                let w: Vec<bool> = recs.iter().filter_map(|r| r.within_confidence_tolerance).collect();
+                w.iter().filter(|&&b| b).count() as f64 / w.len().max(1) as f64
             },
             median_focal_error: {
                 let truth = (scene.camera.fx + scene.camera.fy) / 2.0;
@@ -545,6 +577,7 @@ pub fn markdown(r: &RelocReport) -> String {
         "matches",
         "query ms",
         "cov. 95 %",
+        "confidence / within",
         "focal err.",
     ];
     s.push_str(&markdown_table(
@@ -565,6 +598,7 @@ pub fn markdown(r: &RelocReport) -> String {
                 format!("{:.0}", m.mean_matches),
                 format!("{:.0}", m.mean_query_ms),
                 format!("{:.2}", m.covariance_coverage),
+                format!("{:.2} / {:.2}", m.mean_confidence, m.within_confidence_tolerance),
                 format!("{:.3}", m.median_focal_error),
             ]
         }),
@@ -636,6 +670,7 @@ mod tests {
             angle_to_map_deg: angle,
             focal: None,
             mahalanobis2: None,
+            within_confidence_tolerance: None,
         };
         let recs = [rec(5.0, 0.01), rec(15.0, 0.3), rec(50.0, 0.1)];
         let bins = bin_summaries(&recs, 1.0);

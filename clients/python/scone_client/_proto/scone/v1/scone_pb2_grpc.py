@@ -38,7 +38,7 @@ class MapsStub:
     other writer and stores nothing; retry it. Routers send calls about one map with `x-scone-map-id` metadata,
     so a map has one writer and stays loaded in one replica (docs/object-storage.md).
 
-    A full data volume: every write (CreateMap, AddKeyframes, RemoveKeyframe, ImportMap) fails with
+    A full data volume: every write (CreateMap, AddKeyframes, RemoveKeyframe, ImportMap, MergeMaps) fails with
     RESOURCE_EXHAUSTED naming the data volume (HTTP: 507) and stores nothing of itself; reads go on, and writes
     succeed again once space is freed. Every acknowledged write survives (docs/fault-model.md).
     """
@@ -109,7 +109,7 @@ class MapsServicer:
     other writer and stores nothing; retry it. Routers send calls about one map with `x-scone-map-id` metadata,
     so a map has one writer and stays loaded in one replica (docs/object-storage.md).
 
-    A full data volume: every write (CreateMap, AddKeyframes, RemoveKeyframe, ImportMap) fails with
+    A full data volume: every write (CreateMap, AddKeyframes, RemoveKeyframe, ImportMap, MergeMaps) fails with
     RESOURCE_EXHAUSTED naming the data volume (HTTP: 507) and stores nothing of itself; reads go on, and writes
     succeed again once space is freed. Every acknowledged write survives (docs/fault-model.md).
     """
@@ -256,7 +256,7 @@ class Maps:
     other writer and stores nothing; retry it. Routers send calls about one map with `x-scone-map-id` metadata,
     so a map has one writer and stays loaded in one replica (docs/object-storage.md).
 
-    A full data volume: every write (CreateMap, AddKeyframes, RemoveKeyframe, ImportMap) fails with
+    A full data volume: every write (CreateMap, AddKeyframes, RemoveKeyframe, ImportMap, MergeMaps) fails with
     RESOURCE_EXHAUSTED naming the data volume (HTTP: 507) and stores nothing of itself; reads go on, and writes
     succeed again once space is freed. Every acknowledged write survives (docs/fault-model.md).
     """
