@@ -319,6 +319,21 @@ fn refinement_covariance(
     Ok(c.iter().all(|v| v.is_finite()).then_some(c))
 }
 
+/// [`refinement_covariance`] at a world-to-camera pose, parametrised as [`pose_covariance`] expects: the
+/// rotation vector of nalgebra (angle at most π), not OpenCV's `rvec` after refinement (which may exceed π and
+/// is then another parametrisation of the same rotation).
+fn covariance_at(
+    w2c: &Isometry3<f64>,
+    obj: &Vector<Point3f>,
+    img: &Vector<Point2f>,
+    k: &Mat,
+    focal_free: bool,
+) -> Result<Option<Matrix6<f64>>, PoseError> {
+    let rvec = Mat::from_slice(w2c.rotation.scaled_axis().as_slice())?.try_clone()?;
+    let tvec = Mat::from_slice(w2c.translation.vector.as_slice())?.try_clone()?;
+    refinement_covariance(obj, img, &rvec, &tvec, k, focal_free)
+}
+
 /// Correspondences the RANSAC hypotheses are drawn from (the best ones; see [`absolute_pose`]).
 pub const RANSAC_HEAD: usize = 300;
 
@@ -413,7 +428,7 @@ pub fn absolute_pose(
     if !rv.iter().chain(tv.iter()).all(|v| v.is_finite()) {
         return Ok(None);
     }
-    let covariance_w2c = refinement_covariance(&in_obj, &in_img, &rvec, &tvec, &k, false)?;
+    let covariance_w2c = covariance_at(&world_to_camera(&rv, &tv), &in_obj, &in_img, &k, false)?;
     // OpenCV returns world-to-camera; invert to camera-to-world.
     Ok(Some(AbsolutePose {
         camera_to_world: world_to_camera(&rv, &tv).inverse(),
@@ -433,7 +448,7 @@ pub fn focal_candidates(cam: &Camera) -> Vec<f64> {
 
 /// RANSAC iterations per focal-length candidate: at the right focal length the best correspondences hold
 /// mostly inliers and few iterations find them; at a wrong one the full budget would only be spent on failing.
-const CANDIDATE_ITERATIONS: i32 = 300;
+pub const CANDIDATE_ITERATIONS: i32 = 300;
 
 /// [`absolute_pose`] for a camera whose focal length is unknown (`cam.fx`, `cam.fy` ignored; square pixels,
 /// the principal point as given). Each of [`focal_candidates`] is tried (at most [`CANDIDATE_ITERATIONS`]
@@ -477,11 +492,8 @@ pub fn absolute_pose_unknown_focal(
     }
     // The covariance with the focal length free, on the answer's inliers.
     let (in_obj, in_img) = inlier_points(points3d, points2d, &pose.inliers);
-    let w2c = pose.camera_to_world.inverse();
-    let rvec = Mat::from_slice(w2c.rotation.scaled_axis().as_slice())?.try_clone()?;
-    let tvec = Mat::from_slice(w2c.translation.vector.as_slice())?.try_clone()?;
     let k = Mat::from_slice_2d(&cam.with_focal(pose.focal).k())?;
-    pose.covariance_w2c = refinement_covariance(&in_obj, &in_img, &rvec, &tvec, &k, true)?;
+    pose.covariance_w2c = covariance_at(&pose.camera_to_world.inverse(), &in_obj, &in_img, &k, true)?;
     Ok(Some(pose))
 }
 

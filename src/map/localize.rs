@@ -152,7 +152,7 @@ pub const CONFIDENCE_ROTATION_DEG: f64 = 2.0;
 /// 1 m, 50 cm at 10 m).
 pub const CONFIDENCE_DEPTH_FRACTION: f64 = 0.05;
 /// Draws of [`confidence`]'s estimate (deterministic: the same pose always gets the same confidence).
-const CONFIDENCE_DRAWS: usize = 512;
+pub const CONFIDENCE_DRAWS: usize = 512;
 
 /// The inliers' median depth in the camera of `pose` (the landmarks `points`, indexed by the inliers).
 pub fn median_inlier_depth(pose: &AbsolutePose, points: &[[f64; 3]]) -> f64 {
@@ -161,6 +161,13 @@ pub fn median_inlier_depth(pose: &AbsolutePose, points: &[[f64; 3]]) -> f64 {
         pose.inliers.iter().map(|&i| (w2c * nalgebra::Point3::from(points[i])).z).filter(|z| z.is_finite()).collect();
     z.sort_by(f64::total_cmp);
     z.get(z.len() / 2).copied().unwrap_or(0.0)
+}
+
+/// Whether `truth` (camera-to-world) lies within the tolerances [`confidence`] is the probability of.
+pub fn within_confidence_tolerance(pose: &AbsolutePose, points: &[[f64; 3]], truth: &nalgebra::Isometry3<f64>) -> bool {
+    let tolerance = CONFIDENCE_DEPTH_FRACTION * median_inlier_depth(pose, points);
+    (pose.camera_to_world.translation.vector - truth.translation.vector).norm() <= tolerance
+        && pose.camera_to_world.rotation.angle_to(&truth.rotation).to_degrees() <= CONFIDENCE_ROTATION_DEG
 }
 
 /// The probability that the true pose lies within [`CONFIDENCE_ROTATION_DEG`] and

@@ -11,9 +11,10 @@
 //!    is an error that says how many localised.
 //! 2. **Re-expressed and fused.** Source keyframes (ids moved past the target's when any collides) and
 //!    landmarks are carried into the target's frame. A source landmark is fused with the target landmark
-//!    that its observations matched as PnP inliers most often (each target landmark takes at most one source
-//!    landmark, the one with most such matches): its observations then observe the target's landmark, whose
-//!    point stays. Links to an external SfM's point ids are not carried (two runs' ids are not one space).
+//!    that its observations matched most often as PnP inliers of keyframes that agree with the transform,
+//!    counting a match only when the transform puts the source point within [`FUSION_DEPTH_FRACTION`] of the
+//!    target's (each target landmark takes at most one source landmark, the one with most such matches): its
+//!    observations then observe the target's landmark, whose point stays. Links to an external SfM's point ids are not carried (two runs' ids are not one space).
 //! 3. **One record.** The result is one [`Record::Merge`], appended and fsynced like any write: after kill -9
 //!    the target is either as it was or merged, and the source is never written.
 
@@ -37,6 +38,9 @@ pub const MIN_LOCALISED: usize = 3;
 pub const CENTRE_TOLERANCE: f64 = 0.1;
 /// ... and its rotation within this many degrees.
 pub const ROTATION_TOLERANCE_DEG: f64 = 5.0;
+/// A source landmark is fused with a target landmark only when the transform puts it within this fraction of
+/// the target landmark's distance to the voting camera (5 cm at 1 m).
+pub const FUSION_DEPTH_FRACTION: f64 = 0.05;
 
 /// What a merge did, for the answer.
 #[derive(Debug, Clone, PartialEq)]
@@ -141,7 +145,7 @@ fn umeyama(source: &[Vector3<f64>], target: &[Vector3<f64>]) -> Result<Option<Si
 }
 
 /// Estimates the transform from the localised keyframes (module docs, step 1).
-fn estimate(source: &MapData, located: &[Located]) -> Result<(Similarity3<f64>, usize), MapError> {
+fn estimate(source: &MapData, located: &[Located]) -> Result<(Similarity3<f64>, Vec<usize>), MapError> {
     let too_few = |inliers: usize| MapError::InvalidInput {
         field: "source".into(),
         reason: format!(
@@ -157,10 +161,7 @@ fn estimate(source: &MapData, located: &[Located]) -> Result<(Similarity3<f64>, 
         return Err(too_few(0));
     }
     let pairs: Vec<(&Pose, &Located)> = located.iter().map(|l| (&source.keyframes[&l.keyframe].pose, l)).collect();
-    let centres: Vec<Vector3<f64>> = located.iter().map(|l| l.pose.translation.vector).collect();
-    let mean = centres.iter().sum::<Vector3<f64>>() / centres.len() as f64;
-    let spread = (centres.iter().map(|c| (c - mean).norm_squared()).sum::<f64>() / centres.len() as f64).sqrt();
-    let tolerance = CENTRE_TOLERANCE * spread.max(1e-9);
+    let tolerance = centre_tolerance(located);
     // Every ordered pair: a few hundred keyframes at most localise in practice, and each try is cheap.
     let mut best: Option<(Similarity3<f64>, Vec<usize>)> = None;
     for i in 0..pairs.len() {
@@ -187,7 +188,24 @@ fn estimate(source: &MapData, located: &[Located]) -> Result<(Similarity3<f64>, 
             (transform, inliers) = (refit, again);
         }
     }
-    Ok((transform, inliers.len()))
+    Ok((transform, inliers))
+}
+
+/// The tolerance of [`agreeing`] for these localised keyframes: [`CENTRE_TOLERANCE`] of their target
+/// centres' spread.
+fn centre_tolerance(located: &[Located]) -> f64 {
+    let centres: Vec<Vector3<f64>> = located.iter().map(|l| l.pose.translation.vector).collect();
+    let mean = centres.iter().sum::<Vector3<f64>>() / centres.len().max(1) as f64;
+    let spread = (centres.iter().map(|c| (c - mean).norm_squared()).sum::<f64>() / centres.len().max(1) as f64).sqrt();
+    CENTRE_TOLERANCE * spread.max(1e-9)
+}
+
+/// A camera-to-world pose carried by `s` into the other world (the camera's own axes unchanged).
+pub fn moved_pose(s: &Similarity3<f64>, p: &nalgebra::Isometry3<f64>) -> nalgebra::Isometry3<f64> {
+    nalgebra::Isometry3::from_parts(
+        Translation3::from((s * Point3::from(p.translation.vector)).coords),
+        s.isometry.rotation * p.rotation,
+    )
 }
 
 /// Plans merging `source` into `target` (module docs). `transform`: source to target coordinates, when the
@@ -215,20 +233,33 @@ pub fn plan_merge(
         });
     }
     let located: Vec<Located> = source.keyframes.values().filter_map(|kf| located(target, index, kf, params)).collect();
-    let (transform, inliers, estimated) = match transform {
-        Some(t) => (t, 0, false),
+    let (transform, agree, estimated) = match transform {
+        Some(t) => {
+            // A given transform: the keyframes whose localisation agrees with it vote for fusions.
+            let pairs: Vec<(&Pose, &Located)> =
+                located.iter().map(|l| (&source.keyframes[&l.keyframe].pose, l)).collect();
+            let agree = if located.is_empty() { Vec::new() } else { agreeing(&t, &pairs, centre_tolerance(&located)) };
+            (t, agree, false)
+        }
         None => {
-            let (t, n) = estimate(source, &located)?;
-            (t, n, true)
+            let (t, agree) = estimate(source, &located)?;
+            (t, agree, true)
         }
     };
+    let inliers = if estimated { agree.len() } else { 0 };
 
-    // Fusion votes: source landmark -> target landmark, from the localised keyframes' PnP inliers.
+    // Fusion votes: source landmark -> target landmark, from the PnP inliers of the keyframes that agree with
+    // the transform, when the source point lands near the target's (within FUSION_DEPTH_FRACTION of its
+    // distance to the voting camera).
     let source_observed = source.observed_keypoints();
     let mut votes: HashMap<u64, BTreeMap<u64, usize>> = HashMap::new();
-    for l in &located {
+    for l in agree.iter().map(|&i| &located[i]) {
+        let camera = l.pose.translation.vector;
         for &(keypoint, target_landmark) in &l.matches {
-            if let Some(&s) = source_observed.get(&(l.keyframe, keypoint)) {
+            let Some(&s) = source_observed.get(&(l.keyframe, keypoint)) else { continue };
+            let there = Vector3::from(target.landmarks[&target_landmark].point);
+            let here = (transform * Point3::from(source.landmarks[&s].point)).coords;
+            if (here - there).norm() <= FUSION_DEPTH_FRACTION * (there - camera).norm() {
                 *votes.entry(s).or_default().entry(target_landmark).or_default() += 1;
             }
         }
@@ -244,8 +275,15 @@ pub fn plan_merge(
     }
     let fused: HashMap<u64, u64> = claims.into_iter().map(|(t, (_, s))| (s, t)).collect();
 
+    let id_overflow = || MapError::InvalidInput {
+        field: "source".into(),
+        reason: "the source's keyframe ids cannot be moved past the target's without overflowing u64".into(),
+    };
     let offset = if source.keyframes.keys().any(|id| target.keyframes.contains_key(id)) {
-        target.keyframes.keys().next_back().map_or(0, |m| m + 1)
+        match target.keyframes.keys().next_back() {
+            Some(m) => m.checked_add(1).ok_or_else(id_overflow)?,
+            None => 0,
+        }
     } else {
         0
     };
@@ -253,14 +291,10 @@ pub fn plan_merge(
         .keyframes
         .values()
         .map(|kf| {
-            let p = kf.pose.isometry();
-            let moved = nalgebra::Isometry3::from_parts(
-                Translation3::from((transform * Point3::from(p.translation.vector)).coords),
-                transform.isometry.rotation * p.rotation,
-            );
-            Keyframe { id: kf.id + offset, pose: Pose::from_isometry(&moved), ..kf.clone() }
+            let id = kf.id.checked_add(offset).ok_or_else(id_overflow)?;
+            Ok(Keyframe { id, pose: Pose::from_isometry(&moved_pose(&transform, &kf.pose.isometry())), ..kf.clone() })
         })
-        .collect();
+        .collect::<Result<_, MapError>>()?;
     let mut new_ids: HashMap<u64, u64> = HashMap::new();
     let mut new_landmarks = Vec::new();
     let mut observations = Vec::new();
@@ -274,7 +308,7 @@ pub fn plan_merge(
                 id
             }),
         };
-        observations.push(NewObservation { landmark, keyframe: o.keyframe + offset, keypoint: o.keypoint });
+        observations.push(NewObservation { landmark, keyframe: o.keyframe.wrapping_add(offset), keypoint: o.keypoint });
     }
     let plan = MergePlan {
         source_keyframes: source.keyframes.len(),

@@ -188,12 +188,8 @@ impl MapData {
                 s.landmarks += new_landmarks.len();
                 s.observations += observations.len();
                 s.live_observations += observations.len();
-                s.memory_bytes += (std::mem::size_of::<Keyframe>()
-                    + keyframe.keypoints.len() * std::mem::size_of::<Keypoint>()
-                    + keyframe.descriptors.len()
-                    + keyframe.embeddings.len() * 4
-                    + observations.len() * (Self::OBSERVATION_BYTES + self.meta.dim * 4 * 2)
-                    + new_landmarks.len() * Self::LANDMARK_BYTES) as u64;
+                s.memory_bytes +=
+                    self.added_bytes(std::slice::from_ref(keyframe), new_landmarks.len(), observations.len());
             }
             Record::RemoveKeyframe { id } => {
                 s.keyframes -= usize::from(self.keyframes.contains_key(id));
@@ -205,17 +201,7 @@ impl MapData {
                 s.landmarks += new_landmarks.len();
                 s.observations += observations.len();
                 s.live_observations += observations.len();
-                s.memory_bytes += (keyframes
-                    .iter()
-                    .map(|k| {
-                        std::mem::size_of::<Keyframe>()
-                            + k.keypoints.len() * std::mem::size_of::<Keypoint>()
-                            + k.descriptors.len()
-                            + k.embeddings.len() * 4
-                    })
-                    .sum::<usize>()
-                    + observations.len() * (Self::OBSERVATION_BYTES + self.meta.dim * 4 * 2)
-                    + new_landmarks.len() * Self::LANDMARK_BYTES) as u64;
+                s.memory_bytes += self.added_bytes(keyframes, new_landmarks.len(), observations.len());
             }
         }
         s
@@ -230,18 +216,24 @@ impl MapData {
     /// A landmark's point, list header and map node.
     const LANDMARK_BYTES: usize = std::mem::size_of::<Landmark>() + 48;
 
+    /// A keyframe's payload in memory.
+    fn keyframe_bytes(k: &Keyframe) -> usize {
+        std::mem::size_of::<Keyframe>()
+            + k.keypoints.len() * std::mem::size_of::<Keypoint>()
+            + k.descriptors.len()
+            + k.embeddings.len() * 4
+    }
+
+    /// What a record adding `keyframes`, `landmarks` and `observations` adds to [`MapData::memory_bytes`].
+    fn added_bytes(&self, keyframes: &[Keyframe], landmarks: usize, observations: usize) -> u64 {
+        (keyframes.iter().map(Self::keyframe_bytes).sum::<usize>()
+            + observations * (Self::OBSERVATION_BYTES + self.meta.dim * 4 * 2)
+            + landmarks * Self::LANDMARK_BYTES) as u64
+    }
+
     /// An estimate of the memory the loaded map takes (its data and its index), for the map cache's budget.
     pub fn memory_bytes(&self) -> usize {
-        let keyframes: usize = self
-            .keyframes
-            .values()
-            .map(|k| {
-                std::mem::size_of::<Keyframe>()
-                    + k.keypoints.len() * std::mem::size_of::<Keypoint>()
-                    + k.descriptors.len()
-                    + k.embeddings.len() * 4
-            })
-            .sum();
+        let keyframes: usize = self.keyframes.values().map(Self::keyframe_bytes).sum();
         keyframes
             + self.landmarks.len() * Self::LANDMARK_BYTES
             + self.observations.len() * Self::OBSERVATION_BYTES
@@ -316,7 +308,17 @@ impl MapData {
                 self.check_keyframes(std::slice::from_ref(keyframe), new_landmarks, observations)
             }
             Record::Merge { keyframes, new_landmarks, observations, .. } => {
-                self.check_keyframes(keyframes, new_landmarks, observations)
+                self.check_keyframes(keyframes, new_landmarks, observations)?;
+                // A merge adds observations of its own keyframes only, and points within the bound of poses.
+                let added: std::collections::HashSet<u64> = keyframes.iter().map(|k| k.id).collect();
+                if let Some(o) = observations.iter().find(|o| !added.contains(&o.keyframe)) {
+                    return Err(format!("a merge observes keyframe {}, which it does not add", o.keyframe));
+                }
+                let bound = crate::camera::MAX_COORDINATE;
+                if let Some((id, _)) = new_landmarks.iter().find(|(_, p)| p.iter().any(|v| v.abs() > bound)) {
+                    return Err(format!("merged landmark {id} lies beyond {bound} map units"));
+                }
+                Ok(())
             }
             Record::AddExternalKeyframe { keyframe, new_landmarks, observations, external_ids } => {
                 self.check_keyframes(std::slice::from_ref(keyframe), new_landmarks, observations)?;

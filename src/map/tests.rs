@@ -496,3 +496,44 @@ fn a_query_keypoint_cap_searches_the_strongest_keypoints_and_still_localises() {
     assert!(too_low.validate().unwrap_err().contains("min_inliers"));
     assert!(LocalizeSettings::default().validate().is_ok());
 }
+
+/// A merge record adds its keyframes, landmarks and observations at once; it may observe only its own
+/// keyframes, keeps points within the bound of poses, and survives a replay of the log like any record.
+#[test]
+fn a_merge_record_is_checked_applied_and_replayed_as_one() {
+    let dir = temp_dir("merge-record");
+    let mut data = MapData::new(meta(8));
+    let mut log = LocalJournal::create(&dir, &data, 0).unwrap();
+    // Keypoint 3 of keyframe 0 observes nothing, so only the merge's own rule can refuse observing it.
+    let Record::AddKeyframe { keyframe, mut new_landmarks, mut observations } = keyframe_record(0, 4, 0, 8, 1) else {
+        unreachable!()
+    };
+    (new_landmarks.pop(), observations.pop());
+    write(&mut log, &mut data, Record::AddKeyframe { keyframe, new_landmarks, observations });
+    let parts = |r: Record| match r {
+        Record::AddKeyframe { keyframe, new_landmarks, observations } => (keyframe, new_landmarks, observations),
+        _ => unreachable!(),
+    };
+    let (k1, l1, o1) = parts(keyframe_record(1, 4, 10, 8, 2));
+    let (k2, l2, o2) = parts(keyframe_record(2, 4, 20, 8, 3));
+    let merge = |landmarks: Vec<(u64, [f64; 3])>, observations: Vec<NewObservation>| Record::Merge {
+        source: "other".into(),
+        keyframes: vec![k1.clone(), k2.clone()],
+        new_landmarks: landmarks,
+        observations,
+    };
+    let good = merge([l1.clone(), l2.clone()].concat(), [o1.clone(), o2.clone()].concat());
+    // Observing a keyframe the merge does not add, or a point beyond the bound: refused.
+    let stray = NewObservation { landmark: 10, keyframe: 0, keypoint: 3 };
+    let mut o_bad = [o1.clone(), o2.clone()].concat();
+    o_bad[0] = stray;
+    assert!(data.check(&merge([l1.clone(), l2.clone()].concat(), o_bad)).unwrap_err().contains("does not add"));
+    let mut far = [l1, l2].concat();
+    far[0].1 = [2e8, 0.0, 0.0];
+    assert!(data.check(&merge(far, [o1, o2].concat())).unwrap_err().contains("beyond"));
+    write(&mut log, &mut data, good);
+    assert_eq!((data.keyframes.len(), data.landmarks.len(), data.live_observations()), (3, 11, 11));
+    drop(log);
+    let (replayed, _, _) = LocalJournal::open(&dir, 0).unwrap();
+    assert_eq!(replayed, data);
+}

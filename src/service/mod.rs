@@ -137,6 +137,8 @@ pub struct LocalizeOutcome {
     pub camera: Camera,
     /// Whether the query came without a focal length (the pose's `focal` is then the estimate).
     pub focal_estimated: bool,
+    /// The query's lens: `pixels` are undistorted, pictures draw them where the image has them.
+    pub distortion: Distortion,
 }
 
 impl LocalizeOutcome {
@@ -150,17 +152,24 @@ impl LocalizeOutcome {
         (0..6).flat_map(|r| (0..6).map(move |col| m[(r, col)])).collect()
     }
 
-    /// Each match as drawn: its pixel, whether it is an inlier, and its landmark reprojected at the pose.
+    /// Each match as drawn over the query image: its pixel, whether it is an inlier, and its landmark
+    /// reprojected at the pose (both through the query's lens, where the image has them).
     pub fn drawn_points(&self) -> Vec<crate::render::LocalizedPoint> {
         let inliers: std::collections::HashSet<usize> =
             self.pose.as_ref().map(|p| p.inliers.iter().copied().collect()).unwrap_or_default();
         let world_to_camera = self.pose.as_ref().map(|p| p.camera_to_world.inverse());
+        let through_lens = |p: (f64, f64)| -> (f64, f64) {
+            self.distortion.distort(&self.camera, &[p]).ok().and_then(|v| v.first().copied()).unwrap_or(p)
+        };
         (0..self.matches.len())
             .map(|i| {
                 let [x, y, z] = self.points[i];
-                let reprojected =
-                    world_to_camera.as_ref().and_then(|t| self.camera.project(&(t * nalgebra::Point3::new(x, y, z))));
-                crate::render::LocalizedPoint { pixel: self.pixels[i], inlier: inliers.contains(&i), reprojected }
+                let reprojected = world_to_camera
+                    .as_ref()
+                    .and_then(|t| self.camera.project(&(t * nalgebra::Point3::new(x, y, z))))
+                    .map(through_lens);
+                let (u, v) = through_lens((self.pixels[i].0.into(), self.pixels[i].1.into()));
+                crate::render::LocalizedPoint { pixel: (u as f32, v as f32), inlier: inliers.contains(&i), reprojected }
             })
             .collect()
     }
@@ -315,8 +324,23 @@ impl Service {
         if let Some((cam, distortion)) = lens.filter(|(_, d)| !d.is_none()) {
             times.time("undistort", || -> Result<(), ServiceError> {
                 let moved = distortion.undistort(cam, &features.points())?;
-                for (k, (x, y)) in features.keypoints.iter_mut().zip(moved) {
-                    (k.x, k.y) = (x, y);
+                // A keypoint whose undistorted position leaves the image (the far corners of a wide lens, or
+                // a point the model does not invert) is dropped: stored keyframes keep the keypoint contract
+                // (inside the image), so re-embedding and client keypoint checks hold for them.
+                let inside = |x: f32, y: f32| {
+                    x.is_finite()
+                        && y.is_finite()
+                        && (0.0..=(cam.width - 1) as f32).contains(&x)
+                        && (0.0..=(cam.height - 1) as f32).contains(&y)
+                };
+                let old = std::mem::take(&mut features.keypoints);
+                let descriptors = std::mem::take(&mut features.descriptors);
+                for ((mut k, d), (x, y)) in old.into_iter().zip(descriptors).zip(moved) {
+                    if inside(x, y) {
+                        (k.x, k.y) = (x, y);
+                        features.keypoints.push(k);
+                        features.descriptors.push(d);
+                    }
                 }
                 Ok(())
             })?;
@@ -470,6 +494,7 @@ impl Service {
         };
         Ok(LocalizeOutcome {
             focal_estimated,
+            distortion: frame.distortion,
             pose: l.pose,
             matches: l.matches,
             confidence: l.confidence,

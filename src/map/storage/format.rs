@@ -264,10 +264,23 @@ pub fn write_atomic(path: &Path, bytes: &[u8]) -> Result<(), MapError> {
 }
 
 /// Frames one record as `[len u32][crc u32][seq u64][payload]` (`len` counts the payload, the CRC covers
-/// seq and payload): the unit of the local log and of an object-storage segment.
+/// seq and payload): the unit of the local log and of an object-storage segment. A record larger than a log
+/// may hold (`MAX_RECORD`, which reading enforces) is refused here, before anything is written: a write that
+/// was acknowledged must load again.
 pub fn encode_record(seq: u64, record: &Record) -> Result<Vec<u8>, MapError> {
     let payload = bincode::serialize(record)
         .map_err(|e| MapError::InvalidInput { field: "record".into(), reason: format!("cannot encode: {e}") })?;
+    if payload.len() > MAX_RECORD as usize {
+        return Err(MapError::InvalidInput {
+            field: "record".into(),
+            reason: format!(
+                "this write is {} MiB, more than the {} MiB one log record may hold (a merge of a large source: \
+                 merge it in parts, e.g. from copies of the source with keyframes removed)",
+                payload.len() >> 20,
+                MAX_RECORD >> 20
+            ),
+        });
+    }
     let mut body = Vec::with_capacity(payload.len() + 8);
     body.extend_from_slice(&seq.to_le_bytes());
     body.extend_from_slice(&payload);

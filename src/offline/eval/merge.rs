@@ -72,10 +72,7 @@ fn world_frame(rng: &mut rand::rngs::StdRng) -> Similarity3<f64> {
 }
 
 fn moved(s: &Similarity3<f64>, p: &Isometry3<f64>) -> Isometry3<f64> {
-    Isometry3::from_parts(
-        Translation3::from((s * Point3::from(p.translation.vector)).coords),
-        s.isometry.rotation * p.rotation,
-    )
+    crate::map::merge::moved_pose(s, p)
 }
 
 pub fn evaluate(scene: &Scene, split: Split, seed: u64, embedder: &Embedder) -> Result<MergeReport, BoxError> {

@@ -41,9 +41,7 @@ use crate::embedding::Embedder;
 use crate::features::{ExtractorSettings, Features};
 use crate::map::builder::{plan_keyframe, BuildSettings, Depth, KeyframeInput};
 use crate::map::index::{EmbeddingIndex, IndexSettings};
-use crate::map::localize::{
-    localize, median_inlier_depth, LocalizeSettings, CONFIDENCE_DEPTH_FRACTION, CONFIDENCE_ROTATION_DEG,
-};
+use crate::map::localize::{localize, within_confidence_tolerance, LocalizeSettings};
 use crate::map::model::{MapData, MapMeta};
 use crate::offline::eval::methods::{describe, Described, Method};
 use crate::offline::eval::stats::{markdown_table, median};
@@ -355,12 +353,8 @@ pub fn evaluate(scene: &Scene, cfg: &RelocConfig, embedder: Option<&Embedder>) -
                 ),
                 None => (false, f64::INFINITY, 180.0, 0),
             };
-            let within_confidence_tolerance = out.pose.as_ref().map(|p| {
-                let depth = median_inlier_depth(p, &out.points);
-                (p.camera_to_world.translation.vector - gt.translation.vector).norm()
-                    <= CONFIDENCE_DEPTH_FRACTION * depth
-                    && p.camera_to_world.rotation.angle_to(&gt.rotation).to_degrees() <= CONFIDENCE_ROTATION_DEG
-            });
+            let within_confidence_tolerance =
+                out.pose.as_ref().map(|p| within_confidence_tolerance(p, &out.points, &gt));
             let mahalanobis2 = out.pose.as_ref().and_then(|p| {
                 let sigma = pose_covariance(PoseConvention::default(), &p.camera_to_world, p.covariance_w2c.as_ref()?);
                 let e = pose_difference(&gt, &p.camera_to_world);

@@ -394,9 +394,8 @@ impl IntrinsicsQuery {
     /// The intrinsics the query string gives (`None` when it names none of them); what it leaves out is 0, as
     /// in a JSON body.
     pub fn intrinsics(&self) -> Result<Option<Intrinsics>, ServiceError> {
+        // A size alone is not intrinsics (it is the image's anyway): as before lenses, it is then left out.
         let any = [self.fx, self.fy, self.cx, self.cy].iter().any(Option::is_some)
-            || self.width.is_some()
-            || self.height.is_some()
             || self.distortion_model.is_some()
             || self.distortion.is_some();
         if !any {

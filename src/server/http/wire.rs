@@ -386,7 +386,8 @@ pub struct LocalizeResponse {
     /// In [0, 1]: the probability, under the pose's covariance, that the pose is within 2° and within 5 % of
     /// the inliers' median depth of the truth; 0 without a pose. As calibrated as the covariance is.
     pub confidence: f64,
-    /// The focal length of the pose, pixels: the request's `fx`, or the estimate when it left it out.
+    /// The focal length of the pose, pixels: the request's `fx`, or the estimate when it left it out; 0 when
+    /// not localised.
     pub focal_length: f64,
     /// Whether `focal_length` is the server's estimate.
     pub focal_estimated: bool,
