@@ -508,7 +508,8 @@ fn a_merge_record_is_checked_applied_and_replayed_as_one() {
     let Record::AddKeyframe { keyframe, mut new_landmarks, mut observations } = keyframe_record(0, 4, 0, 8, 1) else {
         unreachable!()
     };
-    (new_landmarks.pop(), observations.pop());
+    new_landmarks.pop();
+    observations.pop();
     write(&mut log, &mut data, Record::AddKeyframe { keyframe, new_landmarks, observations });
     let parts = |r: Record| match r {
         Record::AddKeyframe { keyframe, new_landmarks, observations } => (keyframe, new_landmarks, observations),
