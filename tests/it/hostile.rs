@@ -396,12 +396,12 @@ async fn regression_error_messages_carry_no_rust_debug_output() {
     http.post(format!("{base}/v1/maps")).json(&serde_json::json!({"map_id": "m"})).send().await.unwrap();
     let png = std::fs::read(&scene.frames[0].rgb).unwrap();
     let r = http
-        .post(format!("{base}/v1/maps/m/localize?fx=0&cx=160&cy=120"))
+        .post(format!("{base}/v1/maps/m/localize?fx=-5&cx=160&cy=120"))
         .header("content-type", "image/png")
         .body(png);
     let (status, _, message) = error_of(r.send().await.unwrap()).await;
     assert_eq!(status, 400);
-    assert_eq!(message, "invalid frame.intrinsics: fx must be finite and positive (got 0)");
+    assert_eq!(message, "invalid frame.intrinsics: fx must be finite and positive (got -5)");
     let (_, mut matching) = clients(&server).await;
     let mut frame = image_frame(&scene.frames[0].rgb, &scene.camera);
     frame.intrinsics.as_mut().unwrap().fy = f64::NAN;
