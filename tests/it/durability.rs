@@ -16,7 +16,8 @@ use scone::pose::rotation_error_deg;
 
 use crate::common::{fixture, temp_dir};
 
-fn open(dir: &std::path::Path) -> (MapStore, Describer) {
+/// The map store of `dir` with the committed model, and a describer with the service's defaults.
+pub(crate) fn open(dir: &std::path::Path) -> (MapStore, Describer) {
     let embedder = Arc::new(Embedder::load(&EmbedderSettings::default()).unwrap());
     let info = ModelInfo { model_id: embedder.model_id().into(), k: embedder.k(), dim: embedder.dim() };
     let store =

@@ -5,21 +5,16 @@
 
 use std::io::{BufRead, BufReader};
 use std::process::{Command, Stdio};
-use std::sync::Arc;
 use std::time::{Duration, Instant};
 
 use nalgebra::{Isometry3, Point3, Similarity3, Translation3, UnitQuaternion, Vector3};
-use scone::decode::ImageLimitSettings;
-use scone::embedding::{Embedder, EmbedderSettings};
-use scone::features::ExtractorSettings;
 use scone::map::builder::KeyframeInput;
-use scone::map::store::{MapStore, ModelInfo, StoreSettings};
 use scone::offline::scene::Scene;
-use scone::pipeline::Describer;
 use scone::server::proto;
 use tonic::Code;
 
 use crate::common::{fixture, shared_data, temp_dir};
+use crate::durability::open;
 use crate::service::{add_keyframes, clients, image_frame, keyframe_requests, serve, settings};
 
 /// A world frame of its own: rotation, translation and scale drawn from `seed`.
@@ -209,14 +204,6 @@ async fn two_maps_in_their_own_frames_merge_into_one_that_agrees_with_the_truth(
     assert!(e.message().contains("localised in the target"), "{}", e.message());
     let e = maps.merge_maps(refused("a0", "lonely", None)).await.unwrap_err();
     assert!(e.message().contains("no keyframes"), "{}", e.message());
-}
-
-fn open(dir: &std::path::Path) -> (MapStore, Describer) {
-    let embedder = Arc::new(Embedder::load(&EmbedderSettings::default()).unwrap());
-    let info = ModelInfo { model_id: embedder.model_id().into(), k: embedder.k(), dim: embedder.dim() };
-    let store =
-        MapStore::open(StoreSettings { data_dir: dir.to_path_buf(), ..StoreSettings::default() }, info).unwrap();
-    (store, Describer { extractor: ExtractorSettings::default(), limits: ImageLimitSettings::default(), embedder })
 }
 
 fn copy_dir(from: &std::path::Path, to: &std::path::Path) {
