@@ -408,16 +408,14 @@ pub fn absolute_pose(
         if chosen.len() < min_inliers.max(4) {
             return Ok(None);
         }
-        let in_obj: Vector<Point3f> = chosen.iter().map(|&i| obj.get(i)).collect::<Result<_, _>>()?;
-        let in_img: Vector<Point2f> = chosen.iter().map(|&i| img.get(i)).collect::<Result<_, _>>()?;
+        let (in_obj, in_img) = inlier_points(points3d, points2d, &chosen);
         opencv::calib3d::solve_pnp_refine_lm_def(&in_obj, &in_img, &k, &dist, &mut rvec, &mut tvec)?;
         chosen = select(&rvec, &tvec)?;
     }
     if chosen.len() < min_inliers {
         return Ok(None);
     }
-    let in_obj: Vector<Point3f> = chosen.iter().map(|&i| obj.get(i)).collect::<Result<_, _>>()?;
-    let in_img: Vector<Point2f> = chosen.iter().map(|&i| img.get(i)).collect::<Result<_, _>>()?;
+    let (in_obj, in_img) = inlier_points(points3d, points2d, &chosen);
     let mut projected = Vector::<Point2f>::new();
     opencv::calib3d::project_points_def(&in_obj, &rvec, &tvec, &k, &dist, &mut projected)?;
     let err =

@@ -160,7 +160,7 @@ fn estimate(source: &MapData, located: &[Located]) -> Result<(Similarity3<f64>, 
     if located.len() < MIN_LOCALISED {
         return Err(too_few(0));
     }
-    let pairs: Vec<(&Pose, &Located)> = located.iter().map(|l| (&source.keyframes[&l.keyframe].pose, l)).collect();
+    let pairs = with_source_poses(source, located);
     let tolerance = centre_tolerance(located);
     // Every ordered pair: a few hundred keyframes at most localise in practice, and each try is cheap.
     let mut best: Option<(Similarity3<f64>, Vec<usize>)> = None;
@@ -189,6 +189,11 @@ fn estimate(source: &MapData, located: &[Located]) -> Result<(Similarity3<f64>, 
         }
     }
     Ok((transform, inliers))
+}
+
+/// Each localised keyframe with its pose in the source.
+fn with_source_poses<'a>(source: &'a MapData, located: &'a [Located]) -> Vec<(&'a Pose, &'a Located)> {
+    located.iter().map(|l| (&source.keyframes[&l.keyframe].pose, l)).collect()
 }
 
 /// The tolerance of [`agreeing`] for these localised keyframes: [`CENTRE_TOLERANCE`] of their target
@@ -236,8 +241,7 @@ pub fn plan_merge(
     let (transform, agree, estimated) = match transform {
         Some(t) => {
             // A given transform: the keyframes whose localisation agrees with it vote for fusions.
-            let pairs: Vec<(&Pose, &Located)> =
-                located.iter().map(|l| (&source.keyframes[&l.keyframe].pose, l)).collect();
+            let pairs = with_source_poses(source, &located);
             let agree = if located.is_empty() { Vec::new() } else { agreeing(&t, &pairs, centre_tolerance(&located)) };
             (t, agree, false)
         }
