@@ -87,6 +87,19 @@ pub fn match_descriptors(
     test: &RatioTest,
     b_points: &[(f32, f32)],
 ) -> Result<Vec<Match>, FeatureError> {
+    match_descriptors_masked(a, b, norm, test, b_points, &Mat::default())
+}
+
+/// [`match_descriptors`] where only the pairs `mask` admits compete (`a.rows() x b.rows()`, `CV_8U`, nonzero =
+/// admitted; empty admits all): a ratio test among the admitted candidates, and a mutual check among them too.
+pub fn match_descriptors_masked(
+    a: &Mat,
+    b: &Mat,
+    norm: i32,
+    test: &RatioTest,
+    b_points: &[(f32, f32)],
+    mask: &Mat,
+) -> Result<Vec<Match>, FeatureError> {
     if a.rows() < 1 || b.rows() < 2 {
         return Ok(Vec::new());
     }
@@ -100,10 +113,14 @@ pub fn match_descriptors(
     let matcher = BFMatcher::new(norm, false)?;
     let mut knn = Vector::<Vector<DMatch>>::new();
     let k = if same_corner { SAME_CORNER_CANDIDATES } else { 2 };
-    matcher.knn_train_match(a, b, &mut knn, k, &Mat::default(), false)?;
+    matcher.knn_train_match(a, b, &mut knn, k, mask, false)?;
     let reverse: Option<Vec<i32>> = if test.mutual {
         let mut best = Vector::<DMatch>::new();
-        matcher.train_match(b, a, &mut best, &Mat::default())?;
+        let mut back = Mat::default();
+        if !mask.empty() {
+            opencv::core::transpose(mask, &mut back)?;
+        }
+        matcher.train_match(b, a, &mut best, &back)?;
         let mut rev = vec![-1; b.rows() as usize];
         for m in best.iter() {
             rev[m.query_idx as usize] = m.train_idx;

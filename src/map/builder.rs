@@ -52,8 +52,10 @@ use crate::camera::Camera;
 use crate::camera::Pose;
 use crate::error::MapError;
 use crate::features::Features;
+use crate::features::DESCRIPTOR_BYTES;
 use crate::map::model::{Keyframe, MapData, NewObservation, Record};
-use crate::matching::{match_l2, RatioTest};
+use crate::matching::{embedding_mat, match_descriptors_masked, RatioTest};
+use opencv::core::{NORM_HAMMING, NORM_L2};
 
 /// Settings of map building.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
@@ -84,6 +86,19 @@ pub struct BuildSettings {
     /// much (map units). An SfM has one point per id; copies differ only by rounding (f32 on the way, 1e-6
     /// relative at 100 m), never by 0.1 mm.
     pub external_point_tolerance: f64,
+    /// Matching guided by the known poses: a keypoint of the new keyframe competes (ratio test, mutual check)
+    /// only with the candidate's keypoints within this many pixels of its epipolar line (0: every keypoint).
+    pub epipolar_px: f64,
+    /// Besides the `candidates` nearest keyframes, this many keyframes that share the most landmarks with them
+    /// (covisibility) are matched too.
+    pub covisible_candidates: usize,
+    /// A landmark the new keyframe observes (matched or just triangulated) also takes the candidates'
+    /// keypoints the new keyframe's keypoint matched, where it reprojects within `reproj_px`: tracks grow
+    /// across keyframes instead of stopping at pairs.
+    pub extend_tracks: bool,
+    /// FREAK's matches (Hamming, the same ratio, where both keyframes carry FREAK bits) join the embedding's
+    /// for keypoints the embedding left unmatched.
+    pub freak_matches: bool,
 }
 
 impl Default for BuildSettings {
@@ -98,11 +113,22 @@ impl Default for BuildSettings {
             external_radius_px: 2.0,
             external_reproj_px: 4.0,
             external_point_tolerance: 1e-4,
+            epipolar_px: 8.0,
+            covisible_candidates: 3,
+            extend_tracks: true,
+            freak_matches: true,
         }
     }
 }
 
 impl BuildSettings {
+    /// Map building before issue 27: the nearest keyframes, every keypoint competing, pairs only, the
+    /// embedding alone (the baseline of the benchmarks).
+    pub fn unguided(self) -> Self {
+        Self { epipolar_px: 0.0, covisible_candidates: 0, extend_tracks: false, freak_matches: false, ..self }
+    }
+
+
     /// Checks the settings of external landmarks (the others have always been taken as given).
     pub fn validate(&self) -> Result<(), String> {
         for (name, v) in [
@@ -113,6 +139,9 @@ impl BuildSettings {
             if !(v.is_finite() && v > 0.0) {
                 return Err(format!("{name} must be positive, got {v}"));
             }
+        }
+        if !(self.epipolar_px.is_finite() && self.epipolar_px >= 0.0) {
+            return Err(format!("epipolar_px must be 0 (off) or positive, got {}", self.epipolar_px));
         }
         if self.external_radius_px > 64.0 {
             return Err(format!("external_radius_px {} is over 64 px", self.external_radius_px));
@@ -303,6 +332,24 @@ pub fn plan(data: &MapData, input: &KeyframeInput, params: &BuildSettings) -> Re
         da.total_cmp(&db).then(a.id.cmp(&b.id))
     });
     candidates.truncate(params.candidates);
+    if params.covisible_candidates > 0 && !candidates.is_empty() {
+        let near: HashSet<u64> = candidates.iter().map(|k| k.id).collect();
+        let mut votes: HashMap<u64, usize> = HashMap::new();
+        for o in data.observations.iter().filter(|o| o.live && near.contains(&o.keyframe)) {
+            for &other in &data.landmarks[&o.landmark].observations {
+                let other = &data.observations[other as usize];
+                if other.live && !near.contains(&other.keyframe) {
+                    *votes.entry(other.keyframe).or_default() += 1;
+                }
+            }
+        }
+        let mut ranked: Vec<(u64, usize)> = votes
+            .into_iter()
+            .filter(|(k, _)| viewing_direction(&data.keyframes[k].pose.isometry()).dot(&dir) > 0.0)
+            .collect();
+        ranked.sort_by(|a, b| b.1.cmp(&a.1).then(a.0.cmp(&b.0)));
+        candidates.extend(ranked.iter().take(params.covisible_candidates).map(|(k, _)| &data.keyframes[k]));
+    }
 
     let mut assigned: HashMap<u32, u64> = HashMap::new(); // keypoint of the new keyframe -> landmark
     let mut used_old: HashSet<(u64, u32)> = HashSet::new();
@@ -311,12 +358,12 @@ pub fn plan(data: &MapData, input: &KeyframeInput, params: &BuildSettings) -> Re
     let mut next = data.next_landmark;
     let mut to_triangulate: Vec<(&Keyframe, usize, usize)> = Vec::new();
 
+    let mut matched_pairs: Vec<(&Keyframe, usize, u32)> = Vec::new();
     for cand in &candidates {
-        // OpenCV's plain ratio test with the mutual check: the maps' figures (issue 5) were measured with it.
-        let test = RatioTest { ratio: params.ratio, mutual: true, same_corner_px: 0.0 };
-        let matches = match_l2(input.embeddings, &cand.embeddings, dim, &test, &[])?;
+        let matches = candidate_matches(input, cand, dim, params)?;
         for m in matches {
             let (a, b) = (m.query, m.train as u32);
+            matched_pairs.push((cand, a, b));
             if assigned.contains_key(&(a as u32)) {
                 continue;
             }
@@ -397,8 +444,96 @@ pub fn plan(data: &MapData, input: &KeyframeInput, params: &BuildSettings) -> Re
         }
     }
 
+    if params.extend_tracks {
+        // Which keyframe observes which landmark, for the landmarks the new keyframe observes.
+        let mut seen_by: HashSet<(u64, u64)> = HashSet::new();
+        for lm in assigned.values() {
+            for &o in data.landmarks.get(lm).map(|l| l.observations.as_slice()).unwrap_or_default() {
+                seen_by.insert((data.observations[o as usize].keyframe, *lm));
+            }
+        }
+        seen_by.extend(observations.iter().map(|o| (o.keyframe, o.landmark)));
+        let point_of: HashMap<u64, [f64; 3]> = new_landmarks.iter().copied().collect();
+        for (cand, a, b) in matched_pairs {
+            let Some(&lm) = assigned.get(&(a as u32)) else { continue };
+            if observed.contains_key(&(cand.id, b)) || used_old.contains(&(cand.id, b)) || seen_by.contains(&(cand.id, lm))
+            {
+                continue;
+            }
+            let point = Point3::from(point_of.get(&lm).copied().unwrap_or_else(|| data.landmarks[&lm].point));
+            let kb = (cand.keypoints[b as usize].x, cand.keypoints[b as usize].y);
+            if reproj_err(&cand.pose.isometry(), &cand.camera, &point, kb).is_some_and(|e| e <= params.reproj_px) {
+                used_old.insert((cand.id, b));
+                seen_by.insert((cand.id, lm));
+                observations.push(NewObservation { landmark: lm, keyframe: cand.id, keypoint: b });
+            }
+        }
+    }
+
     let record = Record::AddKeyframe { keyframe: keyframe(), new_landmarks, observations };
     Ok(Plan { record, external: ExternalCounts::default() })
+}
+
+/// The new keyframe's matches with one candidate: the embedding's (OpenCV's plain ratio test with the mutual
+/// check, as the maps' figures of issue 5 were measured), within the epipolar window when it is on, joined by
+/// FREAK's for the keypoints still unmatched when that is on.
+fn candidate_matches(
+    input: &KeyframeInput,
+    cand: &Keyframe,
+    dim: usize,
+    params: &BuildSettings,
+) -> Result<Vec<crate::matching::Match>, MapError> {
+    let test = RatioTest { ratio: params.ratio, mutual: true, same_corner_px: 0.0 };
+    let mask = if params.epipolar_px > 0.0 { epipolar_mask(input, cand, params.epipolar_px)? } else { Mat::default() };
+    let a = embedding_mat(input.embeddings, dim)?;
+    let b = embedding_mat(&cand.embeddings, dim)?;
+    let mut matches = match_descriptors_masked(&a, &b, NORM_L2, &test, &[], &mask)?;
+    let n = input.features.len();
+    let bits = input.features.descriptors.len() == n && cand.descriptors.len() == cand.keypoints.len() * DESCRIPTOR_BYTES;
+    if params.freak_matches && bits {
+        let fe = crate::error::FeatureError::from;
+        let a = input.features.descriptor_mat()?;
+        let b = Mat::new_rows_cols_with_data(cand.keypoints.len() as i32, DESCRIPTOR_BYTES as i32, &cand.descriptors)
+            .map_err(fe)?
+            .try_clone()
+            .map_err(fe)?;
+        let (qs, ts): (HashSet<usize>, HashSet<usize>) =
+            (matches.iter().map(|m| m.query).collect(), matches.iter().map(|m| m.train).collect());
+        let freak = match_descriptors_masked(&a, &b, NORM_HAMMING, &test, &[], &mask)?;
+        matches.extend(freak.into_iter().filter(|m| !qs.contains(&m.query) && !ts.contains(&m.train)));
+    }
+    Ok(matches)
+}
+
+/// `[new keypoints, candidate keypoints]` mask of the pairs whose candidate keypoint lies within `px` of the
+/// epipolar line of the new keypoint (the fundamental matrix of the two known poses and intrinsics).
+fn epipolar_mask(input: &KeyframeInput, cand: &Keyframe, px: f64) -> Result<Mat, MapError> {
+    let fe = crate::error::FeatureError::from;
+    // Relative pose new -> candidate: x_c = R x_n + t.
+    let rel = cand.pose.isometry().inverse() * input.pose;
+    let (r, t) = (rel.rotation.to_rotation_matrix().into_inner(), rel.translation.vector);
+    let tx = nalgebra::Matrix3::new(0.0, -t.z, t.y, t.z, 0.0, -t.x, -t.y, t.x, 0.0);
+    let kn = nalgebra::Matrix3::from_row_slice(&input.camera.k().concat());
+    let kc = nalgebra::Matrix3::from_row_slice(&cand.camera.k().concat());
+    let (Some(kn_inv), Some(kc_inv)) = (kn.try_inverse(), kc.try_inverse()) else {
+        return Ok(Mat::default());
+    };
+    let f = kc_inv.transpose() * tx * r * kn_inv;
+    let (rows, cols) = (input.features.len(), cand.keypoints.len());
+    let mut mask = vec![0u8; rows * cols];
+    for (i, p) in input.features.keypoints.iter().enumerate() {
+        let l = f * Vector3::new(f64::from(p.x), f64::from(p.y), 1.0);
+        let norm = l.x.hypot(l.y);
+        if norm < 1e-12 {
+            continue; // the epipole: no line
+        }
+        let row = &mut mask[i * cols..(i + 1) * cols];
+        for (m, q) in row.iter_mut().zip(&cand.keypoints) {
+            let d = (l.x * f64::from(q.x) + l.y * f64::from(q.y) + l.z).abs() / norm;
+            *m = u8::from(d <= px);
+        }
+    }
+    Ok(Mat::new_rows_cols_with_data(rows as i32, cols as i32, &mask).map_err(fe)?.try_clone().map_err(fe)?)
 }
 
 fn invalid(field: &str, reason: String) -> MapError {

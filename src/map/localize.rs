@@ -1,13 +1,31 @@
-//! Relocalisation: a query's keypoints and embeddings against a map -> camera-to-world pose.
+//! Relocalisation: a query's keypoints and embeddings against a map -> camera-to-world pose, in three stages
+//! (each a setting of [`LocalizeSettings`]; issue 27 chose the defaults on the selection scenes, BENCHMARKS.md).
 //!
-//! Each query keypoint takes its `knn` nearest observations in the map's index (optionally only those whose
-//! landmark lies within a prior's radius). The nearest landmark is accepted when its distance is below
-//! `ratio` times the distance to the nearest *other* landmark (several observations of one landmark do not
-//! make it ambiguous); when all `knn` hits belong to one landmark it is accepted. One query keypoint per
-//! landmark is kept (the closest). The 2D-3D matches go to solvePnPRansac + refinement; fewer than
-//! `min_inliers` inliers means "not localised": no pose rather than a wrong one. A camera without a focal
-//! length ([`Camera::focal_unknown`]) has it estimated with the pose (`pose::absolute_pose_unknown_focal`).
-//! The pose comes with the covariance of its refinement, scaled by `covariance_scale`.
+//! 1. **Index search.** Each query keypoint takes its `knn` nearest observations in the map's index
+//!    (optionally only those whose landmark lies within a prior's radius). The nearest landmark is accepted
+//!    when its distance is below `ratio` times the distance to the nearest *other* landmark (several
+//!    observations of one landmark do not make it ambiguous); when all `knn` hits belong to one landmark it is
+//!    accepted. One query keypoint per landmark is kept (the closest). The keyframes observing the matched
+//!    landmarks then vote (covisibility): the `candidate_keyframes` with the most votes are the candidates.
+//! 2. **Candidate matching** (`candidate_matching`). The query is matched against the candidates' landmarks
+//!    alone (every live observation of a landmark a candidate sees, at most [`VIEWS_PER_LANDMARK`] each), by
+//!    exact search with the looser `candidate_ratio` and a mutual check (the keypoint must be the nearest one
+//!    to one of the landmark's views). With `candidate_freak`, FREAK's bits (which the keyframe payload keeps)
+//!    are matched the same way by Hamming distance and their matches join the embedding's. Skipped when stage
+//!    1's matches already give a pose with `candidate_skip_inliers` inliers (a query's cost stays bounded).
+//! 3. **Guided search** (`guided_search`). From a pose with at least `min_inliers` inliers, the landmarks of
+//!    the keyframes that see its inliers most are projected into the query; each takes the query keypoint
+//!    within `guided_radius_px` whose embedding is nearest to one of its views, when that distance is within
+//!    the distances of the pose's own inliers (their 90th percentile) and below `guided_ratio` times the next
+//!    keypoint's in the window. The pose is estimated again on all matches and kept when it has at least as
+//!    many inliers. Stage 3 only refines a pose that was already accepted: it never turns a query that was
+//!    not localised into a localised one.
+//!
+//! The 2D-3D matches go to solvePnPRansac + refinement, best first (PROSAC), ranked by their ratio to the
+//! runner-up (comparable across Hamming and L2); fewer than `min_inliers` inliers means "not localised": no
+//! pose rather than a wrong one. A camera without a focal length ([`Camera::focal_unknown`]) has it estimated
+//! with the pose (`pose::absolute_pose_unknown_focal`). The pose comes with the covariance of its refinement,
+//! scaled by `covariance_scale`.
 //!
 //! Confidence in [0, 1] is the probability, under the pose's scaled covariance, that the pose lies within
 //! [`CONFIDENCE_ROTATION_DEG`] and within [`CONFIDENCE_DEPTH_FRACTION`] of the inliers' median depth of the
@@ -16,10 +34,17 @@
 
 use serde::{Deserialize, Serialize};
 
+use std::collections::{HashMap, HashSet};
+
+use opencv::core::{DMatch, Mat, Vector, NORM_HAMMING, NORM_L2};
+use opencv::features2d::BFMatcher;
+use opencv::prelude::*;
+
 use crate::camera::Camera;
 use crate::error::MapError;
-use crate::features::Features;
-use crate::map::index::EmbeddingIndex;
+use crate::features::{Features, DESCRIPTOR_BYTES};
+use crate::map::index::{l2_squared, EmbeddingIndex};
+use crate::matching::embedding_mat;
 use crate::map::model::MapData;
 use crate::pose::{absolute_pose, absolute_pose_unknown_focal, AbsolutePose, RansacSettings};
 
@@ -45,6 +70,22 @@ pub struct LocalizeSettings {
     /// scenes with pixel-accurate ground truth, over χ²₆(0.95) (BENCHMARKS.md, "Clients without calibration,
     /// and how sure a pose is").
     pub covariance_scale: f64,
+    /// Stage 1's covisibility vote: how many keyframes become candidates for stages 2 and 3.
+    pub candidate_keyframes: usize,
+    /// Stage 2: match the query against the candidates' landmarks alone.
+    pub candidate_matching: bool,
+    /// Stage 2's ratio test (looser than stage 1's: the candidates hold few look-alikes).
+    pub candidate_ratio: f32,
+    /// Stage 2: FREAK's matches (Hamming distance, the same ratio) join the embedding's.
+    pub candidate_freak: bool,
+    /// Stage 2 is skipped when stage 1's matches give a pose with at least this many inliers.
+    pub candidate_skip_inliers: usize,
+    /// Stage 3: guided search by projection from the pose, and the pose estimated again.
+    pub guided_search: bool,
+    /// Stage 3's search window around a projected landmark, pixels.
+    pub guided_radius_px: f64,
+    /// Stage 3's ratio between the nearest and the next keypoint in the window.
+    pub guided_ratio: f32,
 }
 
 impl Default for LocalizeSettings {
@@ -56,6 +97,14 @@ impl Default for LocalizeSettings {
             min_inliers: 15,
             max_query_keypoints: usize::MAX,
             covariance_scale: 26.0,
+            candidate_keyframes: 5,
+            candidate_matching: true,
+            candidate_ratio: 0.9,
+            candidate_freak: true,
+            candidate_skip_inliers: 100,
+            guided_search: true,
+            guided_radius_px: 8.0,
+            guided_ratio: 0.9,
         }
     }
 }
@@ -72,9 +121,29 @@ impl LocalizeSettings {
         if !(self.covariance_scale.is_finite() && self.covariance_scale > 0.0) {
             return Err(format!("covariance_scale must be a positive number, got {}", self.covariance_scale));
         }
+        for (name, r) in [("candidate_ratio", self.candidate_ratio), ("guided_ratio", self.guided_ratio)] {
+            if !(r > 0.0 && r <= 1.0) {
+                return Err(format!("{name} must lie in (0, 1], got {r}"));
+            }
+        }
+        if !(self.guided_radius_px > 0.0 && self.guided_radius_px <= 64.0) {
+            return Err(format!("guided_radius_px must lie in (0, 64], got {}", self.guided_radius_px));
+        }
+        if (self.candidate_matching || self.guided_search) && self.candidate_keyframes == 0 {
+            return Err("candidate_keyframes is 0 while stage 2 or 3 is on: they need candidate keyframes".into());
+        }
         Ok(())
     }
+
+    /// Today's pipeline before issue 27: stage 1 alone (the baseline of the benchmarks).
+    pub fn stage_one_only(self) -> Self {
+        Self { candidate_matching: false, candidate_freak: false, guided_search: false, ..self }
+    }
 }
+
+/// Stage 2 reads at most this many live views of each candidate landmark, and stage 3 compares with as many
+/// (a landmark seen from many keyframes is described well enough by a few; the cost stays bounded).
+pub const VIEWS_PER_LANDMARK: usize = 6;
 
 /// Restricts the search to landmarks within `radius` of `position` (world units).
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
@@ -99,12 +168,22 @@ pub struct Localization {
     pub confidence: f64,
     /// The matched landmarks' positions, in the order of `matches`.
     pub points: Vec<[f64; 3]>,
-    /// Wall time of the index search (with the ratio test) and of PnP, seconds.
+    /// Wall time of the index search (with the ratio test), of PnP (every estimate), and of stages 2 and 3's
+    /// own matching, seconds.
     pub search_s: f64,
     pub pnp_s: f64,
+    pub stages_s: f64,
 }
 
-/// 2D-3D matches of a query against the map.
+/// A 2D-3D match with its rank for PROSAC: its distance over the runner-up's (1 when it had none), which
+/// compares across descriptors (L2 embeddings, Hamming bits).
+#[derive(Debug, Clone, Copy)]
+struct Ranked {
+    m: LandmarkMatch,
+    ratio: f32,
+}
+
+/// 2D-3D matches of a query against the map (stage 1).
 pub fn match_landmarks(
     data: &MapData,
     index: &EmbeddingIndex,
@@ -112,6 +191,16 @@ pub fn match_landmarks(
     prior: Option<&Prior>,
     params: &LocalizeSettings,
 ) -> Vec<LandmarkMatch> {
+    index_matches(data, index, embeddings, prior, params).into_iter().map(|r| r.m).collect()
+}
+
+fn index_matches(
+    data: &MapData,
+    index: &EmbeddingIndex,
+    embeddings: &[f32],
+    prior: Option<&Prior>,
+    params: &LocalizeSettings,
+) -> Vec<Ranked> {
     let dim = data.meta.dim;
     let near = |obs: usize| -> bool {
         let Some(p) = prior else { return true };
@@ -122,27 +211,281 @@ pub fn match_landmarks(
     };
     let accept: crate::map::index::Accept = if prior.is_some() { Some(&near) } else { None };
     let all_hits = index.search_many(data, &embeddings[..embeddings.len() / dim * dim], params.knn.max(2), accept);
-    let mut best: std::collections::HashMap<u64, LandmarkMatch> = std::collections::HashMap::new();
+    let mut found = Vec::new();
     for (i, hits) in all_hits.iter().enumerate() {
         let Some(first) = hits.first() else { continue };
         let lm = data.observations[first.observation].landmark;
         let other = hits.iter().find(|h| data.observations[h.observation].landmark != lm);
-        if let Some(o) = other {
-            if first.distance >= params.ratio * o.distance {
-                continue;
-            }
+        let ratio = other.map_or(1.0, |o| first.distance / o.distance.max(f32::MIN_POSITIVE));
+        if other.is_some() && first.distance >= params.ratio * other.map_or(0.0, |o| o.distance) {
+            continue;
         }
-        let m = LandmarkMatch { keypoint: i, landmark: lm, distance: first.distance };
-        best.entry(lm)
+        found.push(Ranked { m: LandmarkMatch { keypoint: i, landmark: lm, distance: first.distance }, ratio });
+    }
+    one_per_landmark(found)
+}
+
+/// Keeps one match per landmark (the closest), in keypoint order.
+fn one_per_landmark(found: Vec<Ranked>) -> Vec<Ranked> {
+    let mut best: HashMap<u64, Ranked> = HashMap::new();
+    for r in found {
+        best.entry(r.m.landmark)
             .and_modify(|b| {
-                if m.distance < b.distance {
-                    *b = m
+                if r.m.distance < b.m.distance {
+                    *b = r
                 }
             })
-            .or_insert(m);
+            .or_insert(r);
     }
-    let mut out: Vec<LandmarkMatch> = best.into_values().collect();
-    out.sort_by_key(|m| m.keypoint);
+    let mut out: Vec<Ranked> = best.into_values().collect();
+    out.sort_by_key(|r| r.m.keypoint);
+    out
+}
+
+/// Stage 1's covisibility vote: the `n` keyframes observing most of `landmarks` (ties: the lower id).
+fn vote_keyframes(data: &MapData, landmarks: impl Iterator<Item = u64>, n: usize) -> Vec<u64> {
+    let mut votes: HashMap<u64, usize> = HashMap::new();
+    for lm in landmarks {
+        let Some(l) = data.landmarks.get(&lm) else { continue };
+        for &o in &l.observations {
+            let o = &data.observations[o as usize];
+            if o.live {
+                *votes.entry(o.keyframe).or_default() += 1;
+            }
+        }
+    }
+    let mut ranked: Vec<(u64, usize)> = votes.into_iter().collect();
+    ranked.sort_by(|a, b| b.1.cmp(&a.1).then(a.0.cmp(&b.0)));
+    ranked.into_iter().take(n).map(|(k, _)| k).collect()
+}
+
+/// Live views (observation ids) of the landmarks the keyframes `candidates` observe, at most
+/// [`VIEWS_PER_LANDMARK`] per landmark, grouped by landmark in landmark order.
+fn candidate_views(data: &MapData, candidates: &[u64]) -> Vec<usize> {
+    let chosen: HashSet<u64> = candidates.iter().copied().collect();
+    let mut landmarks: Vec<u64> =
+        data.observations.iter().filter(|o| o.live && chosen.contains(&o.keyframe)).map(|o| o.landmark).collect();
+    landmarks.sort_unstable();
+    landmarks.dedup();
+    landmark_views(data, &landmarks)
+}
+
+fn landmark_views(data: &MapData, landmarks: &[u64]) -> Vec<usize> {
+    let mut views = Vec::new();
+    for lm in landmarks {
+        let Some(l) = data.landmarks.get(lm) else { continue };
+        views.extend(
+            l.observations.iter().map(|&o| o as usize).filter(|&o| data.observations[o].live).take(VIEWS_PER_LANDMARK),
+        );
+    }
+    views
+}
+
+/// Matches of the query's rows `query` against the rows `views` (one per observation id in `views`) by
+/// OpenCV's exact search in `norm`: the nearest view's landmark when its distance is below `ratio` times the
+/// nearest view of another landmark, and the keypoint is the nearest query row to one of that landmark's views
+/// (mutual). `distance` is left to the caller; the rank is the ratio.
+fn mutual_landmark_matches(
+    data: &MapData,
+    query: &Mat,
+    train: &Mat,
+    views: &[usize],
+    norm: i32,
+    ratio: f32,
+) -> Result<Vec<Ranked>, MapError> {
+    let fe = crate::error::FeatureError::from;
+    if query.rows() < 1 || train.rows() < 1 {
+        return Ok(Vec::new());
+    }
+    let matcher = BFMatcher::new(norm, false).map_err(fe)?;
+    let mut knn = Vector::<Vector<DMatch>>::new();
+    let k = (VIEWS_PER_LANDMARK as i32 + 1).min(train.rows());
+    matcher.knn_train_match(query, train, &mut knn, k, &Mat::default(), false).map_err(fe)?;
+    let mut back = Vector::<DMatch>::new();
+    matcher.train_match(train, query, &mut back, &Mat::default()).map_err(fe)?;
+    let nearest_of: HashSet<(u64, usize)> =
+        back.iter().map(|m| (data.observations[views[m.query_idx as usize]].landmark, m.train_idx as usize)).collect();
+    let mut found = Vec::new();
+    for hits in knn.iter() {
+        let Ok(first) = hits.get(0) else { continue };
+        let lm = data.observations[views[first.train_idx as usize]].landmark;
+        let q = first.query_idx as usize;
+        let other = hits.iter().find(|h| data.observations[views[h.train_idx as usize]].landmark != lm);
+        if other.is_some_and(|o| first.distance >= ratio * o.distance) || !nearest_of.contains(&(lm, q)) {
+            continue;
+        }
+        let r = other.map_or(1.0, |o| first.distance / o.distance.max(f32::MIN_POSITIVE));
+        found.push(Ranked { m: LandmarkMatch { keypoint: q, landmark: lm, distance: first.distance }, ratio: r });
+    }
+    Ok(found)
+}
+
+/// Stage 2: the query's keypoints `rows` (embeddings `embeddings`, in `rows` order) against the landmarks of
+/// the candidate keyframes.
+fn candidate_matches(
+    data: &MapData,
+    candidates: &[u64],
+    features: &Features,
+    rows: &[usize],
+    embeddings: &[f32],
+    params: &LocalizeSettings,
+) -> Result<Vec<Ranked>, MapError> {
+    let dim = data.meta.dim;
+    let views = candidate_views(data, candidates);
+    if views.is_empty() || rows.is_empty() {
+        return Ok(Vec::new());
+    }
+    let fe = crate::error::FeatureError::from;
+    let train: Vec<f32> = views.iter().flat_map(|&o| data.embeddings[o * dim..(o + 1) * dim].iter().copied()).collect();
+    let train = embedding_mat(&train, dim)?;
+    let query = embedding_mat(embeddings, dim)?;
+    let mut found = mutual_landmark_matches(data, &query, &train, &views, NORM_L2, params.candidate_ratio)?;
+    let keyframe_bits = |o: usize| {
+        let ob = &data.observations[o];
+        data.keyframes.get(&ob.keyframe).and_then(|k| {
+            let i = ob.keypoint as usize;
+            (k.descriptors.len() == k.keypoints.len() * DESCRIPTOR_BYTES).then(|| k.descriptor(i))
+        })
+    };
+    let has_bits = features.descriptors.len() == features.len() && views.iter().all(|&o| keyframe_bits(o).is_some());
+    if params.candidate_freak && has_bits {
+        let bytes: Vec<u8> = views.iter().flat_map(|&o| keyframe_bits(o).unwrap_or_default().iter().copied()).collect();
+        let train = Mat::new_rows_cols_with_data(views.len() as i32, DESCRIPTOR_BYTES as i32, &bytes)
+            .map_err(fe)?
+            .try_clone()
+            .map_err(fe)?;
+        let qbytes: Vec<u8> = rows.iter().flat_map(|&i| features.descriptors[i].iter().copied()).collect();
+        let query = Mat::new_rows_cols_with_data(rows.len() as i32, DESCRIPTOR_BYTES as i32, &qbytes)
+            .map_err(fe)?
+            .try_clone()
+            .map_err(fe)?;
+        let mut freak = mutual_landmark_matches(data, &query, &train, &views, NORM_HAMMING, params.candidate_ratio)?;
+        // A FREAK match reports the embedding distance to the landmark's nearest view, as every other match.
+        for r in &mut freak {
+            let e = &embeddings[r.m.keypoint * dim..(r.m.keypoint + 1) * dim];
+            r.m.distance = nearest_view_distance(data, r.m.landmark, e);
+        }
+        found.extend(freak);
+    }
+    for r in &mut found {
+        r.m.keypoint = rows[r.m.keypoint];
+    }
+    Ok(found)
+}
+
+/// L2 distance from `e` to the nearest of the landmark's first [`VIEWS_PER_LANDMARK`] live views.
+fn nearest_view_distance(data: &MapData, landmark: u64, e: &[f32]) -> f32 {
+    let dim = data.meta.dim;
+    landmark_views(data, &[landmark])
+        .into_iter()
+        .map(|o| l2_squared(e, &data.embeddings[o * dim..(o + 1) * dim]))
+        .fold(f32::INFINITY, f32::min)
+        .sqrt()
+}
+
+/// Joins match sets: one landmark per keypoint and one keypoint per landmark, the better ranked first; the
+/// result is in PROSAC's order (best first).
+fn join(sets: impl IntoIterator<Item = Ranked>) -> Vec<Ranked> {
+    let mut all: Vec<Ranked> = sets.into_iter().collect();
+    all.sort_by(|a, b| {
+        a.ratio.total_cmp(&b.ratio).then(a.m.distance.total_cmp(&b.m.distance)).then(a.m.keypoint.cmp(&b.m.keypoint))
+    });
+    let (mut keypoints, mut landmarks) = (HashSet::new(), HashSet::new());
+    all.retain(|r| {
+        let fresh = !keypoints.contains(&r.m.keypoint) && !landmarks.contains(&r.m.landmark);
+        if fresh {
+            keypoints.insert(r.m.keypoint);
+            landmarks.insert(r.m.landmark);
+        }
+        fresh
+    });
+    all
+}
+
+/// Stage 3: landmarks of the keyframes that see the pose's inliers most, projected with the pose, matched to
+/// the query keypoint in the window (module docs). `matched` are the matches the pose was estimated from.
+fn guided_matches(
+    data: &MapData,
+    pose: &AbsolutePose,
+    camera: &Camera,
+    features: &Features,
+    embeddings: &[f32],
+    matched: &[Ranked],
+    params: &LocalizeSettings,
+) -> Vec<Ranked> {
+    let dim = data.meta.dim;
+    let inliers: Vec<&Ranked> = pose.inliers.iter().map(|&i| &matched[i]).collect();
+    let mut gate: Vec<f32> = inliers.iter().map(|r| r.m.distance).collect();
+    gate.sort_by(f32::total_cmp);
+    let Some(&gate) = gate.get(gate.len() * 9 / 10).or(gate.last()) else { return Vec::new() };
+    let candidates = vote_keyframes(data, inliers.iter().map(|r| r.m.landmark), params.candidate_keyframes);
+    let chosen: HashSet<u64> = candidates.iter().copied().collect();
+    let taken_landmarks: HashSet<u64> = matched.iter().map(|r| r.m.landmark).collect();
+    let taken_keypoints: HashSet<usize> = matched.iter().map(|r| r.m.keypoint).collect();
+    let mut landmarks: Vec<u64> = data
+        .observations
+        .iter()
+        .filter(|o| o.live && chosen.contains(&o.keyframe) && !taken_landmarks.contains(&o.landmark))
+        .map(|o| o.landmark)
+        .collect();
+    landmarks.sort_unstable();
+    landmarks.dedup();
+    let radius = params.guided_radius_px;
+    let key = |x: f64, y: f64| ((x / radius).floor() as i64, (y / radius).floor() as i64);
+    let mut grid: HashMap<(i64, i64), Vec<usize>> = HashMap::new();
+    for (k, p) in features.keypoints.iter().enumerate() {
+        if !taken_keypoints.contains(&k) {
+            grid.entry(key(f64::from(p.x), f64::from(p.y))).or_default().push(k);
+        }
+    }
+    let camera = if camera.focal_unknown() { camera.with_focal(pose.focal) } else { *camera };
+    let w2c = pose.camera_to_world.inverse();
+    let (w, h) = (f64::from(camera.width), f64::from(camera.height));
+    // Per keypoint, the landmark that claims it with the smallest distance.
+    let mut claims: HashMap<usize, Ranked> = HashMap::new();
+    for lm in landmarks {
+        let point = nalgebra::Point3::from(data.landmarks[&lm].point);
+        let Some((u, v)) = camera.project(&(w2c * point)) else { continue };
+        if !(u > -radius && v > -radius && u < w + radius && v < h + radius) {
+            continue;
+        }
+        let views = landmark_views(data, &[lm]);
+        let (cx, cy) = key(u, v);
+        let (mut best, mut second) = ((f32::INFINITY, usize::MAX), f32::INFINITY);
+        for gx in cx - 1..=cx + 1 {
+            for gy in cy - 1..=cy + 1 {
+                for &k in grid.get(&(gx, gy)).into_iter().flatten() {
+                    let p = &features.keypoints[k];
+                    if (f64::from(p.x) - u).hypot(f64::from(p.y) - v) > radius {
+                        continue;
+                    }
+                    let e = &embeddings[k * dim..(k + 1) * dim];
+                    let d = views
+                        .iter()
+                        .map(|&o| l2_squared(e, &data.embeddings[o * dim..(o + 1) * dim]))
+                        .fold(f32::INFINITY, f32::min)
+                        .sqrt();
+                    if d < best.0 {
+                        second = best.0;
+                        best = (d, k);
+                    } else if d < second {
+                        second = d;
+                    }
+                }
+            }
+        }
+        let (d, k) = best;
+        if k == usize::MAX || d > gate || d >= params.guided_ratio * second {
+            continue;
+        }
+        let r = Ranked {
+            m: LandmarkMatch { keypoint: k, landmark: lm, distance: d },
+            ratio: if second.is_finite() { d / second.max(f32::MIN_POSITIVE) } else { 1.0 },
+        };
+        claims.entry(k).and_modify(|c| if d < c.m.distance { *c = r }).or_insert(r);
+    }
+    let mut out: Vec<Ranked> = claims.into_values().collect();
+    out.sort_by_key(|r| r.m.keypoint);
     out
 }
 
@@ -239,34 +582,71 @@ pub fn localize(
         }
     }
     let t = std::time::Instant::now();
-    let mut matches = match strongest(features, params.max_query_keypoints.max(params.min_inliers)) {
-        None => match_landmarks(data, index, embeddings, prior, params),
-        Some(chosen) => {
-            let dim = data.meta.dim;
-            let subset: Vec<f32> =
-                chosen.iter().flat_map(|&i| embeddings[i * dim..(i + 1) * dim].iter().copied()).collect();
-            let mut m = match_landmarks(data, index, &subset, prior, params);
-            for x in &mut m {
-                x.keypoint = chosen[x.keypoint];
-            }
-            m
-        }
-    };
-    // Best first: PnP's PROSAC sampler draws from the front.
-    matches.sort_by(|a, b| a.distance.total_cmp(&b.distance));
-    let search_s = t.elapsed().as_secs_f64();
-    let t = std::time::Instant::now();
-    let p3: Vec<[f64; 3]> = matches.iter().map(|m| data.landmarks[&m.landmark].point).collect();
-    let p2: Vec<(f32, f32)> =
-        matches.iter().map(|m| (features.keypoints[m.keypoint].x, features.keypoints[m.keypoint].y)).collect();
-    let mut pose = if camera.focal_unknown() {
-        absolute_pose_unknown_focal(&p3, &p2, camera, &params.ransac, params.min_inliers)?
+    let dim = data.meta.dim;
+    // Stage 1 searches only the strongest keypoints when capped; so do the later stages.
+    let rows: Vec<usize> = strongest(features, params.max_query_keypoints.max(params.min_inliers))
+        .unwrap_or_else(|| (0..features.len()).collect());
+    let subset: Vec<f32> = if rows.len() == features.len() {
+        embeddings.to_vec()
     } else {
-        absolute_pose(&p3, &p2, camera, &params.ransac, params.min_inliers)?
+        rows.iter().flat_map(|&i| embeddings[i * dim..(i + 1) * dim].iter().copied()).collect()
     };
+    let mut stage1 = index_matches(data, index, &subset, prior, params);
+    for r in &mut stage1 {
+        r.m.keypoint = rows[r.m.keypoint];
+    }
+    let search_s = t.elapsed().as_secs_f64();
+    let (mut pnp_s, mut stages_s) = (0.0, 0.0);
+    let estimate = |matches: &[Ranked], pnp_s: &mut f64| -> Result<Option<AbsolutePose>, MapError> {
+        let t = std::time::Instant::now();
+        let p3: Vec<[f64; 3]> = matches.iter().map(|r| data.landmarks[&r.m.landmark].point).collect();
+        let p2: Vec<(f32, f32)> =
+            matches.iter().map(|r| (features.keypoints[r.m.keypoint].x, features.keypoints[r.m.keypoint].y)).collect();
+        let pose = if camera.focal_unknown() {
+            absolute_pose_unknown_focal(&p3, &p2, camera, &params.ransac, params.min_inliers)?
+        } else {
+            absolute_pose(&p3, &p2, camera, &params.ransac, params.min_inliers)?
+        };
+        *pnp_s += t.elapsed().as_secs_f64();
+        Ok(pose)
+    };
+    let inliers = |p: &Option<AbsolutePose>| p.as_ref().map_or(0, |p| p.inliers.len());
+    let mut matches = join(stage1);
+    if !(params.candidate_matching || params.guided_search) {
+        // Stage 1 alone keeps the order it always had: the nearest embeddings first.
+        matches.sort_by(|a, b| a.m.distance.total_cmp(&b.m.distance));
+    }
+    let mut pose = estimate(&matches, &mut pnp_s)?;
+    if params.candidate_matching && inliers(&pose) < params.candidate_skip_inliers {
+        let t = std::time::Instant::now();
+        let candidates = vote_keyframes(data, matches.iter().map(|r| r.m.landmark), params.candidate_keyframes);
+        let stage2 = candidate_matches(data, &candidates, features, &rows, &subset, params)?;
+        stages_s += t.elapsed().as_secs_f64();
+        let joined = join(matches.iter().copied().chain(stage2));
+        if joined.len() > matches.len() {
+            let again = estimate(&joined, &mut pnp_s)?;
+            if inliers(&again) >= inliers(&pose) {
+                (matches, pose) = (joined, again);
+            }
+        }
+    }
+    if let Some(p) = pose.as_ref().filter(|_| params.guided_search) {
+        let t = std::time::Instant::now();
+        let guided = guided_matches(data, p, camera, features, embeddings, &matches, params);
+        stages_s += t.elapsed().as_secs_f64();
+        if !guided.is_empty() {
+            let joined = join(matches.iter().copied().chain(guided));
+            let again = estimate(&joined, &mut pnp_s)?;
+            if inliers(&again) >= inliers(&pose) {
+                (matches, pose) = (joined, again);
+            }
+        }
+    }
     if let Some(c) = pose.as_mut().and_then(|p| p.covariance_w2c.as_mut()) {
         *c *= params.covariance_scale;
     }
+    let p3: Vec<[f64; 3]> = matches.iter().map(|r| data.landmarks[&r.m.landmark].point).collect();
     let confidence = pose.as_ref().map_or(0.0, |p| confidence(p, &p3));
-    Ok(Localization { pose, matches, confidence, points: p3, search_s, pnp_s: t.elapsed().as_secs_f64() })
+    let matches = matches.into_iter().map(|r| r.m).collect();
+    Ok(Localization { pose, matches, confidence, points: p3, search_s, pnp_s, stages_s })
 }

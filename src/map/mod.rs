@@ -27,6 +27,8 @@ pub mod localize;
 pub mod merge;
 pub mod model;
 pub mod storage;
+#[cfg(test)]
+mod stage_tests;
 pub mod store;
 #[cfg(test)]
 mod tests;

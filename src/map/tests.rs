@@ -474,7 +474,8 @@ fn a_query_keypoint_cap_searches_the_strongest_keypoints_and_still_localises() {
     let all =
         localize(&data, &index, &features, &keyframe.embeddings, &cam, None, &LocalizeSettings::default()).unwrap();
     assert_eq!(all.matches.len(), n);
-    let capped = LocalizeSettings { max_query_keypoints: 50, ..LocalizeSettings::default() };
+    // Stage 1 alone: guided search reads every keypoint (stage_tests.rs has the cap with all stages).
+    let capped = LocalizeSettings { max_query_keypoints: 50, ..LocalizeSettings::default().stage_one_only() };
     let l = localize(&data, &index, &features, &keyframe.embeddings, &cam, None, &capped).unwrap();
     // Only the 50 strongest keypoints were searched, and matches name them by their index in the whole set.
     assert_eq!(l.matches.len(), 50);
@@ -488,7 +489,7 @@ fn a_query_keypoint_cap_searches_the_strongest_keypoints_and_still_localises() {
     searched.sort_unstable();
     assert_eq!(searched, (0..50).collect::<Vec<_>>());
     // A cap below min_inliers (possible only in code; settings refuse it) still searches min_inliers.
-    let tiny = LocalizeSettings { max_query_keypoints: 3, ..LocalizeSettings::default() };
+    let tiny = LocalizeSettings { max_query_keypoints: 3, ..LocalizeSettings::default().stage_one_only() };
     let l = localize(&data, &index, &features, &keyframe.embeddings, &cam, None, &tiny).unwrap();
     assert_eq!(l.matches.len(), LocalizeSettings::default().min_inliers);
     // A cap below the inliers a pose needs is refused at configuration time.

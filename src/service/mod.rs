@@ -486,6 +486,7 @@ impl Service {
         let l = store.localize_map(&held, &d.features, &d.embeddings, &cam, prior.as_ref())?;
         times.0.push(("search", l.search_s));
         times.0.push(("pnp", l.pnp_s));
+        times.0.push(("stages", l.stages_s));
         let pixels = l.matches.iter().map(|m| d.features.keypoints[m.keypoint]).map(|k| (k.x, k.y)).collect();
         let focal_estimated = cam.focal_unknown();
         let cam = match &l.pose {

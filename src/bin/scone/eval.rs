@@ -112,6 +112,16 @@ pub enum EvalCommand {
         /// Multiplies the pose covariance (default: the service's `store.localize.covariance_scale`).
         #[arg(long)]
         covariance_scale: Option<f64>,
+        /// Exactly these parts of the staged pipeline on (`none`: today's stage 1 and map building before
+        /// issue 27); without the flag, the service's defaults.
+        #[arg(long, value_delimiter = ',')]
+        stages: Option<Vec<StageArg>>,
+        /// Frames of other scenes localised against the map (each pose is a false one).
+        #[arg(long, value_delimiter = ',')]
+        foreign: Vec<PathBuf>,
+        /// Every N-th frame of the foreign scenes.
+        #[arg(long, default_value_t = 5)]
+        foreign_stride: usize,
         #[command(flatten)]
         report: ReportArgs,
         #[command(flatten)]
@@ -217,6 +227,9 @@ pub fn run(cmd: EvalCommand) -> anyhow::Result<()> {
             unknown_focal,
             centre_principal_point,
             covariance_scale,
+            stages,
+            foreign,
+            foreign_stride,
             report: out,
             extractor,
         } => {
@@ -246,6 +259,12 @@ pub fn run(cmd: EvalCommand) -> anyhow::Result<()> {
             if let Some(c) = covariance_scale {
                 rc.localize.covariance_scale = c;
             }
+            if let Some(stages) = stages {
+                let on: Vec<reloc::Stage> = stages.iter().filter_map(|s| s.stage()).collect();
+                (rc.build, rc.localize) = reloc::with_stages(rc.build, rc.localize, &on);
+            }
+            rc.foreign = foreign;
+            rc.foreign_stride = foreign_stride;
             rc.localize.validate().map_err(|e| anyhow::anyhow!(e))?;
             let report = reloc::evaluate(&s, &rc, embedder.as_ref()).map_err(|e| anyhow::anyhow!("{e}"))?;
             print!("{}", reloc::markdown(&report));
@@ -285,4 +304,27 @@ fn parse_block(s: &str) -> Result<(f64, f64), String> {
     let b: f64 = b.trim().parse().map_err(|_| format!("'{b}' is not a number"))?;
     reloc::check_block(a, b)?;
     Ok((a, b))
+}
+
+/// A value of `eval reloc --stages`: a part of the staged pipeline, or `none`.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
+pub enum StageArg {
+    None,
+    Candidates,
+    Freak,
+    Guided,
+    Build,
+}
+
+impl StageArg {
+    fn stage(self) -> Option<scone::offline::eval::reloc::Stage> {
+        use scone::offline::eval::reloc::Stage;
+        match self {
+            StageArg::None => None,
+            StageArg::Candidates => Some(Stage::Candidates),
+            StageArg::Freak => Some(Stage::Freak),
+            StageArg::Guided => Some(Stage::Guided),
+            StageArg::Build => Some(Stage::Build),
+        }
+    }
 }

@@ -81,6 +81,39 @@ pub struct RelocConfig {
     /// camera), not the scene's.
     #[serde(default)]
     pub centre_principal_point: bool,
+    /// Frames of other scenes localised against the map: every one localised is a false pose.
+    #[serde(default)]
+    pub foreign: Vec<std::path::PathBuf>,
+    /// Every N-th frame of the foreign scenes.
+    #[serde(default = "one")]
+    pub foreign_stride: usize,
+}
+
+/// The parts of issue 27 an evaluation can turn on one by one (`--stages`); the rest stay as today's pipeline.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, clap::ValueEnum)]
+#[serde(rename_all = "kebab-case")]
+pub enum Stage {
+    /// Stage 2: matching against the covisibility vote's candidate keyframes.
+    Candidates,
+    /// Stage 2 with FREAK's matches joined to the embedding's.
+    Freak,
+    /// Stage 3: guided search by projection and the pose estimated again.
+    Guided,
+    /// Map building with the known poses (epipolar window, covisible candidates, tracks, FREAK matches).
+    Build,
+}
+
+/// Settings with exactly `stages` of issue 27 on, over today's pipeline.
+pub fn with_stages(build: BuildSettings, localize: LocalizeSettings, stages: &[Stage]) -> (BuildSettings, LocalizeSettings) {
+    let on = |s: Stage| stages.contains(&s);
+    let build = if on(Stage::Build) { build } else { build.unguided() };
+    let localize = LocalizeSettings {
+        candidate_matching: on(Stage::Candidates) || on(Stage::Freak),
+        candidate_freak: on(Stage::Freak),
+        guided_search: on(Stage::Guided),
+        ..localize
+    };
+    (build, localize)
 }
 
 fn one() -> usize {
@@ -114,6 +147,8 @@ impl Default for RelocConfig {
             unit_scale: 1.0,
             unknown_focal: false,
             centre_principal_point: false,
+            foreign: Vec::new(),
+            foreign_stride: 5,
         }
     }
 }
@@ -197,6 +232,11 @@ pub struct RelocSummary {
     pub mean_confidence: f64,
     #[serde(default)]
     pub within_confidence_tolerance: f64,
+    /// Frames of other scenes localised against the map, and how many got a pose (false poses).
+    #[serde(default)]
+    pub foreign_queries: usize,
+    #[serde(default)]
+    pub foreign_localised: usize,
 }
 
 #[derive(Debug, Clone, Serialize, Deserialize)]
@@ -207,6 +247,19 @@ pub struct RelocReport {
     pub config: RelocConfig,
     pub summaries: Vec<RelocSummary>,
     pub queries: Vec<(Method, QueryRecord)>,
+}
+
+/// The features the service would hold for `d`: its keypoints and, for SConE, their FREAK bits (a keyframe's
+/// payload keeps them, and the stages that join FREAK's matches read them).
+fn features_of(d: &Described) -> Result<Features, BoxError> {
+    let mut descriptors = Vec::new();
+    if let Some(bits) = &d.freak {
+        for r in 0..bits.rows() {
+            let row = bits.at_row::<u8>(r)?;
+            descriptors.push(row.try_into().map_err(|_| format!("FREAK row of {} bytes", row.len()))?);
+        }
+    }
+    Ok(Features { width: d.width, height: d.height, keypoints: d.keypoints.clone(), descriptors })
 }
 
 /// Vectors a method's descriptors are compared as, row-major, with their dimension.
@@ -275,8 +328,7 @@ pub fn evaluate(scene: &Scene, cfg: &RelocConfig, embedder: Option<&Embedder>) -
         for &i in &map_frames {
             progress.step();
             let d = &described[i];
-            let features =
-                Features { width: d.width, height: d.height, keypoints: d.keypoints.clone(), descriptors: vec![] };
+            let features = features_of(d)?;
             let depth_mat = match &scene.frames[i].depth {
                 Some(p) => Some(decode_depth_png(&std::fs::read(p)?, &limits)?),
                 None => None,
@@ -321,8 +373,7 @@ pub fn evaluate(scene: &Scene, cfg: &RelocConfig, embedder: Option<&Embedder>) -
         for &i in &query_frames {
             progress.step();
             let d = &described[i];
-            let features =
-                Features { width: d.width, height: d.height, keypoints: d.keypoints.clone(), descriptors: vec![] };
+            let features = features_of(d)?;
             let t = Instant::now();
             let out = localize(&data, &index, &features, &vecs[i].0, &query_camera, None, &loc)?;
             let seconds = t.elapsed().as_secs_f64() + d.seconds;
@@ -377,6 +428,7 @@ pub fn evaluate(scene: &Scene, cfg: &RelocConfig, embedder: Option<&Embedder>) -
                 within_confidence_tolerance,
             });
         }
+        let (foreign_queries, foreign_localised) = foreign_poses(&data, &index, method, cfg, &loc, embedder)?;
         let q = recs.len().max(1) as f64;
         let u = cfg.unit_scale;
         let within = |t: f64, r: f64| {
@@ -418,6 +470,8 @@ pub fn evaluate(scene: &Scene, cfg: &RelocConfig, embedder: Option<&Embedder>) -
                 let w: Vec<bool> = recs.iter().filter_map(|r| r.within_confidence_tolerance).collect();
                 w.iter().filter(|&&b| b).count() as f64 / w.len().max(1) as f64
             },
+            foreign_queries,
+            foreign_localised,
             median_focal_error: {
                 let truth = (scene.camera.fx + scene.camera.fy) / 2.0;
                 median(&recs.iter().filter_map(|r| r.focal).map(|f| (f - truth).abs() / truth).collect::<Vec<_>>())
@@ -497,6 +551,31 @@ fn bin_summaries(recs: &[QueryRecord], unit_scale: f64) -> Vec<BinSummary> {
     out
 }
 
+/// Every `foreign_stride`-th frame of the foreign scenes localised against the map: (frames, localised).
+fn foreign_poses(
+    data: &MapData,
+    index: &EmbeddingIndex,
+    method: Method,
+    cfg: &RelocConfig,
+    loc: &LocalizeSettings,
+    embedder: Option<&Embedder>,
+) -> Result<(usize, usize), BoxError> {
+    let limits = ImageLimitSettings::default();
+    let (mut frames, mut localised) = (0, 0);
+    for dir in &cfg.foreign {
+        let other = Scene::load(dir)?;
+        for f in other.frames.iter().step_by(cfg.foreign_stride.max(1)) {
+            let bytes = std::fs::read(&f.rgb).map_err(|e| format!("{}: {e}", f.rgb.display()))?;
+            let d = describe(method, &decode_grey(&bytes, &limits)?, &cfg.extractor, embedder)?;
+            let (v, _) = vectors(method, &d)?;
+            let out = localize(data, index, &features_of(&d)?, &v, &other.camera, None, loc)?;
+            frames += 1;
+            localised += usize::from(out.pose.is_some());
+        }
+    }
+    Ok((frames, localised))
+}
+
 /// Adds keyframes of the scene in `dir` to `data`, moved [`DISTRACTOR_OFFSET`] away per scene, until the map
 /// holds `cfg.distractor_observations` observations beyond the evaluated scene's `base`.
 #[allow(clippy::too_many_arguments)]
@@ -524,8 +603,7 @@ fn add_distractors(
         if dim != data.meta.dim && !v.is_empty() {
             return Err(format!("distractor {}: dimension {dim}, the map's is {}", other.name, data.meta.dim).into());
         }
-        let features =
-            Features { width: d.width, height: d.height, keypoints: d.keypoints.clone(), descriptors: vec![] };
+        let features = features_of(&d)?;
         let depth = match &f.depth {
             Some(p) => Some(decode_depth_png(&std::fs::read(p)?, &limits)?),
             None => None,
@@ -573,6 +651,8 @@ pub fn markdown(r: &RelocReport) -> String {
         "cov. 95 %",
         "confidence / within",
         "focal err.",
+        "observations",
+        "foreign localised",
     ];
     s.push_str(&markdown_table(
         &headers,
@@ -594,6 +674,8 @@ pub fn markdown(r: &RelocReport) -> String {
                 format!("{:.2}", m.covariance_coverage),
                 format!("{:.2} / {:.2}", m.mean_confidence, m.within_confidence_tolerance),
                 format!("{:.3}", m.median_focal_error),
+                m.observations.to_string(),
+                format!("{} / {}", m.foreign_localised, m.foreign_queries),
             ]
         }),
     ));
