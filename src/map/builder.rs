@@ -14,6 +14,15 @@
 //!    `reproj_px` in both, and the rays meet at `min_parallax_deg` or more. It becomes a landmark observed by
 //!    both keyframes; a keypoint is used by at most one landmark.
 //!
+//! **With the known poses** ([`BuildSettings::with_known_poses`], issue 27; off by default, because the rule
+//! fixed before scoring did not keep it on the selection scenes, BENCHMARKS.md): step 1 adds the
+//! `covisible_candidates` keyframes sharing the most landmarks with the nearest ones; step 2 lets a keypoint
+//! compete only with the candidate keypoints within `epipolar_px` of its epipolar line (the fundamental matrix
+//! of the two poses), joins FREAK's matches for keypoints the embedding left unmatched (`freak_matches`), and
+//! with `extend_tracks` a landmark the new keyframe observes also takes every candidate keypoint the new
+//! keypoint matched where it reprojects within `reproj_px`, so tracks grow across keyframes instead of stopping
+//! at pairs. (Two landmarks that turn out to be one are not fused: that would need a record of its own.)
+//!
 //! **External landmarks** (a map made by an external SfM such as COLMAP, see [`crate::offline::colmap`]): a keyframe may
 //! carry [`ExternalObservation`]s, each a pixel of this keyframe, the SfM's id of the 3D point seen there and
 //! that point. Such a keyframe takes its landmarks from them *instead of* steps 2-3: no matching against
@@ -113,21 +122,26 @@ impl Default for BuildSettings {
             external_radius_px: 2.0,
             external_reproj_px: 4.0,
             external_point_tolerance: 1e-4,
-            epipolar_px: 8.0,
-            covisible_candidates: 3,
-            extend_tracks: true,
-            freak_matches: true,
+            epipolar_px: 0.0,
+            covisible_candidates: 0,
+            extend_tracks: false,
+            freak_matches: false,
         }
     }
 }
 
 impl BuildSettings {
-    /// Map building before issue 27: the nearest keyframes, every keypoint competing, pairs only, the
-    /// embedding alone (the baseline of the benchmarks).
+    /// Map building before issue 27, and the default (issue 27's rule did not keep the alternative): the
+    /// nearest keyframes, every keypoint competing, pairs only, the embedding alone.
     pub fn unguided(self) -> Self {
         Self { epipolar_px: 0.0, covisible_candidates: 0, extend_tracks: false, freak_matches: false, ..self }
     }
 
+    /// Map building that uses the known poses (issue 27, section 2): an 8 px epipolar window, 3 covisible
+    /// candidates, tracks extended across keyframes, FREAK's matches joined.
+    pub fn with_known_poses(self) -> Self {
+        Self { epipolar_px: 8.0, covisible_candidates: 3, extend_tracks: true, freak_matches: true, ..self }
+    }
 
     /// Checks the settings of external landmarks (the others have always been taken as given).
     pub fn validate(&self) -> Result<(), String> {
@@ -456,7 +470,9 @@ pub fn plan(data: &MapData, input: &KeyframeInput, params: &BuildSettings) -> Re
         let point_of: HashMap<u64, [f64; 3]> = new_landmarks.iter().copied().collect();
         for (cand, a, b) in matched_pairs {
             let Some(&lm) = assigned.get(&(a as u32)) else { continue };
-            if observed.contains_key(&(cand.id, b)) || used_old.contains(&(cand.id, b)) || seen_by.contains(&(cand.id, lm))
+            if observed.contains_key(&(cand.id, b))
+                || used_old.contains(&(cand.id, b))
+                || seen_by.contains(&(cand.id, lm))
             {
                 continue;
             }
@@ -489,7 +505,8 @@ fn candidate_matches(
     let b = embedding_mat(&cand.embeddings, dim)?;
     let mut matches = match_descriptors_masked(&a, &b, NORM_L2, &test, &[], &mask)?;
     let n = input.features.len();
-    let bits = input.features.descriptors.len() == n && cand.descriptors.len() == cand.keypoints.len() * DESCRIPTOR_BYTES;
+    let bits =
+        input.features.descriptors.len() == n && cand.descriptors.len() == cand.keypoints.len() * DESCRIPTOR_BYTES;
     if params.freak_matches && bits {
         let fe = crate::error::FeatureError::from;
         let a = input.features.descriptor_mat()?;

@@ -1,5 +1,6 @@
-//! Relocalisation: a query's keypoints and embeddings against a map -> camera-to-world pose, in three stages
-//! (each a setting of [`LocalizeSettings`]; issue 27 chose the defaults on the selection scenes, BENCHMARKS.md).
+//! Relocalisation: a query's keypoints and embeddings against a map -> camera-to-world pose, in three stages,
+//! each a setting of [`LocalizeSettings`]. The defaults were chosen by a rule fixed before scoring on the
+//! selection scenes (BENCHMARKS.md, issue 27): stages 1 and 2 on, FREAK's join and stage 3 off.
 //!
 //! 1. **Index search.** Each query keypoint takes its `knn` nearest observations in the map's index
 //!    (optionally only those whose landmark lies within a prior's radius). The nearest landmark is accepted
@@ -44,8 +45,8 @@ use crate::camera::Camera;
 use crate::error::MapError;
 use crate::features::{Features, DESCRIPTOR_BYTES};
 use crate::map::index::{l2_squared, EmbeddingIndex};
-use crate::matching::embedding_mat;
 use crate::map::model::MapData;
+use crate::matching::embedding_mat;
 use crate::pose::{absolute_pose, absolute_pose_unknown_focal, AbsolutePose, RansacSettings};
 
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
@@ -100,9 +101,9 @@ impl Default for LocalizeSettings {
             candidate_keyframes: 5,
             candidate_matching: true,
             candidate_ratio: 0.9,
-            candidate_freak: true,
+            candidate_freak: false,
             candidate_skip_inliers: 100,
-            guided_search: true,
+            guided_search: false,
             guided_radius_px: 8.0,
             guided_ratio: 0.9,
         }
@@ -482,7 +483,14 @@ fn guided_matches(
             m: LandmarkMatch { keypoint: k, landmark: lm, distance: d },
             ratio: if second.is_finite() { d / second.max(f32::MIN_POSITIVE) } else { 1.0 },
         };
-        claims.entry(k).and_modify(|c| if d < c.m.distance { *c = r }).or_insert(r);
+        claims
+            .entry(k)
+            .and_modify(|c| {
+                if d < c.m.distance {
+                    *c = r
+                }
+            })
+            .or_insert(r);
     }
     let mut out: Vec<Ranked> = claims.into_values().collect();
     out.sort_by_key(|r| r.m.keypoint);

@@ -26,9 +26,9 @@ pub mod index;
 pub mod localize;
 pub mod merge;
 pub mod model;
-pub mod storage;
 #[cfg(test)]
 mod stage_tests;
+pub mod storage;
 pub mod store;
 #[cfg(test)]
 mod tests;

@@ -123,7 +123,7 @@ fn stage_two_finds_a_query_that_look_alikes_hide_from_the_index_search() {
     let l = localize(&data, &index, &features, &embeddings, &cam, None, &old).unwrap();
     assert!(l.pose.is_none(), "stage 1 alone: {} matches", l.matches.len());
     assert_eq!(l.matches.len(), 10);
-    let staged = LocalizeSettings { guided_search: false, candidate_freak: false, ..LocalizeSettings::default() };
+    let staged = LocalizeSettings { candidate_matching: true, ..LocalizeSettings::default().stage_one_only() };
     let l = localize(&data, &index, &features, &embeddings, &cam, None, &staged).unwrap();
     let pose = l.pose.as_ref().expect("stage 2 localises");
     assert!(pose.camera_to_world.translation.vector.norm() < 1e-3);
@@ -139,14 +139,14 @@ fn stage_two_joins_freak_matches_where_the_embedding_fails() {
     let index = EmbeddingIndex::new(IndexSettings::default());
     let (features, embeddings) = query(100..190);
     let cam = camera();
-    let without = LocalizeSettings { guided_search: false, candidate_freak: false, ..LocalizeSettings::default() };
+    let without = LocalizeSettings { candidate_matching: true, ..LocalizeSettings::default().stage_one_only() };
     // Correct matches of the keypoints whose embeddings describe nothing (chance ones may be wrong matches).
     let rescued = |l: &crate::map::localize::Localization| {
         l.matches.iter().filter(|m| (100..190).contains(&m.keypoint) && m.landmark == m.keypoint as u64).count()
     };
     let l = localize(&data, &index, &features, &embeddings, &cam, None, &without).unwrap();
     assert_eq!(rescued(&l), 0);
-    let with = LocalizeSettings { guided_search: false, ..LocalizeSettings::default() };
+    let with = LocalizeSettings { candidate_freak: true, ..without };
     let l = localize(&data, &index, &features, &embeddings, &cam, None, &with).unwrap();
     assert!(rescued(&l) >= 80, "FREAK joined {} of 90", rescued(&l));
     let pose = l.pose.as_ref().expect("localised");
@@ -161,12 +161,13 @@ fn stage_two_joins_freak_matches_where_the_embedding_fails() {
 fn stage_three_adds_the_projected_landmarks_and_never_creates_a_pose() {
     let cam = camera();
     let index = EmbeddingIndex::new(IndexSettings::default());
-    let guided_only = LocalizeSettings { candidate_matching: false, candidate_freak: false, ..LocalizeSettings::default() };
+    let guided_only = LocalizeSettings { guided_search: true, ..LocalizeSettings::default().stage_one_only() };
     // 60 unique landmarks give stage 1 a pose; guided search adds the 140 hidden by their look-alikes.
     let data = map_with_look_alikes(140);
     let (features, embeddings) = query(0..0);
-    let old = localize(&data, &index, &features, &embeddings, &cam, None, &LocalizeSettings::default().stage_one_only())
-        .unwrap();
+    let old =
+        localize(&data, &index, &features, &embeddings, &cam, None, &LocalizeSettings::default().stage_one_only())
+            .unwrap();
     let before = old.pose.expect("stage 1 localises").inliers.len();
     let l = localize(&data, &index, &features, &embeddings, &cam, None, &guided_only).unwrap();
     let after = l.pose.as_ref().expect("still localised").inliers.len();
@@ -185,10 +186,11 @@ fn a_query_keypoint_cap_bounds_stages_one_and_two_and_guided_search_reads_every_
     let index = EmbeddingIndex::new(IndexSettings::default());
     let data = map_with_look_alikes(0);
     let (features, embeddings) = query(0..0);
-    let capped = LocalizeSettings { max_query_keypoints: 50, ..LocalizeSettings::default() };
-    let l = localize(&data, &index, &features, &embeddings, &cam, None, &capped.stage_one_only()).unwrap();
-    assert_eq!(l.matches.len(), 50);
+    let capped = LocalizeSettings { max_query_keypoints: 50, ..LocalizeSettings::default().stage_one_only() };
     let l = localize(&data, &index, &features, &embeddings, &cam, None, &capped).unwrap();
+    assert_eq!(l.matches.len(), 50);
+    let all = LocalizeSettings { candidate_matching: true, candidate_freak: true, guided_search: true, ..capped };
+    let l = localize(&data, &index, &features, &embeddings, &cam, None, &all).unwrap();
     assert!(l.matches.len() >= 190, "guided search reached {} keypoints", l.matches.len());
     assert_eq!(correct(&l), l.matches.len());
 }
@@ -264,8 +266,9 @@ fn tracks_extend_to_every_keyframe_that_sees_the_landmark() {
     // keyframe's keypoint joins the landmark too.
     let scene = Scene3::new(150);
     let xs = [0.0, 0.02, 0.5];
-    let pairs = build(&scene, &xs, &BuildSettings { extend_tracks: false, ..BuildSettings::default() });
-    let tracks = build(&scene, &xs, &BuildSettings::default());
+    let pairs =
+        build(&scene, &xs, &BuildSettings { extend_tracks: false, ..BuildSettings::default().with_known_poses() });
+    let tracks = build(&scene, &xs, &BuildSettings::default().with_known_poses());
     assert_eq!(pairs.landmarks.len(), tracks.landmarks.len());
     assert!(pairs.landmarks.len() >= 100, "{} landmarks", pairs.landmarks.len());
     assert!(pairs.landmarks.values().all(|l| l.observations.len() == 2));
@@ -293,7 +296,8 @@ fn the_epipolar_window_matches_what_look_alikes_hide_from_the_plain_ratio_test()
     }
     let xs = [0.0, 0.5];
     let plain = build(&scene, &xs, &BuildSettings::default().unguided());
-    let guided = build(&scene, &xs, &BuildSettings { freak_matches: false, ..BuildSettings::default() });
+    let guided =
+        build(&scene, &xs, &BuildSettings { freak_matches: false, ..BuildSettings::default().with_known_poses() });
     assert!(plain.landmarks.len() <= 10, "plain: {}", plain.landmarks.len());
     assert!(guided.landmarks.len() >= 100, "guided: {}", guided.landmarks.len());
     for o in &guided.observations {
@@ -322,8 +326,12 @@ fn freak_matches_join_the_embeddings_in_map_building() {
             depth: None,
             external: None,
         };
-        let without = plan_keyframe(&data, &input, &BuildSettings { freak_matches: false, ..BuildSettings::default() });
-        let record = plan_keyframe(&data, &input, &BuildSettings::default()).unwrap();
+        let without = plan_keyframe(
+            &data,
+            &input,
+            &BuildSettings { freak_matches: false, ..BuildSettings::default().with_known_poses() },
+        );
+        let record = plan_keyframe(&data, &input, &BuildSettings::default().with_known_poses()).unwrap();
         if id == 1 {
             let Record::AddKeyframe { new_landmarks: none, .. } = without.unwrap() else { unreachable!() };
             let Record::AddKeyframe { new_landmarks: some, .. } = &record else { unreachable!() };

@@ -700,7 +700,7 @@ async fn health_and_reflection_answer_standard_clients() {
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
-async fn rgbd_slambook_map_localises_held_out_frames_over_grpc() {
+async fn rgbd_slambook_map_localises_held_out_frames_and_no_frame_of_another_scene() {
     let Some(dir) = shared_data() else { return };
     let scene = Scene::load(&dir.join("scenes/rgbd-slambook-5")).unwrap();
     let data = temp_dir("slambook");
@@ -723,6 +723,23 @@ async fn rgbd_slambook_map_localises_held_out_frames_over_grpc() {
             .into_inner();
         let (dt, dr) = pose_error(r.pose.as_ref().expect("localised"), &scene.frames[i].pose.unwrap());
         assert!(dt < 0.25 && dr < 2.0, "frame {i}: off by {dt} m, {dr} deg");
+    }
+    // No false poses: frames of other scenes get none, with every stage of the default pipeline at work.
+    for other in ["tum-fr3-long-office", "strecha-fountain-P11"] {
+        let other = Scene::load(&dir.join("scenes").join(other)).unwrap();
+        for f in other.frames.iter().step_by(4) {
+            let r = matching
+                .localize(proto::LocalizeRequest {
+                    map_id: "slam".into(),
+                    frame: Some(image_frame(&f.rgb, &other.camera)),
+                    prior: None,
+                    pose_convention: 0,
+                })
+                .await
+                .unwrap()
+                .into_inner();
+            assert!(r.pose.is_none(), "{}: a pose against another scene's map", f.rgb.display());
+        }
     }
     server.shutdown().await.unwrap();
 }

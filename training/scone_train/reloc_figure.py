@@ -1,8 +1,10 @@
 """Relocalisation success against distance to the map, from `scone eval reloc --map-block ... --json` reports.
 
 One panel per scene: the share of queries localised within (0.25 m, 2 deg) (thresholds times the report's
-unit scale) per bin of baseline to the nearest map camera (a share of the scene's camera path), one line per method, solid without distractors and dashed with
-them. Usage:
+unit scale) per bin of baseline to the nearest map camera (a share of the scene's camera path), one line per
+method. Reports of one pipeline: solid without distractors and dashed with them. Reports of both pipelines
+(issue 27: stage 1 alone, `--stages none`, against the staged defaults): solid for the staged pipeline and
+dashed for stage 1 alone. Usage:
 
     python -m scone_train.reloc_figure --out ../docs/figures/reloc-far-map.png REPORT.json...
 """
@@ -27,6 +29,13 @@ BASELINE_BINS = [0.0, 0.05, 0.1, 0.25]
 BIN_LABELS = ["<5%", "5-10%", "10-25%", ">25%"]
 
 
+def pipeline(report: dict) -> str:
+    """Which relocalisation pipeline a report ran: the staged one of issue 27, or stage 1 alone."""
+    localize = report["config"].get("localize", {})
+    stages = localize.get("candidate_matching") or localize.get("guided_search")
+    return "staged" if stages else "stage 1 alone"
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("reports", nargs="+", type=Path)
@@ -36,10 +45,11 @@ def main() -> None:
     for path in args.reports:
         report = json.loads(path.read_text())
         by_scene.setdefault(report["scene"], []).append(report)
+    staged = {pipeline(r) for rs in by_scene.values() for r in rs}
     scenes = sorted(by_scene)
     fig, axes = plt.subplots(1, len(scenes), figsize=(4.2 * len(scenes), 3.6), squeeze=False)
     for ax, scene in zip(axes[0], scenes):
-        for report in sorted(by_scene[scene], key=lambda r: r["config"]["distractor_observations"]):
+        for report in sorted(by_scene[scene], key=lambda r: (r["config"]["distractor_observations"], pipeline(r))):
             scale = report["config"].get("unit_scale", 1.0)
             extent = report["path_extent"]
             for s in report["summaries"]:
@@ -54,9 +64,14 @@ def main() -> None:
                         xs.append(i + SHIFT.get(method, 0.0))
                         ys.append(sum(ok) / len(ok))
                 distractors = s["distractor_observations"]
+                if len(staged) > 1:
+                    dashed = pipeline(report) == "stage 1 alone"
+                    label = f"{method}, {pipeline(report)}"
+                else:
+                    dashed = distractors > 0
+                    label = method + ("" if distractors == 0 else f" + {distractors / 1000:.0f}k distractors")
                 ax.plot(xs, ys, marker="o", color=COLOURS.get(method, "grey"),
-                        linestyle="-" if distractors == 0 else "--",
-                        label=method + ("" if distractors == 0 else f" + {distractors / 1000:.0f}k distractors"))
+                        linestyle="--" if dashed else "-", label=label)
         ax.set_xticks(range(len(BASELINE_BINS)), BIN_LABELS)
         queries = by_scene[scene][0]["summaries"][0]["queries"]
         ax.set_title(f"{scene} ({queries} queries, path {by_scene[scene][0]['path_extent']:.1f})", fontsize=10)
@@ -66,7 +81,9 @@ def main() -> None:
     axes[0][0].set_ylabel("localised within (0.25 m, 2 deg)")
     handles, labels = axes[0][0].get_legend_handles_labels()
     fig.legend(handles, labels, loc="lower center", ncol=3, fontsize=8, frameon=False)
-    fig.suptitle("Map: the first half of each scene; queries: the rest", fontsize=11)
+    distractors = {r["config"]["distractor_observations"] for rs in by_scene.values() for r in rs}
+    extra = f", {max(distractors) / 1000:.0f}k distractor observations" if len(staged) > 1 and max(distractors) else ""
+    fig.suptitle(f"Map: the first half of each scene; queries: the rest{extra}", fontsize=11)
     fig.tight_layout(rect=(0, 0.12, 1, 0.95))
     args.out.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(args.out, dpi=120)

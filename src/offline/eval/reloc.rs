@@ -104,9 +104,13 @@ pub enum Stage {
 }
 
 /// Settings with exactly `stages` of issue 27 on, over today's pipeline.
-pub fn with_stages(build: BuildSettings, localize: LocalizeSettings, stages: &[Stage]) -> (BuildSettings, LocalizeSettings) {
+pub fn with_stages(
+    build: BuildSettings,
+    localize: LocalizeSettings,
+    stages: &[Stage],
+) -> (BuildSettings, LocalizeSettings) {
     let on = |s: Stage| stages.contains(&s);
-    let build = if on(Stage::Build) { build } else { build.unguided() };
+    let build = if on(Stage::Build) { build.with_known_poses() } else { build.unguided() };
     let localize = LocalizeSettings {
         candidate_matching: on(Stage::Candidates) || on(Stage::Freak),
         candidate_freak: on(Stage::Freak),
@@ -309,7 +313,13 @@ pub fn evaluate(scene: &Scene, cfg: &RelocConfig, embedder: Option<&Embedder>) -
     for &method in &cfg.methods {
         let ratio_scale = |r: f32| if method == Method::Freak { r.sqrt() } else { r };
         let build = BuildSettings { ratio: ratio_scale(cfg.build.ratio), ..cfg.build };
-        let loc = LocalizeSettings { ratio: ratio_scale(cfg.localize.ratio), ..cfg.localize };
+        // Every ratio test on distances: FREAK's ±1 vectors take the square root (a ratio on Hamming distances).
+        let loc = LocalizeSettings {
+            ratio: ratio_scale(cfg.localize.ratio),
+            candidate_ratio: ratio_scale(cfg.localize.candidate_ratio),
+            guided_ratio: ratio_scale(cfg.localize.guided_ratio),
+            ..cfg.localize
+        };
         let described: Vec<Described> = images
             .iter()
             .map(|im| describe(method, im, &cfg.extractor, embedder))
