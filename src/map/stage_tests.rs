@@ -7,7 +7,7 @@ use crate::camera::{Camera, Pose};
 use crate::features::{Features, Keypoint, DESCRIPTOR_BYTES};
 use crate::map::builder::{plan_keyframe, BuildSettings, KeyframeInput};
 use crate::map::index::{EmbeddingIndex, IndexSettings};
-use crate::map::localize::{localize, LocalizeSettings};
+use crate::map::localize::{localize, Localization, LocalizeSettings};
 use crate::map::model::{Keyframe, MapData, NewObservation, Record};
 use crate::map::tests::{meta, vectors};
 
@@ -107,7 +107,13 @@ fn query(garbage: std::ops::Range<usize>) -> (Features, Vec<f32>) {
     (features, embeddings)
 }
 
-fn correct(l: &crate::map::localize::Localization) -> usize {
+/// Localises the query against `data` (exact search: the maps here are small) with the test camera.
+fn locate(data: &MapData, features: &Features, embeddings: &[f32], params: &LocalizeSettings) -> Localization {
+    let index = EmbeddingIndex::new(IndexSettings::default());
+    localize(data, &index, features, embeddings, &camera(), None, params).unwrap()
+}
+
+fn correct(l: &Localization) -> usize {
     l.matches.iter().filter(|m| m.landmark == m.keypoint as u64).count()
 }
 
@@ -116,15 +122,13 @@ fn stage_two_finds_a_query_that_look_alikes_hide_from_the_index_search() {
     // 190 of 200 landmarks have a look-alike elsewhere in the map: stage 1 keeps only the 10 unique ones, too
     // few for a pose, but they vote for keyframe 0, and against its landmarks alone all 200 are unambiguous.
     let data = map_with_look_alikes(190);
-    let index = EmbeddingIndex::new(IndexSettings::default());
     let (features, embeddings) = query(0..0);
-    let cam = camera();
     let old = LocalizeSettings::default().stage_one_only();
-    let l = localize(&data, &index, &features, &embeddings, &cam, None, &old).unwrap();
+    let l = locate(&data, &features, &embeddings, &old);
     assert!(l.pose.is_none(), "stage 1 alone: {} matches", l.matches.len());
     assert_eq!(l.matches.len(), 10);
     let staged = LocalizeSettings { candidate_matching: true, ..LocalizeSettings::default().stage_one_only() };
-    let l = localize(&data, &index, &features, &embeddings, &cam, None, &staged).unwrap();
+    let l = locate(&data, &features, &embeddings, &staged);
     let pose = l.pose.as_ref().expect("stage 2 localises");
     assert!(pose.camera_to_world.translation.vector.norm() < 1e-3);
     assert_eq!(correct(&l), l.matches.len(), "every match is the true landmark");
@@ -136,61 +140,53 @@ fn stage_two_finds_a_query_that_look_alikes_hide_from_the_index_search() {
 fn stage_two_joins_freak_matches_where_the_embedding_fails() {
     // Keypoints 100-189 carry embeddings of nothing in the map; their FREAK bits are the keyframe's.
     let data = map_with_look_alikes(190);
-    let index = EmbeddingIndex::new(IndexSettings::default());
     let (features, embeddings) = query(100..190);
-    let cam = camera();
     let without = LocalizeSettings { candidate_matching: true, ..LocalizeSettings::default().stage_one_only() };
     // Correct matches of the keypoints whose embeddings describe nothing (chance ones may be wrong matches).
-    let rescued = |l: &crate::map::localize::Localization| {
+    let rescued = |l: &Localization| {
         l.matches.iter().filter(|m| (100..190).contains(&m.keypoint) && m.landmark == m.keypoint as u64).count()
     };
-    let l = localize(&data, &index, &features, &embeddings, &cam, None, &without).unwrap();
+    let l = locate(&data, &features, &embeddings, &without);
     assert_eq!(rescued(&l), 0);
     let with = LocalizeSettings { candidate_freak: true, ..without };
-    let l = localize(&data, &index, &features, &embeddings, &cam, None, &with).unwrap();
+    let l = locate(&data, &features, &embeddings, &with);
     assert!(rescued(&l) >= 80, "FREAK joined {} of 90", rescued(&l));
     let pose = l.pose.as_ref().expect("localised");
     assert!(pose.inliers.iter().all(|&i| l.matches[i].landmark == l.matches[i].keypoint as u64));
     // Without FREAK bits on the query the join is skipped, not an error.
     let bare = Features { descriptors: Vec::new(), ..features };
-    let l = localize(&data, &index, &bare, &embeddings, &cam, None, &with).unwrap();
+    let l = locate(&data, &bare, &embeddings, &with);
     assert_eq!(rescued(&l), 0);
 }
 
 #[test]
 fn stage_three_adds_the_projected_landmarks_and_never_creates_a_pose() {
-    let cam = camera();
-    let index = EmbeddingIndex::new(IndexSettings::default());
     let guided_only = LocalizeSettings { guided_search: true, ..LocalizeSettings::default().stage_one_only() };
     // 60 unique landmarks give stage 1 a pose; guided search adds the 140 hidden by their look-alikes.
     let data = map_with_look_alikes(140);
     let (features, embeddings) = query(0..0);
-    let old =
-        localize(&data, &index, &features, &embeddings, &cam, None, &LocalizeSettings::default().stage_one_only())
-            .unwrap();
+    let old = locate(&data, &features, &embeddings, &LocalizeSettings::default().stage_one_only());
     let before = old.pose.expect("stage 1 localises").inliers.len();
-    let l = localize(&data, &index, &features, &embeddings, &cam, None, &guided_only).unwrap();
+    let l = locate(&data, &features, &embeddings, &guided_only);
     let after = l.pose.as_ref().expect("still localised").inliers.len();
     assert!(before <= 60 && after >= 180, "inliers {before} -> {after}");
     assert_eq!(correct(&l), l.matches.len());
     // 10 unique landmarks give no pose, and stage 3 alone does not make one.
     let data = map_with_look_alikes(190);
-    let l = localize(&data, &index, &features, &embeddings, &cam, None, &guided_only).unwrap();
+    let l = locate(&data, &features, &embeddings, &guided_only);
     assert!(l.pose.is_none());
     assert_eq!(l.matches.len(), 10);
 }
 
 #[test]
 fn a_query_keypoint_cap_bounds_stages_one_and_two_and_guided_search_reads_every_keypoint() {
-    let cam = camera();
-    let index = EmbeddingIndex::new(IndexSettings::default());
     let data = map_with_look_alikes(0);
     let (features, embeddings) = query(0..0);
     let capped = LocalizeSettings { max_query_keypoints: 50, ..LocalizeSettings::default().stage_one_only() };
-    let l = localize(&data, &index, &features, &embeddings, &cam, None, &capped).unwrap();
+    let l = locate(&data, &features, &embeddings, &capped);
     assert_eq!(l.matches.len(), 50);
     let all = LocalizeSettings { candidate_matching: true, candidate_freak: true, guided_search: true, ..capped };
-    let l = localize(&data, &index, &features, &embeddings, &cam, None, &all).unwrap();
+    let l = locate(&data, &features, &embeddings, &all);
     assert!(l.matches.len() >= 190, "guided search reached {} keypoints", l.matches.len());
     assert_eq!(correct(&l), l.matches.len());
 }
