@@ -235,19 +235,16 @@ impl Scene3 {
     }
 }
 
+/// A keyframe with a known pose, without depth or external landmarks.
+fn posed<'a>(id: u64, pose: Isometry3<f64>, features: &'a Features, embeddings: &'a [f32]) -> KeyframeInput<'a> {
+    KeyframeInput { id, pose, camera: camera(), features, embeddings, depth: None, external: None }
+}
+
 fn build(scene: &Scene3, xs: &[f64], params: &BuildSettings) -> MapData {
     let mut data = MapData::new(meta(DIM));
     for (id, &x) in xs.iter().enumerate() {
         let (pose, features, embeddings, _) = scene.view(x);
-        let input = KeyframeInput {
-            id: id as u64,
-            pose,
-            camera: camera(),
-            features: &features,
-            embeddings: &embeddings,
-            depth: None,
-            external: None,
-        };
+        let input = posed(id as u64, pose, &features, &embeddings);
         let record = plan_keyframe(&data, &input, params).unwrap();
         data.check(&record).unwrap();
         data.apply(&record);
@@ -313,15 +310,7 @@ fn freak_matches_join_the_embeddings_in_map_building() {
         if id == 1 {
             embeddings = vectors(features.len(), DIM, 77);
         }
-        let input = KeyframeInput {
-            id,
-            pose,
-            camera: camera(),
-            features: &features,
-            embeddings: &embeddings,
-            depth: None,
-            external: None,
-        };
+        let input = posed(id, pose, &features, &embeddings);
         let without = plan_keyframe(
             &data,
             &input,
