@@ -148,13 +148,19 @@ impl Features {
 
     /// Descriptors as an OpenCV matrix [N, 64] of u8, for OpenCV's matchers.
     pub fn descriptor_mat(&self) -> Result<Mat, FeatureError> {
-        if self.descriptors.is_empty() {
-            return Ok(Mat::default());
-        }
-        let flat: &[u8] = self.descriptors.as_flattened();
-        let mat = Mat::new_rows_cols_with_data(self.descriptors.len() as i32, DESCRIPTOR_BYTES as i32, flat)?;
-        Ok(mat.try_clone()?)
+        bits_mat(self.descriptors.as_flattened())
     }
+}
+
+/// FREAK descriptors laid end to end (`DESCRIPTOR_BYTES` each) as an OpenCV matrix, one row per descriptor
+/// (empty when there are none).
+pub fn bits_mat(flat: &[u8]) -> Result<Mat, FeatureError> {
+    if flat.is_empty() {
+        return Ok(Mat::default());
+    }
+    let rows = (flat.len() / DESCRIPTOR_BYTES) as i32;
+    let mat = Mat::new_rows_cols_with_data(rows, DESCRIPTOR_BYTES as i32, &flat[..rows as usize * DESCRIPTOR_BYTES])?;
+    Ok(mat.try_clone()?)
 }
 
 /// Limits on client-supplied keypoints.

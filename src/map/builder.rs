@@ -61,7 +61,7 @@ use crate::camera::Camera;
 use crate::camera::Pose;
 use crate::error::MapError;
 use crate::features::Features;
-use crate::features::DESCRIPTOR_BYTES;
+use crate::features::{bits_mat, DESCRIPTOR_BYTES};
 use crate::map::model::{Keyframe, MapData, NewObservation, Record};
 use crate::matching::{embedding_mat, match_descriptors_masked, RatioTest};
 use opencv::core::{NORM_HAMMING, NORM_L2};
@@ -508,12 +508,8 @@ fn candidate_matches(
     let bits =
         input.features.descriptors.len() == n && cand.descriptors.len() == cand.keypoints.len() * DESCRIPTOR_BYTES;
     if params.freak_matches && bits {
-        let fe = crate::error::FeatureError::from;
         let a = input.features.descriptor_mat()?;
-        let b = Mat::new_rows_cols_with_data(cand.keypoints.len() as i32, DESCRIPTOR_BYTES as i32, &cand.descriptors)
-            .map_err(fe)?
-            .try_clone()
-            .map_err(fe)?;
+        let b = bits_mat(&cand.descriptors)?;
         let (qs, ts): (HashSet<usize>, HashSet<usize>) =
             (matches.iter().map(|m| m.query).collect(), matches.iter().map(|m| m.train).collect());
         let freak = match_descriptors_masked(&a, &b, NORM_HAMMING, &test, &[], &mask)?;

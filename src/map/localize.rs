@@ -43,7 +43,7 @@ use opencv::prelude::*;
 
 use crate::camera::Camera;
 use crate::error::MapError;
-use crate::features::{Features, DESCRIPTOR_BYTES};
+use crate::features::{bits_mat, Features, DESCRIPTOR_BYTES};
 use crate::map::index::{l2_squared, EmbeddingIndex};
 use crate::map::model::MapData;
 use crate::matching::embedding_mat;
@@ -336,7 +336,6 @@ fn candidate_matches(
     if views.is_empty() || rows.is_empty() {
         return Ok(Vec::new());
     }
-    let fe = crate::error::FeatureError::from;
     let train: Vec<f32> = views.iter().flat_map(|&o| data.embeddings[o * dim..(o + 1) * dim].iter().copied()).collect();
     let train = embedding_mat(&train, dim)?;
     let query = embedding_mat(embeddings, dim)?;
@@ -348,18 +347,14 @@ fn candidate_matches(
             (k.descriptors.len() == k.keypoints.len() * DESCRIPTOR_BYTES).then(|| k.descriptor(i))
         })
     };
-    let has_bits = features.descriptors.len() == features.len() && views.iter().all(|&o| keyframe_bits(o).is_some());
-    if params.candidate_freak && has_bits {
-        let bytes: Vec<u8> = views.iter().flat_map(|&o| keyframe_bits(o).unwrap_or_default().iter().copied()).collect();
-        let train = Mat::new_rows_cols_with_data(views.len() as i32, DESCRIPTOR_BYTES as i32, &bytes)
-            .map_err(fe)?
-            .try_clone()
-            .map_err(fe)?;
+    let bits: Option<Vec<u8>> = (params.candidate_freak && features.descriptors.len() == features.len())
+        .then(|| views.iter().map(|&o| keyframe_bits(o)).collect::<Option<Vec<&[u8]>>>())
+        .flatten()
+        .map(|b| b.concat());
+    if let Some(bytes) = bits {
+        let train = bits_mat(&bytes)?;
         let qbytes: Vec<u8> = rows.iter().flat_map(|&i| features.descriptors[i].iter().copied()).collect();
-        let query = Mat::new_rows_cols_with_data(rows.len() as i32, DESCRIPTOR_BYTES as i32, &qbytes)
-            .map_err(fe)?
-            .try_clone()
-            .map_err(fe)?;
+        let query = bits_mat(&qbytes)?;
         let mut freak = mutual_landmark_matches(data, &query, &train, &views, NORM_HAMMING, params.candidate_ratio)?;
         // A FREAK match reports the embedding distance to the landmark's nearest view, as every other match.
         for r in &mut freak {
