@@ -589,8 +589,8 @@ pub fn localize(
     // Stage 1 searches only the strongest keypoints when capped; so do the later stages.
     let rows: Vec<usize> = strongest(features, params.max_query_keypoints.max(params.min_inliers))
         .unwrap_or_else(|| (0..features.len()).collect());
-    let subset: Vec<f32> = if rows.len() == features.len() {
-        embeddings.to_vec()
+    let subset: std::borrow::Cow<[f32]> = if rows.len() == features.len() {
+        embeddings.into()
     } else {
         rows.iter().flat_map(|&i| embeddings[i * dim..(i + 1) * dim].iter().copied()).collect()
     };
