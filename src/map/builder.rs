@@ -525,6 +525,9 @@ fn epipolar_mask(input: &KeyframeInput, cand: &Keyframe, px: f64) -> Result<Mat,
     // Relative pose new -> candidate: x_c = R x_n + t.
     let rel = cand.pose.isometry().inverse() * input.pose;
     let (r, t) = (rel.rotation.to_rotation_matrix().into_inner(), rel.translation.vector);
+    if t.norm() < 1e-9 {
+        return Ok(Mat::default()); // the same centre: no epipolar geometry, every pair competes
+    }
     let tx = nalgebra::Matrix3::new(0.0, -t.z, t.y, t.z, 0.0, -t.x, -t.y, t.x, 0.0);
     let kn = nalgebra::Matrix3::from_row_slice(&input.camera.k().concat());
     let kc = nalgebra::Matrix3::from_row_slice(&cand.camera.k().concat());
@@ -537,10 +540,11 @@ fn epipolar_mask(input: &KeyframeInput, cand: &Keyframe, px: f64) -> Result<Mat,
     for (i, p) in input.features.keypoints.iter().enumerate() {
         let l = f * Vector3::new(f64::from(p.x), f64::from(p.y), 1.0);
         let norm = l.x.hypot(l.y);
-        if norm < 1e-12 {
-            continue; // the epipole: no line
-        }
         let row = &mut mask[i * cols..(i + 1) * cols];
+        if norm < 1e-12 {
+            row.fill(1); // the epipole: no line, every candidate keypoint competes
+            continue;
+        }
         for (m, q) in row.iter_mut().zip(&cand.keypoints) {
             let d = (l.x * f64::from(q.x) + l.y * f64::from(q.y) + l.z).abs() / norm;
             *m = u8::from(d <= px);

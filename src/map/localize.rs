@@ -176,6 +176,14 @@ pub struct Localization {
     pub stages_s: f64,
 }
 
+/// Whether the landmark lies within the prior's radius (always, without a prior).
+fn within_prior(data: &MapData, landmark: u64, prior: Option<&Prior>) -> bool {
+    let Some(p) = prior else { return true };
+    let l = &data.landmarks[&landmark].point;
+    ((l[0] - p.position[0]).powi(2) + (l[1] - p.position[1]).powi(2) + (l[2] - p.position[2]).powi(2)).sqrt()
+        <= p.radius
+}
+
 /// A 2D-3D match with its rank for PROSAC: its distance over the runner-up's (1 when it had none), which
 /// compares across descriptors (L2 embeddings, Hamming bits).
 #[derive(Debug, Clone, Copy)]
@@ -203,13 +211,7 @@ fn index_matches(
     params: &LocalizeSettings,
 ) -> Vec<Ranked> {
     let dim = data.meta.dim;
-    let near = |obs: usize| -> bool {
-        let Some(p) = prior else { return true };
-        let l = &data.landmarks[&data.observations[obs].landmark].point;
-        let d =
-            ((l[0] - p.position[0]).powi(2) + (l[1] - p.position[1]).powi(2) + (l[2] - p.position[2]).powi(2)).sqrt();
-        d <= p.radius
-    };
+    let near = |obs: usize| within_prior(data, data.observations[obs].landmark, prior);
     let accept: crate::map::index::Accept = if prior.is_some() { Some(&near) } else { None };
     let all_hits = index.search_many(data, &embeddings[..embeddings.len() / dim * dim], params.knn.max(2), accept);
     let mut found = Vec::new();
@@ -217,7 +219,9 @@ fn index_matches(
         let Some(first) = hits.first() else { continue };
         let lm = data.observations[first.observation].landmark;
         let other = hits.iter().find(|h| data.observations[h.observation].landmark != lm);
-        let ratio = other.map_or(1.0, |o| first.distance / o.distance.max(f32::MIN_POSITIVE));
+        // Without another landmark among the hits, its runner-up lies beyond the last hit: that bound ranks it.
+        let runner_up = other.or(hits.last()).map_or(f32::MIN_POSITIVE, |h| h.distance.max(f32::MIN_POSITIVE));
+        let ratio = first.distance / runner_up;
         if other.is_some() && first.distance >= params.ratio * other.map_or(0.0, |o| o.distance) {
             continue;
         }
@@ -260,12 +264,16 @@ fn vote_keyframes(data: &MapData, landmarks: impl Iterator<Item = u64>, n: usize
     ranked.into_iter().take(n).map(|(k, _)| k).collect()
 }
 
-/// Live views (observation ids) of the landmarks the keyframes `candidates` observe, at most
+/// Live views (observation ids) of the landmarks the keyframes `candidates` observe (within the prior), at most
 /// [`VIEWS_PER_LANDMARK`] per landmark, grouped by landmark in landmark order.
-fn candidate_views(data: &MapData, candidates: &[u64]) -> Vec<usize> {
+fn candidate_views(data: &MapData, candidates: &[u64], prior: Option<&Prior>) -> Vec<usize> {
     let chosen: HashSet<u64> = candidates.iter().copied().collect();
-    let mut landmarks: Vec<u64> =
-        data.observations.iter().filter(|o| o.live && chosen.contains(&o.keyframe)).map(|o| o.landmark).collect();
+    let mut landmarks: Vec<u64> = data
+        .observations
+        .iter()
+        .filter(|o| o.live && chosen.contains(&o.keyframe) && within_prior(data, o.landmark, prior))
+        .map(|o| o.landmark)
+        .collect();
     landmarks.sort_unstable();
     landmarks.dedup();
     landmark_views(data, &landmarks)
@@ -329,10 +337,11 @@ fn candidate_matches(
     features: &Features,
     rows: &[usize],
     embeddings: &[f32],
+    prior: Option<&Prior>,
     params: &LocalizeSettings,
 ) -> Result<Vec<Ranked>, MapError> {
     let dim = data.meta.dim;
-    let views = candidate_views(data, candidates);
+    let views = candidate_views(data, candidates, prior);
     if views.is_empty() || rows.is_empty() {
         return Ok(Vec::new());
     }
@@ -398,17 +407,25 @@ fn join(sets: impl IntoIterator<Item = Ranked>) -> Vec<Ranked> {
     all
 }
 
+/// What stage 3 reads of the query: every keypoint with its embedding, the camera and the prior.
+#[derive(Clone, Copy)]
+struct Query<'a> {
+    features: &'a Features,
+    embeddings: &'a [f32],
+    camera: &'a Camera,
+    prior: Option<&'a Prior>,
+}
+
 /// Stage 3: landmarks of the keyframes that see the pose's inliers most, projected with the pose, matched to
 /// the query keypoint in the window (module docs). `matched` are the matches the pose was estimated from.
 fn guided_matches(
     data: &MapData,
     pose: &AbsolutePose,
-    camera: &Camera,
-    features: &Features,
-    embeddings: &[f32],
+    query: &Query,
     matched: &[Ranked],
     params: &LocalizeSettings,
 ) -> Vec<Ranked> {
+    let Query { features, embeddings, camera, prior } = *query;
     let dim = data.meta.dim;
     let inliers: Vec<&Ranked> = pose.inliers.iter().map(|&i| &matched[i]).collect();
     let mut gate: Vec<f32> = inliers.iter().map(|r| r.m.distance).collect();
@@ -421,7 +438,12 @@ fn guided_matches(
     let mut landmarks: Vec<u64> = data
         .observations
         .iter()
-        .filter(|o| o.live && chosen.contains(&o.keyframe) && !taken_landmarks.contains(&o.landmark))
+        .filter(|o| {
+            o.live
+                && chosen.contains(&o.keyframe)
+                && !taken_landmarks.contains(&o.landmark)
+                && within_prior(data, o.landmark, prior)
+        })
         .map(|o| o.landmark)
         .collect();
     landmarks.sort_unstable();
@@ -476,7 +498,8 @@ fn guided_matches(
         }
         let r = Ranked {
             m: LandmarkMatch { keypoint: k, landmark: lm, distance: d },
-            ratio: if second.is_finite() { d / second.max(f32::MIN_POSITIVE) } else { 1.0 },
+            // A runner-up beyond the gate, or none in the window, counts as the gate.
+            ratio: d / second.min(gate).max(f32::MIN_POSITIVE),
         };
         claims
             .entry(k)
@@ -586,7 +609,8 @@ pub fn localize(
     }
     let t = std::time::Instant::now();
     let dim = data.meta.dim;
-    // Stage 1 searches only the strongest keypoints when capped; so do the later stages.
+    // Stages 1 and 2 search only the strongest keypoints when capped; stage 3 reads every keypoint (its search is
+    // a window around each projected landmark, not a search of the map).
     let rows: Vec<usize> = strongest(features, params.max_query_keypoints.max(params.min_inliers))
         .unwrap_or_else(|| (0..features.len()).collect());
     let subset: std::borrow::Cow<[f32]> = if rows.len() == features.len() {
@@ -616,14 +640,14 @@ pub fn localize(
     let inliers = |p: &Option<AbsolutePose>| p.as_ref().map_or(0, |p| p.inliers.len());
     let mut matches = join(stage1);
     if !(params.candidate_matching || params.guided_search) {
-        // Stage 1 alone keeps the order it always had: the nearest embeddings first.
-        matches.sort_by(|a, b| a.m.distance.total_cmp(&b.m.distance));
+        // Stage 1 alone keeps the order it always had: the nearest embeddings first, ties in keypoint order.
+        matches.sort_by(|a, b| a.m.distance.total_cmp(&b.m.distance).then(a.m.keypoint.cmp(&b.m.keypoint)));
     }
     let mut pose = estimate(&matches, &mut pnp_s)?;
     if params.candidate_matching && inliers(&pose) < params.candidate_skip_inliers {
         let t = std::time::Instant::now();
         let candidates = vote_keyframes(data, matches.iter().map(|r| r.m.landmark), params.candidate_keyframes);
-        let stage2 = candidate_matches(data, &candidates, features, &rows, &subset, params)?;
+        let stage2 = candidate_matches(data, &candidates, features, &rows, &subset, prior, params)?;
         stages_s += t.elapsed().as_secs_f64();
         let joined = join(matches.iter().copied().chain(stage2));
         if joined.len() > matches.len() {
@@ -635,7 +659,8 @@ pub fn localize(
     }
     if let Some(p) = pose.as_ref().filter(|_| params.guided_search) {
         let t = std::time::Instant::now();
-        let guided = guided_matches(data, p, camera, features, embeddings, &matches, params);
+        let query = Query { features, embeddings, camera, prior };
+        let guided = guided_matches(data, p, &query, &matches, params);
         stages_s += t.elapsed().as_secs_f64();
         if !guided.is_empty() {
             let joined = join(matches.iter().copied().chain(guided));

@@ -7,7 +7,7 @@ use crate::camera::{Camera, Pose};
 use crate::features::{Features, Keypoint, DESCRIPTOR_BYTES};
 use crate::map::builder::{plan_keyframe, BuildSettings, KeyframeInput};
 use crate::map::index::{EmbeddingIndex, IndexSettings};
-use crate::map::localize::{localize, Localization, LocalizeSettings};
+use crate::map::localize::{localize, Localization, LocalizeSettings, Prior};
 use crate::map::model::{Keyframe, MapData, NewObservation, Record};
 use crate::map::tests::{meta, vectors};
 
@@ -341,4 +341,37 @@ fn stage_settings_are_checked() {
     }
     assert!(LocalizeSettings { candidate_keyframes: 0, ..ok.stage_one_only() }.validate().is_ok());
     assert!(BuildSettings { epipolar_px: -1.0, ..BuildSettings::default() }.validate().is_err());
+}
+
+#[test]
+fn every_stage_keeps_to_the_prior() {
+    // Stage 1 finds the unique landmarks inside the radius; stages 2 and 3 must not reach beyond it either.
+    let data = map_with_look_alikes(150);
+    let (features, embeddings) = query(0..0);
+    let prior = Prior { position: [0.0; 3], radius: 7.5 };
+    let inside = (0..N).filter(|&i| nalgebra::Vector3::from(point(i)).norm() <= prior.radius).count();
+    assert!(inside > 60 && inside < N - 30, "{inside} landmarks inside");
+    let all = LocalizeSettings { candidate_freak: true, guided_search: true, ..LocalizeSettings::default() };
+    let index = EmbeddingIndex::new(IndexSettings::default());
+    let l = localize(&data, &index, &features, &embeddings, &camera(), Some(&prior), &all).unwrap();
+    assert!(l.pose.is_some());
+    assert!(l.matches.len() >= inside * 9 / 10, "{} of {inside}", l.matches.len());
+    for m in &l.matches {
+        let p = nalgebra::Vector3::from(data.landmarks[&m.landmark].point);
+        assert!(p.norm() <= prior.radius, "landmark {} at {:.2} is outside the prior", m.landmark, p.norm());
+    }
+}
+
+#[test]
+fn keyframes_at_one_centre_match_without_an_epipolar_window() {
+    // A keyframe at the centre of an earlier one has no epipolar geometry with it: the window must not shut
+    // every pair out, and the new keyframe observes the earlier one's landmarks as without the window.
+    let mut data = MapData::new(meta(DIM));
+    add_keyframe(&mut data, 0, [0.0; 3], 0, vectors(N, DIM, 5), 1);
+    let (features, embeddings) = query(0..0);
+    let params = BuildSettings::default().with_known_poses();
+    let plan = plan_keyframe(&data, &posed(1, Isometry3::identity(), &features, &embeddings), &params).unwrap();
+    let Record::AddKeyframe { observations, .. } = plan else { unreachable!() };
+    assert!(observations.len() >= 190, "{} observations", observations.len());
+    assert!(observations.iter().all(|o| o.landmark == u64::from(o.keypoint)));
 }

@@ -85,7 +85,7 @@ pub struct RelocConfig {
     #[serde(default)]
     pub foreign: Vec<std::path::PathBuf>,
     /// Every N-th frame of the foreign scenes.
-    #[serde(default = "one")]
+    #[serde(default = "five")]
     pub foreign_stride: usize,
 }
 
@@ -122,6 +122,10 @@ pub fn with_stages(
 
 fn one() -> usize {
     1
+}
+
+fn five() -> usize {
+    5
 }
 
 fn one_f() -> f64 {
