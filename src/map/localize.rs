@@ -192,17 +192,7 @@ struct Ranked {
     ratio: f32,
 }
 
-/// 2D-3D matches of a query against the map (stage 1).
-pub fn match_landmarks(
-    data: &MapData,
-    index: &EmbeddingIndex,
-    embeddings: &[f32],
-    prior: Option<&Prior>,
-    params: &LocalizeSettings,
-) -> Vec<LandmarkMatch> {
-    index_matches(data, index, embeddings, prior, params).into_iter().map(|r| r.m).collect()
-}
-
+/// Stage 1: 2D-3D matches of the query rows `embeddings` against the map's index (rows as keypoints).
 fn index_matches(
     data: &MapData,
     index: &EmbeddingIndex,
