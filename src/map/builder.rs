@@ -348,21 +348,11 @@ pub fn plan(data: &MapData, input: &KeyframeInput, params: &BuildSettings) -> Re
     candidates.truncate(params.candidates);
     if params.covisible_candidates > 0 && !candidates.is_empty() {
         let near: HashSet<u64> = candidates.iter().map(|k| k.id).collect();
-        let mut votes: HashMap<u64, usize> = HashMap::new();
-        for o in data.observations.iter().filter(|o| o.live && near.contains(&o.keyframe)) {
-            for &other in &data.landmarks[&o.landmark].observations {
-                let other = &data.observations[other as usize];
-                if other.live && !near.contains(&other.keyframe) {
-                    *votes.entry(other.keyframe).or_default() += 1;
-                }
-            }
-        }
-        let mut ranked: Vec<(u64, usize)> = votes
-            .into_iter()
-            .filter(|(k, _)| viewing_direction(&data.keyframes[k].pose.isometry()).dot(&dir) > 0.0)
-            .collect();
-        ranked.sort_by(|a, b| b.1.cmp(&a.1).then(a.0.cmp(&b.0)));
-        candidates.extend(ranked.iter().take(params.covisible_candidates).map(|(k, _)| &data.keyframes[k]));
+        let shared = data.observations.iter().filter(|o| o.live && near.contains(&o.keyframe)).map(|o| o.landmark);
+        let seeing =
+            |k: u64| !near.contains(&k) && viewing_direction(&data.keyframes[&k].pose.isometry()).dot(&dir) > 0.0;
+        let ranked = data.covisible_keyframes(shared, seeing, params.covisible_candidates);
+        candidates.extend(ranked.iter().map(|k| &data.keyframes[k]));
     }
 
     let mut assigned: HashMap<u32, u64> = HashMap::new(); // keypoint of the new keyframe -> landmark

@@ -237,23 +237,6 @@ fn one_per_landmark(found: Vec<Ranked>) -> Vec<Ranked> {
     out
 }
 
-/// Stage 1's covisibility vote: the `n` keyframes observing most of `landmarks` (ties: the lower id).
-fn vote_keyframes(data: &MapData, landmarks: impl Iterator<Item = u64>, n: usize) -> Vec<u64> {
-    let mut votes: HashMap<u64, usize> = HashMap::new();
-    for lm in landmarks {
-        let Some(l) = data.landmarks.get(&lm) else { continue };
-        for &o in &l.observations {
-            let o = &data.observations[o as usize];
-            if o.live {
-                *votes.entry(o.keyframe).or_default() += 1;
-            }
-        }
-    }
-    let mut ranked: Vec<(u64, usize)> = votes.into_iter().collect();
-    ranked.sort_by(|a, b| b.1.cmp(&a.1).then(a.0.cmp(&b.0)));
-    ranked.into_iter().take(n).map(|(k, _)| k).collect()
-}
-
 /// Live views (observation ids) of the landmarks the keyframes `candidates` observe (within the prior), at most
 /// [`VIEWS_PER_LANDMARK`] per landmark, grouped by landmark in landmark order.
 fn candidate_views(data: &MapData, candidates: &[u64], prior: Option<&Prior>) -> Vec<usize> {
@@ -421,7 +404,8 @@ fn guided_matches(
     let mut gate: Vec<f32> = inliers.iter().map(|r| r.m.distance).collect();
     gate.sort_by(f32::total_cmp);
     let Some(&gate) = gate.get(gate.len() * 9 / 10).or(gate.last()) else { return Vec::new() };
-    let candidates = vote_keyframes(data, inliers.iter().map(|r| r.m.landmark), params.candidate_keyframes);
+    let candidates =
+        data.covisible_keyframes(inliers.iter().map(|r| r.m.landmark), |_| true, params.candidate_keyframes);
     let chosen: HashSet<u64> = candidates.iter().copied().collect();
     let taken_landmarks: HashSet<u64> = matched.iter().map(|r| r.m.landmark).collect();
     let taken_keypoints: HashSet<usize> = matched.iter().map(|r| r.m.keypoint).collect();
@@ -636,7 +620,8 @@ pub fn localize(
     let mut pose = estimate(&matches, &mut pnp_s)?;
     if params.candidate_matching && inliers(&pose) < params.candidate_skip_inliers {
         let t = std::time::Instant::now();
-        let candidates = vote_keyframes(data, matches.iter().map(|r| r.m.landmark), params.candidate_keyframes);
+        let candidates =
+            data.covisible_keyframes(matches.iter().map(|r| r.m.landmark), |_| true, params.candidate_keyframes);
         let stage2 = candidate_matches(data, &candidates, features, &rows, &subset, prior, params)?;
         stages_s += t.elapsed().as_secs_f64();
         let joined = join(matches.iter().copied().chain(stage2));

@@ -355,6 +355,30 @@ impl MapData {
         }
     }
 
+    /// The `n` keyframes holding the most live observations of `landmarks` (a landmark listed twice counts
+    /// twice), among those `keep` admits; ties go to the lower id. The covisibility vote of relocalisation and
+    /// of map building.
+    pub fn covisible_keyframes(
+        &self,
+        landmarks: impl Iterator<Item = u64>,
+        keep: impl Fn(u64) -> bool,
+        n: usize,
+    ) -> Vec<u64> {
+        let mut votes: std::collections::HashMap<u64, usize> = std::collections::HashMap::new();
+        for lm in landmarks {
+            let Some(l) = self.landmarks.get(&lm) else { continue };
+            for &o in &l.observations {
+                let o = &self.observations[o as usize];
+                if o.live && keep(o.keyframe) {
+                    *votes.entry(o.keyframe).or_default() += 1;
+                }
+            }
+        }
+        let mut ranked: Vec<(u64, usize)> = votes.into_iter().collect();
+        ranked.sort_by(|a, b| b.1.cmp(&a.1).then(a.0.cmp(&b.0)));
+        ranked.into_iter().take(n).map(|(k, _)| k).collect()
+    }
+
     /// (keyframe, keypoint) -> landmark for every live observation.
     pub fn observed_keypoints(&self) -> std::collections::HashMap<(u64, u32), u64> {
         self.observations.iter().filter(|o| o.live).map(|o| ((o.keyframe, o.keypoint), o.landmark)).collect()
