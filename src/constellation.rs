@@ -53,6 +53,11 @@ impl Constellations {
         &self.neighbours[i * self.k..(i + 1) * self.k]
     }
 
+    /// Mask of keypoint `i`'s neighbour slots (1 real, 0 padding).
+    pub fn mask_of(&self, i: usize) -> &[u8] {
+        &self.mask[i * self.k..(i + 1) * self.k]
+    }
+
     /// Relative geometry of keypoint `i`'s neighbours.
     pub fn relative_of(&self, i: usize) -> &[[f32; GEOMETRY_DIM]] {
         &self.relative[i * self.k..(i + 1) * self.k]

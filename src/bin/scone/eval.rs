@@ -5,6 +5,7 @@ use std::path::PathBuf;
 use clap::Subcommand;
 
 use scone::features::ExtractorSettings;
+use scone::offline::eval::homography;
 use scone::offline::eval::methods::Method;
 use scone::offline::eval::pairs::{self, PairsConfig};
 use scone::offline::eval::reloc;
@@ -127,6 +128,35 @@ pub enum EvalCommand {
         #[command(flatten)]
         extractor: ExtractorArgs,
     },
+    /// Matching under exact homographies (HPatches layout: 1.png..N.png and H_1_k): corner error of a
+    /// MAGSAC++ homography, mean matching accuracy and correct matches per method, binned by zoom and rotation.
+    Homography {
+        /// Sequence folders, or folders of sequences.
+        #[arg(long, value_delimiter = ',', required = true)]
+        data: Vec<PathBuf>,
+        /// Methods to compare.
+        #[arg(long, value_delimiter = ',', default_value = "scone,scone-plain,freak,orb,sift")]
+        methods: Vec<Method>,
+        /// Ratio-test threshold.
+        #[arg(long, default_value_t = scone::matching::DEFAULT_RATIO)]
+        ratio: f32,
+        /// Ratio test's same-corner radius in pixels (0 = OpenCV's plain test).
+        #[arg(long, default_value_t = scone::matching::SAME_CORNER_PX)]
+        same_corner_px: f32,
+        /// How the scone method picks its matches (scone-plain is always the plain embedding).
+        #[arg(long, value_enum, default_value_t = scone::matching::SconeMatcher::default())]
+        scone_matcher: scone::matching::SconeMatcher,
+        /// MAGSAC++ inlier threshold of the fitted homography, pixels.
+        #[arg(long, default_value_t = 3.0)]
+        ransac_px: f64,
+        /// A match is correct within this many pixels of the true homography's image.
+        #[arg(long, default_value_t = 3.0)]
+        correct_px: f64,
+        #[command(flatten)]
+        report: ReportArgs,
+        #[command(flatten)]
+        extractor: ExtractorArgs,
+    },
     /// Map merging: two mapping runs of a scene, each in its own random world frame, merged as MergeMaps
     /// does (transform estimated); the transform's and the merged keyframes' errors against the truth.
     Merge {
@@ -213,6 +243,39 @@ pub fn run(cmd: EvalCommand) -> anyhow::Result<()> {
             };
             let report = pairs::evaluate(&s, &pc, embedder.as_ref()).map_err(|e| anyhow::anyhow!("{e}"))?;
             print!("{}", pairs::markdown(&report));
+            out.write_json(&report)?;
+        }
+        EvalCommand::Homography {
+            data,
+            methods,
+            ratio,
+            same_corner_px,
+            scone_matcher,
+            ransac_px,
+            correct_px,
+            report: out,
+            extractor,
+        } => {
+            anyhow::ensure!(
+                same_corner_px.is_finite() && same_corner_px >= 0.0,
+                "--same-corner-px must be a finite number >= 0"
+            );
+            anyhow::ensure!(ransac_px > 0.0 && correct_px > 0.0, "--ransac-px and --correct-px must be > 0");
+            let cfg = homography::HomographyConfig {
+                methods,
+                ratio,
+                same_corner_px,
+                scone_matcher,
+                ransac_px,
+                correct_px,
+                k: extractor.k,
+                extractor: extractor.config()?,
+            };
+            let dirs = homography::find_sequences(&data).map_err(|e| anyhow::anyhow!("{e}"))?;
+            let embedder =
+                load_embedder(cfg.methods.iter().any(|m| matches!(m, Method::Scone | Method::SconePlain)), &out)?;
+            let report = homography::evaluate(&dirs, &cfg, embedder.as_ref()).map_err(|e| anyhow::anyhow!("{e}"))?;
+            print!("{}", homography::markdown(&report));
             out.write_json(&report)?;
         }
         EvalCommand::Reloc {
