@@ -189,6 +189,77 @@ impl Grid {
     }
 }
 
+/// Which keypoints make a constellation. [`NeighbourRule::Nearest`] is the shipped model's (the module docs);
+/// the others are candidates under study (issue 25: constellations that survive zoom), built by brute force.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Default, serde::Serialize, serde::Deserialize, clap::ValueEnum)]
+#[serde(rename_all = "kebab-case")]
+pub enum NeighbourRule {
+    /// The k nearest keypoints in pixels.
+    #[default]
+    Nearest,
+    /// The k nearest among keypoints within one pyramid level (a factor 1.2 in size) of the central one.
+    Window1,
+    /// The same within two levels.
+    Window2,
+    /// The k smallest distances in units of the neighbour's own size (`d / s_j`): under a zoom both scale
+    /// alike, and structure only the finer image resolves (small `s_j`) ranks far.
+    SizeUnits,
+    /// [`NeighbourRule::SizeUnits`] among keypoints within two pyramid levels of the central one.
+    SizeUnitsWindow2,
+}
+
+impl NeighbourRule {
+    fn window_levels(self) -> Option<f32> {
+        match self {
+            NeighbourRule::Window1 => Some(1.0),
+            NeighbourRule::Window2 | NeighbourRule::SizeUnitsWindow2 => Some(2.0),
+            _ => None,
+        }
+    }
+}
+
+/// Builds the constellations of `keypoints` by `rule`.
+pub fn build_with(keypoints: &[Keypoint], k: usize, rule: NeighbourRule) -> Constellations {
+    if rule == NeighbourRule::Nearest {
+        return build(keypoints, k);
+    }
+    let level = 1.2f32.ln();
+    let window = rule.window_levels().map(|w| w * level + 1e-3);
+    let size_units = matches!(rule, NeighbourRule::SizeUnits | NeighbourRule::SizeUnitsWindow2);
+    let n = keypoints.len();
+    let mut neighbours = Vec::with_capacity(n * k);
+    let mut mask = Vec::with_capacity(n * k);
+    let mut relative = Vec::with_capacity(n * k);
+    let mut cands: Vec<(f32, u32)> = Vec::with_capacity(n);
+    for (i, c) in keypoints.iter().enumerate() {
+        cands.clear();
+        for (j, p) in keypoints.iter().enumerate() {
+            if j == i || window.is_some_and(|w| (p.size / c.size).ln().abs() > w) {
+                continue;
+            }
+            let d = (p.x - c.x).hypot(p.y - c.y);
+            cands.push((if size_units { d / p.size } else { d }, j as u32));
+        }
+        let order = |a: &(f32, u32), b: &(f32, u32)| a.0.total_cmp(&b.0).then(a.1.cmp(&b.1));
+        if cands.len() > k && k > 0 {
+            cands.select_nth_unstable_by(k - 1, order);
+        }
+        cands.truncate(k);
+        cands.sort_unstable_by(order);
+        for &(_, j) in &cands {
+            neighbours.push(j);
+            mask.push(1);
+            relative.push(relative_geometry(c, &keypoints[j as usize]));
+        }
+        for _ in cands.len()..k {
+            neighbours.push(i as u32);
+            mask.push(0);
+            relative.push([0.0; GEOMETRY_DIM]);
+        }
+    }
+    Constellations { k, neighbours, mask, relative }
+}
+
 /// Builds the constellation of every keypoint (exact k-nearest neighbours in pixel distance, found with a
 /// uniform grid: about `N·k` distance evaluations instead of `N²`).
 pub fn build(keypoints: &[Keypoint], k: usize) -> Constellations {
@@ -259,6 +330,31 @@ mod tests {
             let closer = (0..kps.len() as u32).filter(|&j| j != i as u32 && d(j) < far).count();
             assert!(closer <= 19, "keypoint {i}: {closer} keypoints closer than the 20th neighbour");
         }
+    }
+
+    /// The candidate rules keep their promises: members within the size window, ordered by their key, padding
+    /// only when too few keypoints qualify; and a zoom of the whole image leaves `size-units` sets unchanged.
+    #[test]
+    fn neighbour_rules_keep_their_windows_and_size_units_are_zoom_invariant() {
+        let kps = keypoints(300, 11);
+        for rule in [NeighbourRule::Window1, NeighbourRule::Window2, NeighbourRule::SizeUnitsWindow2] {
+            let c = build_with(&kps, 20, rule);
+            let w = rule.window_levels().unwrap() * 1.2f32.ln() + 1e-3;
+            for i in 0..kps.len() {
+                for (&j, &m) in c.neighbours_of(i).iter().zip(c.mask_of(i)) {
+                    if m > 0 {
+                        assert!((kps[j as usize].size / kps[i].size).ln().abs() <= w);
+                    }
+                }
+            }
+        }
+        assert_eq!(build_with(&kps, 20, NeighbourRule::Nearest), build(&kps, 20));
+        let zoomed: Vec<Keypoint> =
+            kps.iter().map(|p| Keypoint { x: 2.0 * p.x + 5.0, y: 2.0 * p.y - 3.0, size: 2.0 * p.size, ..*p }).collect();
+        let a = build_with(&kps, 20, NeighbourRule::SizeUnits);
+        let b = build_with(&zoomed, 20, NeighbourRule::SizeUnits);
+        assert_eq!(a.neighbours, b.neighbours);
+        assert!(a.mask.iter().all(|&m| m == 1));
     }
 
     /// The grid search returns exactly what brute force returns, clustered and duplicated positions included.

@@ -69,6 +69,62 @@ def build_unit(
     return Unit(name or scene_dir.name, frames, ids)
 
 
+def warp_ids(kp1: np.ndarray, kpk: np.ndarray, h: np.ndarray, tol_px: float = 2.0, levels: float = 1.5) -> np.ndarray:
+    """Landmark ids of image k's keypoints under the exact homography `h` (image 1 -> k): the index of the
+    image-1 keypoint whose image lies within `tol_px` of it, mutual nearest, and whose size times the local zoom
+    of `h` agrees with its size within `levels` pyramid levels (a factor 1.2 each); -1 otherwise.
+    Keypoint rows are x, y, size, angle, ... as in `FrameFeatures`."""
+    ids = np.full(len(kpk), -1, dtype=np.int64)
+    if len(kp1) == 0 or len(kpk) == 0:
+        return ids
+    p = np.c_[kp1[:, :2].astype(np.float64), np.ones(len(kp1))] @ h.T
+    ok = p[:, 2] > 1e-9
+    proj = np.where(ok[:, None], p[:, :2] / np.where(ok, p[:, 2], 1.0)[:, None], np.inf)
+    # Local zoom of h at each image-1 keypoint (square root of the Jacobian's determinant).
+    d = 0.5
+    px = np.c_[kp1[:, 0] + d, kp1[:, 1], np.ones(len(kp1))] @ h.T
+    py = np.c_[kp1[:, 0], kp1[:, 1] + d, np.ones(len(kp1))] @ h.T
+    with np.errstate(divide="ignore", invalid="ignore"):
+        jx = (px[:, :2] / px[:, 2:3] - proj) / d
+        jy = (py[:, :2] / py[:, 2:3] - proj) / d
+        zoom = np.sqrt(np.abs(jx[:, 0] * jy[:, 1] - jx[:, 1] * jy[:, 0]))
+    from scipy.spatial import cKDTree
+
+    finite = np.isfinite(proj).all(1)
+    idx1 = np.nonzero(finite)[0]
+    if len(idx1) == 0:
+        return ids
+    tree1 = cKDTree(proj[idx1])
+    dk, nk = tree1.query(kpk[:, :2].astype(np.float64), distance_upper_bound=tol_px)
+    treek = cKDTree(kpk[:, :2].astype(np.float64))
+    _, back = treek.query(proj[idx1], distance_upper_bound=tol_px)
+    limit = levels * np.log(1.2)
+    for j in range(len(kpk)):
+        if not np.isfinite(dk[j]):
+            continue
+        i = idx1[nk[j]]
+        if back[nk[j]] != j:
+            continue
+        if abs(np.log(kpk[j, 2] / (kp1[i, 2] * zoom[i]))) > limit:
+            continue
+        ids[j] = i
+    return ids
+
+
+def build_warp_unit(seq_dir: Path, cache: Path, tol_px: float = 2.0) -> Unit:
+    """A sequence of `scone_train.warps` (HPatches layout plus rgb.txt) as a training unit: features from the
+    Rust export, landmarks from the exact homographies (`warp_ids`; image 1's keypoint i is landmark i)."""
+    seq_dir = Path(seq_dir)
+    cache.mkdir(parents=True, exist_ok=True)
+    npz = export_features(seq_dir, cache / f"{seq_dir.name}.features.npz")
+    _, frames = load_features(npz)
+    ids = [np.arange(len(frames[0]), dtype=np.int64)]
+    for k in range(1, len(frames)):
+        h = np.loadtxt(seq_dir / f"H_1_{k + 1}")
+        ids.append(warp_ids(frames[0].keypoints, frames[k].keypoints, h, tol_px))
+    return Unit(f"warp-{seq_dir.name}", frames, ids, real=True)
+
+
 def shared_anchors(ida: np.ndarray, idb: np.ndarray, cap: int, rng: np.random.Generator):
     """Landmarks seen in both frames with the keypoint that observes each in a and in b: (ids, ia, ib),
     at most `cap` of them, drawn with `rng` when there are more."""

@@ -77,3 +77,25 @@ def test_a_seed_gives_the_same_sequences(tmp_path):
         assert np.array_equal(cv2.imread(str(tmp_path / "a" / f"{k}.png")), cv2.imread(str(tmp_path / "b" / f"{k}.png")))
     rows = (tmp_path / "a" / "rgb.txt").read_text().split()
     assert rows[:2] == ["1", "1.png"]
+
+
+def test_warp_ids_label_the_keypoints_a_homography_carries():
+    from scone_train.dataset import warp_ids
+
+    rng = np.random.default_rng(5)
+    n = 200
+    kp1 = np.c_[rng.uniform(0, 300, (n, 2)), 7.0 * 1.2 ** rng.integers(0, 3, n), rng.uniform(0, 360, n)].astype(np.float32)
+    h = np.array([[1.5 * np.cos(0.3), -1.5 * np.sin(0.3), 20.0], [1.5 * np.sin(0.3), 1.5 * np.cos(0.3), -5.0], [0, 0, 1]])
+    p = np.c_[kp1[:, :2], np.ones(n)] @ h.T
+    kpk = kp1.copy()
+    kpk[:, :2] = p[:, :2] / p[:, 2:3] + rng.normal(0, 0.3, (n, 2))
+    kpk[:, 2] = kp1[:, 2] * 1.5
+    order = rng.permutation(n)
+    ids = warp_ids(kp1, kpk[order], h)
+    assert (ids == order).mean() > 0.97
+    # A size that disagrees with the zoom by more than 1.5 levels, or a position 5 px off, gets no id.
+    wrong = kpk[order].copy()
+    wrong[:10, 2] = kp1[order[:10], 2] * 1.5 * 1.2**2
+    wrong[10:20, 0] += 5.0
+    ids = warp_ids(kp1, wrong, h)
+    assert (ids[:20] == -1).all() and (ids[20:] == order[20:]).mean() > 0.97

@@ -152,6 +152,9 @@ pub enum EvalCommand {
         /// A match is correct within this many pixels of the true homography's image.
         #[arg(long, default_value_t = 3.0)]
         correct_px: f64,
+        /// Also measure the neighbour share of these constellation rules (candidates of issue 25).
+        #[arg(long, value_delimiter = ',', value_enum)]
+        neighbour_rules: Vec<scone::constellation::NeighbourRule>,
         #[command(flatten)]
         report: ReportArgs,
         #[command(flatten)]
@@ -253,6 +256,7 @@ pub fn run(cmd: EvalCommand) -> anyhow::Result<()> {
             scone_matcher,
             ransac_px,
             correct_px,
+            neighbour_rules,
             report: out,
             extractor,
         } => {
@@ -269,6 +273,7 @@ pub fn run(cmd: EvalCommand) -> anyhow::Result<()> {
                 ransac_px,
                 correct_px,
                 k: extractor.k,
+                neighbour_rules,
                 extractor: extractor.config()?,
             };
             let dirs = homography::find_sequences(&data).map_err(|e| anyhow::anyhow!("{e}"))?;

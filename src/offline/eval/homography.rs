@@ -16,10 +16,12 @@
 //! `max(s, 1/s)` with `s` the square root of the Jacobian's determinant, the rotation the angle of the
 //! Jacobian's nearest similarity.
 //!
-//! **Neighbour share**: for the project's keypoints (SConE's and FREAK's), the share of a keypoint's
+//! **Neighbour share**: for the project's keypoints (SConE's and FREAK's), the number of a keypoint's
 //! constellation members whose image under the true H lies within `correct_px` of a member of the
 //! constellation of its corresponding keypoint (the keypoint of image k nearest to its own image, when within
-//! `correct_px`). It measures how much of a constellation survives the change, before any network sees it.
+//! `correct_px`), per slot of the constellation (k). It measures how much of a constellation survives the
+//! change, before any network sees it; with `neighbour_rules` it is measured for each candidate rule of
+//! `constellation::NeighbourRule` as well.
 
 use std::path::{Path, PathBuf};
 
@@ -28,7 +30,7 @@ use opencv::core::{Mat, Point2f, Vector};
 use opencv::prelude::*;
 use serde::{Deserialize, Serialize};
 
-use crate::constellation::{self, Constellations};
+use crate::constellation::{self, Constellations, NeighbourRule};
 use crate::decode::{decode_grey, GreyImage, ImageLimitSettings};
 use crate::embedding::Embedder;
 use crate::features::{ExtractorSettings, Keypoint};
@@ -59,6 +61,10 @@ pub struct HomographyConfig {
     pub correct_px: f64,
     /// Constellation size of the neighbour share.
     pub k: usize,
+    /// Neighbour rules whose share is also measured (the pairs' `neighbour_share` is always the shipped
+    /// rule's, [`NeighbourRule::Nearest`]).
+    #[serde(default)]
+    pub neighbour_rules: Vec<NeighbourRule>,
     pub extractor: ExtractorSettings,
 }
 
@@ -72,6 +78,7 @@ impl Default for HomographyConfig {
             ransac_px: 3.0,
             correct_px: 3.0,
             k: constellation::DEFAULT_K,
+            neighbour_rules: Vec::new(),
             extractor: ExtractorSettings::default(),
         }
     }
@@ -275,7 +282,7 @@ pub fn neighbour_share(
             .collect();
         let members_a: Vec<usize> =
             ca.neighbours_of(i).iter().zip(ca.mask_of(i)).filter(|(_, &m)| m > 0).map(|(&m, _)| m as usize).collect();
-        if members_a.is_empty() {
+        if members_a.is_empty() || ca.k == 0 {
             continue;
         }
         let kept = members_a
@@ -285,7 +292,7 @@ pub fn neighbour_share(
                     .is_some_and(|(x, y)| members_b.iter().any(|q| (q.x as f64 - x).hypot(q.y as f64 - y) <= px))
             })
             .count();
-        sum += kept as f64 / members_a.len() as f64;
+        sum += kept as f64 / ca.k as f64;
         n += 1;
     }
     (n > 0).then(|| (sum / n as f64, n))
@@ -309,6 +316,17 @@ pub struct HomographyPair {
     /// None for other methods or when no keypoint corresponds.
     pub neighbour_share: Option<f64>,
     pub match_seconds: f64,
+}
+
+/// One pair's neighbour share under one rule.
+#[derive(Debug, Clone, Serialize, Deserialize)]
+pub struct RuleShare {
+    pub rule: NeighbourRule,
+    pub sequence: String,
+    pub image: usize,
+    pub zoom: f64,
+    pub rotation_deg: f64,
+    pub share: Option<f64>,
 }
 
 mod finite_or_null {
@@ -359,6 +377,8 @@ pub struct HomographyReport {
     pub summaries: Vec<HomographySummary>,
     pub bins: Vec<HomographyBin>,
     pub pairs: Vec<HomographyPair>,
+    #[serde(default)]
+    pub rule_shares: Vec<RuleShare>,
 }
 
 fn summarise(method: Method, pairs: &[&HomographyPair], describe_ms: f64) -> HomographySummary {
@@ -422,6 +442,7 @@ pub fn evaluate(
     let total: usize = sequences.iter().map(|s| s.images.len() * cfg.methods.len()).sum();
     let mut progress = Progress::new("eval homography", total);
     let mut records = Vec::new();
+    let mut rule_shares = Vec::new();
     let mut describe_seconds: std::collections::HashMap<Method, Vec<f64>> = Default::default();
     let test = RatioTest { ratio: cfg.ratio, mutual: false, same_corner_px: cfg.same_corner_px };
     for seq in &sequences {
@@ -435,7 +456,7 @@ pub fn evaluate(
         let uses_project_keypoints =
             |m: Method| matches!(m, Method::Scone | Method::SconePlain | Method::Freak | Method::FreakGms);
         let mut shares: Vec<Option<f64>> = vec![None; seq.homographies.len()];
-        if cfg.methods.iter().any(|&m| uses_project_keypoints(m)) {
+        if cfg.methods.iter().any(|&m| uses_project_keypoints(m)) || !cfg.neighbour_rules.is_empty() {
             let kps: Vec<Vec<Keypoint>> = images
                 .iter()
                 .map(|im| crate::features::extract(im, &cfg.extractor).map(|f| f.keypoints))
@@ -444,6 +465,20 @@ pub fn evaluate(
             for (i, h) in seq.homographies.iter().enumerate() {
                 shares[i] =
                     neighbour_share(&kps[0], &cons[0], &kps[i + 1], &cons[i + 1], h, cfg.correct_px).map(|s| s.0);
+            }
+            for &rule in &cfg.neighbour_rules {
+                let cons: Vec<Constellations> = kps.iter().map(|k| constellation::build_with(k, cfg.k, rule)).collect();
+                for (i, h) in seq.homographies.iter().enumerate() {
+                    rule_shares.push(RuleShare {
+                        rule,
+                        sequence: seq.name.clone(),
+                        image: i + 2,
+                        zoom: geometry[i].0,
+                        rotation_deg: geometry[i].1,
+                        share: neighbour_share(&kps[0], &cons[0], &kps[i + 1], &cons[i + 1], h, cfg.correct_px)
+                            .map(|s| s.0),
+                    });
+                }
             }
         }
         for &method in &cfg.methods {
@@ -497,27 +532,13 @@ pub fn evaluate(
     let all: Vec<&HomographyPair> = records.iter().collect();
     let summaries = cfg.methods.iter().map(|&m| summarise(m, &all, ms(m))).collect();
     let mut bins = Vec::new();
-    for (axis, key) in [("zoom", zoom_bin as fn(f64) -> String), ("rotation", rotation_bin as fn(f64) -> String)] {
-        let mut labels: Vec<(f64, String)> = Vec::new();
-        for p in &records {
-            let v = if axis == "zoom" { p.zoom } else { p.rotation_deg };
-            let l = key(v);
-            if !labels.iter().any(|(_, x)| *x == l) {
-                labels.push((v, l));
-            }
-        }
-        labels.sort_by(|a, b| a.0.total_cmp(&b.0));
-        // Sort by the bin's order, not the first value seen in it.
-        labels.dedup_by(|a, b| a.1 == b.1);
-        let order = |l: &str| {
-            let edges: &[f64] = if axis == "zoom" { &ZOOM_EDGES } else { &ROTATION_EDGES };
-            let rank = edges.iter().position(|&e| key(e - 1e-9) == l);
-            rank.unwrap_or(edges.len())
-        };
-        labels.sort_by_key(|(_, l)| order(l));
-        for (_, label) in labels {
-            let inside: Vec<&HomographyPair> =
-                records.iter().filter(|p| key(if axis == "zoom" { p.zoom } else { p.rotation_deg }) == label).collect();
+    for (axis, key, lower, edges) in
+        [("zoom", zoom_bin as fn(f64) -> String, 1.0, &ZOOM_EDGES), ("rotation", rotation_bin, 0.0, &ROTATION_EDGES)]
+    {
+        let value = |p: &HomographyPair| if axis == "zoom" { p.zoom } else { p.rotation_deg };
+        let labels = bin_labels(records.iter().map(value), key, lower, edges);
+        for label in labels {
+            let inside: Vec<&HomographyPair> = records.iter().filter(|p| key(value(p)) == label).collect();
             bins.push(HomographyBin {
                 axis: axis.to_string(),
                 label,
@@ -531,6 +552,7 @@ pub fn evaluate(
         summaries,
         bins,
         pairs: records,
+        rule_shares,
     })
 }
 
@@ -598,7 +620,49 @@ pub fn markdown(report: &HomographyReport) -> String {
             }),
         ));
     }
+    if !report.rule_shares.is_empty() {
+        s.push_str("\nNeighbour share by rule (mean over the pairs of each bin; the last column: all pairs):\n\n");
+        let zooms = bin_labels(report.rule_shares.iter().map(|r| r.zoom), zoom_bin, 1.0, &ZOOM_EDGES);
+        let rots = bin_labels(report.rule_shares.iter().map(|r| r.rotation_deg), rotation_bin, 0.0, &ROTATION_EDGES);
+        let mut headers: Vec<String> = vec!["rule".into()];
+        headers.extend(zooms.iter().cloned());
+        headers.extend(rots.iter().cloned());
+        headers.push("all".into());
+        let hs: Vec<&str> = headers.iter().map(String::as_str).collect();
+        let mean = |f: &dyn Fn(&RuleShare) -> bool| {
+            let v: Vec<f64> = report.rule_shares.iter().filter(|r| f(r)).filter_map(|r| r.share).collect();
+            if v.is_empty() {
+                "-".to_string()
+            } else {
+                format!("{:.3}", v.iter().sum::<f64>() / v.len() as f64)
+            }
+        };
+        s.push_str(&markdown_table(
+            &hs,
+            report.config.neighbour_rules.iter().map(|&rule| {
+                let mut row = vec![format!("{rule:?}")];
+                row.extend(zooms.iter().map(|l| mean(&|r| r.rule == rule && zoom_bin(r.zoom) == *l)));
+                row.extend(rots.iter().map(|l| mean(&|r| r.rule == rule && rotation_bin(r.rotation_deg) == *l)));
+                row.push(mean(&|r| r.rule == rule));
+                row
+            }),
+        ));
+    }
     s
+}
+
+/// The labels of the bins (lower end `lower`, upper edges `edges`) that `values` fall in, in the bins' order.
+fn bin_labels(values: impl Iterator<Item = f64>, key: fn(f64) -> String, lower: f64, edges: &[f64]) -> Vec<String> {
+    let present: std::collections::HashSet<String> = values.map(key).collect();
+    let mut all = Vec::new();
+    let mut lo = lower;
+    for &e in edges {
+        all.push(key((lo + e) / 2.0));
+        lo = e;
+    }
+    all.push(key(lo + 1.0));
+    all.dedup();
+    all.into_iter().filter(|l| present.contains(l)).collect()
 }
 
 #[cfg(test)]
