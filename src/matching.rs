@@ -154,8 +154,9 @@ pub fn match_descriptors_masked(
 /// How SConE picks its matches between two frames. Every variant runs on the same keypoints, and the two that
 /// combine SConE with FREAK read the FREAK descriptors those keypoints already carry (no second extraction).
 /// The default, used by MatchPair and `scone eval pairs` alike, was chosen on the selection split under a rule
-/// fixed before scoring (docs/model-experiments.md, session 7: rerank +0.015 mean AUC@10 over plain, union
-/// -0.004).
+/// fixed before scoring (docs/model-experiments.md): session 7 chose rerank (+0.015 mean AUC@10 over plain,
+/// union -0.004); issue 25 chose scale-aware (rerank, with union where the images differ by a zoom of 1.6 or
+/// more: the same AUC on the real selection pairs, 0.575 against 0.250 of the zoomed warps within 5 px).
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Default, serde::Serialize, serde::Deserialize, clap::ValueEnum)]
 #[serde(rename_all = "kebab-case")]
 pub enum SconeMatcher {
@@ -166,8 +167,14 @@ pub enum SconeMatcher {
     Union,
     /// FREAK's [`RERANK_CANDIDATES`] nearest descriptors of each keypoint, re-ordered by SConE distance; the
     /// ratio test runs on the SConE distances of those candidates.
-    #[default]
     Rerank,
+    /// [`SconeMatcher::Rerank`], unless the two images differ in scale by [`SCALE_AWARE_ZOOM`] or more (the
+    /// median size ratio of FREAK's ratio-test matches, at least [`SCALE_AWARE_MIN_MATCHES`] of them); then
+    /// [`SconeMatcher::Union`]. Under such a zoom the constellations share fewer than half their members
+    /// (`scone eval homography`'s neighbour share), so FREAK answers where SConE cannot. The default, chosen
+    /// on the selection split (docs/model-experiments.md, issue 25).
+    #[default]
+    ScaleAware,
     /// FREAK descriptors alone (Hamming nearest neighbour, the same ratio test): the baseline SConE is
     /// compared with, so that a client or the console can put the two side by side on the same keypoints.
     Freak,
@@ -179,6 +186,7 @@ impl SconeMatcher {
             SconeMatcher::Plain => "plain",
             SconeMatcher::Union => "union",
             SconeMatcher::Rerank => "rerank",
+            SconeMatcher::ScaleAware => "scale-aware",
             SconeMatcher::Freak => "freak",
         }
     }
@@ -187,13 +195,38 @@ impl SconeMatcher {
 /// FREAK candidates per keypoint that [`SconeMatcher::Rerank`] re-orders.
 pub const RERANK_CANDIDATES: i32 = 10;
 
-/// One frame as the SConE matchers see it: `[N, dim]` embeddings, FREAK descriptors (`[N, 64]` u8) and
-/// keypoint positions, all of the same N keypoints.
+/// The zoom between two images from which [`SconeMatcher::ScaleAware`] falls back on FREAK.
+pub const SCALE_AWARE_ZOOM: f32 = 1.6;
+/// FREAK matches [`SconeMatcher::ScaleAware`] needs to estimate the zoom; with fewer it re-ranks.
+pub const SCALE_AWARE_MIN_MATCHES: usize = 10;
+
+/// One frame as the SConE matchers see it: `[N, dim]` embeddings, FREAK descriptors (`[N, 64]` u8),
+/// keypoint positions and sizes, all of the same N keypoints.
 pub struct SconeFrame<'a> {
     pub embeddings: &'a [f32],
     pub dim: usize,
     pub freak: &'a Mat,
     pub points: &'a [(f32, f32)],
+    /// Keypoint sizes (diameters, pixels); [`SconeMatcher::ScaleAware`] reads them.
+    pub sizes: &'a [f32],
+}
+
+/// The zoom between `a` and `b` (>= 1, either way) from the median size ratio of `matches`; None with fewer
+/// than [`SCALE_AWARE_MIN_MATCHES`].
+pub fn pair_zoom(a_sizes: &[f32], b_sizes: &[f32], matches: &[Match]) -> Option<f32> {
+    let mut logs: Vec<f32> = matches
+        .iter()
+        .filter_map(|m| {
+            let (sa, sb) = (*a_sizes.get(m.query)?, *b_sizes.get(m.train)?);
+            (sa > 0.0 && sb > 0.0).then(|| (sb / sa).ln())
+        })
+        .collect();
+    if logs.len() < SCALE_AWARE_MIN_MATCHES {
+        return None;
+    }
+    let mid = logs.len() / 2;
+    let (_, median, _) = logs.select_nth_unstable_by(mid, f32::total_cmp);
+    Some(median.abs().exp())
 }
 
 /// SConE matches of `a`'s keypoints in `b` by `matcher`.
@@ -206,18 +239,30 @@ pub fn match_scone(
     match matcher {
         SconeMatcher::Plain => match_l2(a.embeddings, b.embeddings, a.dim, test, b.points),
         SconeMatcher::Union => {
-            let mut out = match_l2(a.embeddings, b.embeddings, a.dim, test, b.points)?;
-            let mut answered = vec![false; a.points.len()];
-            for m in &out {
-                answered[m.query] = true;
-            }
             let freak = match_descriptors(a.freak, b.freak, NORM_HAMMING, test, b.points)?;
-            out.extend(freak.into_iter().filter(|m| !answered[m.query]));
-            Ok(out)
+            union(a, b, test, freak)
         }
         SconeMatcher::Rerank => rerank(a, b, test),
+        SconeMatcher::ScaleAware => {
+            let freak = match_descriptors(a.freak, b.freak, NORM_HAMMING, test, b.points)?;
+            match pair_zoom(a.sizes, b.sizes, &freak) {
+                Some(zoom) if zoom >= SCALE_AWARE_ZOOM => union(a, b, test, freak),
+                _ => rerank(a, b, test),
+            }
+        }
         SconeMatcher::Freak => match_descriptors(a.freak, b.freak, NORM_HAMMING, test, b.points),
     }
+}
+
+/// SConE's ratio-test matches, plus `freak`'s for the keypoints SConE left unmatched.
+fn union(a: &SconeFrame, b: &SconeFrame, test: &RatioTest, freak: Vec<Match>) -> Result<Vec<Match>, FeatureError> {
+    let mut out = match_l2(a.embeddings, b.embeddings, a.dim, test, b.points)?;
+    let mut answered = vec![false; a.points.len()];
+    for m in &out {
+        answered[m.query] = true;
+    }
+    out.extend(freak.into_iter().filter(|m| !answered[m.query]));
+    Ok(out)
 }
 
 fn l2(x: &[f32], y: &[f32]) -> f32 {
@@ -365,8 +410,8 @@ mod tests {
         three_quarters[..48].fill(0xff);
         let (ea, eb, fa, fb) = frames(ea, eb, [o, o, three_quarters], [z, o, half]);
         let (a, b) = (
-            SconeFrame { embeddings: &ea, dim: 2, freak: &fa, points: &PTS },
-            SconeFrame { embeddings: &eb, dim: 2, freak: &fb, points: &PTS },
+            SconeFrame { embeddings: &ea, dim: 2, freak: &fa, points: &PTS, sizes: &[] },
+            SconeFrame { embeddings: &eb, dim: 2, freak: &fb, points: &PTS, sizes: &[] },
         );
         let test = RatioTest::new(0.8);
         let plain = match_scone(SconeMatcher::Plain, &a, &b, &test).unwrap();
@@ -379,6 +424,54 @@ mod tests {
     }
 
     #[test]
+    fn pair_zoom_is_the_median_size_ratio_either_way() {
+        let a = vec![7.0f32; 20];
+        let mut b: Vec<f32> = vec![14.0; 20];
+        b[0] = 7.0; // an outlier does not move the median
+        let all: Vec<Match> = (0..20).map(|i| Match { query: i, train: i, distance: 0.0 }).collect();
+        assert!((pair_zoom(&a, &b, &all).unwrap() - 2.0).abs() < 1e-5);
+        assert!((pair_zoom(&b, &a, &all).unwrap() - 2.0).abs() < 1e-5);
+        assert!(pair_zoom(&a, &b, &all[..SCALE_AWARE_MIN_MATCHES - 1]).is_none());
+        // Sizes missing (a client that sent none) give no estimate, and scale-aware re-ranks.
+        assert!(pair_zoom(&[], &[], &all).is_none());
+    }
+
+    /// Scale-aware answers as rerank between images of one scale, and as union under a zoom of 1.6 or more.
+    #[test]
+    fn scale_aware_falls_back_on_union_under_zoom() {
+        // 12 keypoints per frame, FREAK bits distinct per keypoint and equal across the frames (every FREAK
+        // match is k -> k); SConE embeddings agree with FREAK except that keypoint 0 is ambiguous for SConE.
+        let n = 12;
+        let bits: Vec<[u8; 64]> = (0..n)
+            .map(|k| {
+                let mut b = [0u8; 64];
+                b[..(k + 1) * 5].fill(0xff);
+                b
+            })
+            .collect();
+        let mut ea: Vec<f32> = (0..n).flat_map(|k| [10.0 * k as f32, 0.0]).collect();
+        ea[0] = 5.0; // halfway between b0 and b1
+        let eb: Vec<f32> = (0..n).flat_map(|k| [10.0 * k as f32, 0.0]).collect();
+        let fa = Mat::new_rows_cols_with_data(n as i32, 64, bits.as_flattened()).unwrap().try_clone().unwrap();
+        let fb = fa.try_clone().unwrap();
+        let pts: Vec<(f32, f32)> = (0..n).map(|k| (50.0 * k as f32, 0.0)).collect();
+        let one_scale = vec![7.0f32; n];
+        let zoomed = vec![7.0f32 * 1.8; n];
+        let test = RatioTest::new(0.8);
+        let run = |matcher, sizes_b: &[f32]| {
+            let a = SconeFrame { embeddings: &ea, dim: 2, freak: &fa, points: &pts, sizes: &one_scale };
+            let b = SconeFrame { embeddings: &eb, dim: 2, freak: &fb, points: &pts, sizes: sizes_b };
+            let mut m: Vec<(usize, usize)> =
+                match_scone(matcher, &a, &b, &test).unwrap().iter().map(|m| (m.query, m.train)).collect();
+            m.sort_unstable();
+            m
+        };
+        assert_eq!(run(SconeMatcher::ScaleAware, &one_scale), run(SconeMatcher::Rerank, &one_scale));
+        assert_eq!(run(SconeMatcher::ScaleAware, &zoomed), run(SconeMatcher::Union, &zoomed));
+        assert_ne!(run(SconeMatcher::Rerank, &zoomed), run(SconeMatcher::Union, &zoomed));
+    }
+
+    #[test]
     fn rerank_orders_freak_candidates_by_scone_distance() {
         // FREAK prefers b0 for query 0 (identical bits), SConE prefers b2 and is sure of it.
         let (z, o) = ([0u8; 64], [0xffu8; 64]);
@@ -388,15 +481,15 @@ mod tests {
         let eb = vec![3.0, 0.0, 9.0, -9.0, 0.1, 0.0];
         let (ea, eb, fa, fb) = frames(ea, eb, [z, o, o], [z, o, near]);
         let (a, b) = (
-            SconeFrame { embeddings: &ea, dim: 2, freak: &fa, points: &PTS },
-            SconeFrame { embeddings: &eb, dim: 2, freak: &fb, points: &PTS },
+            SconeFrame { embeddings: &ea, dim: 2, freak: &fa, points: &PTS, sizes: &[] },
+            SconeFrame { embeddings: &eb, dim: 2, freak: &fb, points: &PTS, sizes: &[] },
         );
         let m = match_scone(SconeMatcher::Rerank, &a, &b, &RatioTest::new(0.8)).unwrap();
         let q0: Vec<_> = m.iter().filter(|m| m.query == 0).map(|m| m.train).collect();
         assert_eq!(q0, vec![2]);
         // With fewer than two candidates in b there is nothing to rank.
         let one = Mat::new_rows_cols_with_data(1, 64, &z).unwrap().try_clone().unwrap();
-        let b1 = SconeFrame { embeddings: &eb[..2], dim: 2, freak: &one, points: &PTS[..1] };
+        let b1 = SconeFrame { embeddings: &eb[..2], dim: 2, freak: &one, points: &PTS[..1], sizes: &[] };
         assert!(match_scone(SconeMatcher::Rerank, &a, &b1, &RatioTest::new(0.8)).unwrap().is_empty());
     }
 }

@@ -304,7 +304,7 @@ function pairPage() {
     setStatus("matching…");
     try {
       const columns = [];
-      for (const [matcher, title] of [["rerank", "SConE"], ["freak", "FREAK"]]) {
+      for (const [matcher, title] of [["scale-aware", "SConE"], ["freak", "FREAK"]]) {
         const form = new FormData();
         form.append("request", JSON.stringify({ frame1: { intrinsics }, frame2: { intrinsics }, matcher }));
         form.append("image1", a);

@@ -490,6 +490,7 @@ impl proto::matching_server::Matching for GrpcApi {
                     Ok(proto::PairMatcher::Union) => SconeMatcher::Union,
                     Ok(proto::PairMatcher::Rerank) => SconeMatcher::Rerank,
                     Ok(proto::PairMatcher::Freak) => SconeMatcher::Freak,
+                    Ok(proto::PairMatcher::ScaleAware) => SconeMatcher::ScaleAware,
                     Err(_) => return Err(invalid("matcher", &format!("{} is not a PairMatcher", r.matcher))),
                 };
                 let conv = convention(r.pose_convention)?;

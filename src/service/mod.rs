@@ -452,8 +452,22 @@ impl Service {
         let (points1, points2) = (d1.features.points(), d2.features.points());
         let matches = times.time("match", || {
             let (freak1, freak2) = (d1.features.descriptor_mat()?, d2.features.descriptor_mat()?);
-            let f1 = SconeFrame { embeddings: &d1.embeddings, dim: d1.dim, freak: &freak1, points: &points1 };
-            let f2 = SconeFrame { embeddings: &d2.embeddings, dim: d2.dim, freak: &freak2, points: &points2 };
+            let sizes1: Vec<f32> = d1.features.keypoints.iter().map(|k| k.size).collect();
+            let sizes2: Vec<f32> = d2.features.keypoints.iter().map(|k| k.size).collect();
+            let f1 = SconeFrame {
+                embeddings: &d1.embeddings,
+                dim: d1.dim,
+                freak: &freak1,
+                points: &points1,
+                sizes: &sizes1,
+            };
+            let f2 = SconeFrame {
+                embeddings: &d2.embeddings,
+                dim: d2.dim,
+                freak: &freak2,
+                points: &points2,
+                sizes: &sizes2,
+            };
             match_scone(options.matcher, &f1, &f2, &test)
         })?;
         let p1: Vec<(f32, f32)> = matches.iter().map(|m| d1.features.keypoints[m.query]).map(|k| (k.x, k.y)).collect();

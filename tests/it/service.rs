@@ -809,15 +809,21 @@ async fn match_pair_matchers_are_selectable_and_unknown_ones_refused() {
         pose_convention: 0,
     };
     let mut counts = Vec::new();
-    for m in
-        [proto::PairMatcher::Default, proto::PairMatcher::Plain, proto::PairMatcher::Union, proto::PairMatcher::Rerank]
-    {
+    for m in [
+        proto::PairMatcher::Default,
+        proto::PairMatcher::Plain,
+        proto::PairMatcher::Union,
+        proto::PairMatcher::Rerank,
+        proto::PairMatcher::ScaleAware,
+    ] {
         let r = matching.match_pair(request(m as i32)).await.unwrap().into_inner();
         let dr = rotation_error(r.pose.as_ref().expect("a pose"));
         assert!(dr < 2.0, "{m:?}: relative rotation off by {dr} deg");
         counts.push(r.matches.len());
     }
-    // The default is the rerank matcher: the same matches.
+    // The default is the scale-aware matcher, which re-ranks between these two frames of one scale: the same
+    // matches as rerank.
+    assert_eq!(counts[0], counts[4]);
     assert_eq!(counts[0], counts[3]);
     let err = matching.match_pair(request(99)).await.unwrap_err();
     assert_eq!(err.code(), Code::InvalidArgument);
@@ -839,6 +845,8 @@ async fn match_pair_matchers_are_selectable_and_unknown_ones_refused() {
     };
     let plain: serde_json::Value = post("plain").await.unwrap().json().await.unwrap();
     assert_eq!(plain["matches"].as_array().unwrap().len(), counts[1]);
+    let scale_aware: serde_json::Value = post("scale-aware").await.unwrap().json().await.unwrap();
+    assert_eq!(scale_aware["matches"].as_array().unwrap().len(), counts[4]);
     let r = post("nearest").await.unwrap();
     assert_eq!(r.status(), 400);
     server.shutdown().await.unwrap();

@@ -143,8 +143,10 @@ pub fn putative_matches(
         let points = |d: &Described| -> Vec<(f32, f32)> { d.keypoints.iter().map(|k| (k.x, k.y)).collect() };
         let (pa, pb) = (points(a), points(b));
         let empty = Mat::default();
-        let fa = SconeFrame { embeddings: ea, dim, freak: a.freak.as_ref().unwrap_or(&empty), points: &pa };
-        let fb = SconeFrame { embeddings: eb, dim, freak: b.freak.as_ref().unwrap_or(&empty), points: &pb };
+        let sizes = |d: &Described| -> Vec<f32> { d.keypoints.iter().map(|k| k.size).collect() };
+        let (sa, sb) = (sizes(a), sizes(b));
+        let fa = SconeFrame { embeddings: ea, dim, freak: a.freak.as_ref().unwrap_or(&empty), points: &pa, sizes: &sa };
+        let fb = SconeFrame { embeddings: eb, dim, freak: b.freak.as_ref().unwrap_or(&empty), points: &pb, sizes: &sb };
         return match_scone(scone_matcher, &fa, &fb, test);
     }
     if method != Method::FreakGms {

@@ -215,8 +215,11 @@ pub enum Matcher {
     Plain,
     /// Plain SConE matches plus FREAK's where SConE has none.
     Union,
-    /// FREAK's nearest candidates re-ranked by the SConE embedding (the default).
+    /// FREAK's nearest candidates re-ranked by the SConE embedding.
     Rerank,
+    /// `rerank`, or `union` when the two images differ in scale by 1.6x or more (the default).
+    #[serde(rename = "scale-aware")]
+    ScaleAware,
     /// FREAK alone (Hamming + ratio test): the baseline, for comparison on the same keypoints.
     Freak,
 }
@@ -227,6 +230,7 @@ impl From<Matcher> for crate::matching::SconeMatcher {
             Matcher::Plain => Self::Plain,
             Matcher::Union => Self::Union,
             Matcher::Rerank => Self::Rerank,
+            Matcher::ScaleAware => Self::ScaleAware,
             Matcher::Freak => Self::Freak,
         }
     }
@@ -248,7 +252,7 @@ pub struct MatchRequest {
     /// Keep only mutual nearest neighbours.
     #[serde(default)]
     pub mutual: bool,
-    /// Absent: the server's default (`rerank`).
+    /// Absent: the server's default (`scale-aware`).
     #[serde(default)]
     pub matcher: Option<Matcher>,
     /// The camera axes of the answer's relative pose (OpenGL: y up, z backward); it maps camera 1 into camera 2
