@@ -62,7 +62,7 @@ def summary(results: dict) -> str:
     return "\n".join(lines)
 
 
-NAMES = {"scone": "SConE (rerank, shipped)", "scone-plain": "SConE (plain)", "freak": "FREAK", "freak-gms": "FREAK+GMS",
+NAMES = {"scone": "SConE (shipped matcher)", "scone-plain": "SConE (plain)", "freak": "FREAK", "freak-gms": "FREAK+GMS",
          "orb": "ORB", "sift": "SIFT"}
 
 
@@ -76,7 +76,8 @@ def scene_tables(results: dict) -> str:
         out.append("| method | AUC@5 | AUC@10 | AUC@20 | fail | matches | match precision | RANSAC iters needed (median) |")
         out.append("|---|---|---|---|---|---|---|---|")
         for m in r["summaries"]:
-            out.append(f"| {NAMES[m['method']]} | {m['auc5']:.3f} | {m['auc10']:.3f} | {m['auc20']:.3f} | {100 * m['failures']:.0f} % | "
+            name = f"SConE ({c.get('scone_matcher', 'rerank')}, shipped)" if m["method"] == "scone" else NAMES[m["method"]]
+            out.append(f"| {name} | {m['auc5']:.3f} | {m['auc10']:.3f} | {m['auc20']:.3f} | {100 * m['failures']:.0f} % | "
                        f"{m['mean_matches']:.0f} | {m['match_precision']:.3f} | {m['median_iterations_needed']:.0f} |")
         out.append("")
     return "\n".join(out)
