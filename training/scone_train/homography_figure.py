@@ -2,7 +2,7 @@
 line per method, and the constellations' neighbour share on a second axis.
 
 `python -m scone_train.homography_figure --out ../docs/figures/homography-zoom.png REPORT.json [LABEL=REPORT.json ...]`
-(from `training/`). A report given as LABEL=PATH adds its SConE rows under that label (another model or matcher).
+(from `training/`). A report given as LABEL=PATH adds its SConE row (method `scone`) under that label (another model or matcher).
 """
 
 from __future__ import annotations
@@ -50,12 +50,12 @@ def main() -> None:
     for label, rep in extra:
         eb = {b["label"]: b for b in bins(rep, "zoom")}
         for m_idx, m in enumerate(rep["config"]["methods"]):
-            if not m.startswith("scone"):
+            if m != "scone":
                 continue
             within = [eb[lab]["summaries"][m_idx]["within"][1] if lab in eb else float("nan") for lab in labels]
             correct = [eb[lab]["summaries"][m_idx]["mean_correct"] if lab in eb else float("nan") for lab in labels]
-            ax1.plot(x, within, ":^", label=f"{NAMES.get(m, m)}, {label}")
-            ax2.plot(x, correct, ":^", label=f"{NAMES.get(m, m)}, {label}")
+            ax1.plot(x, within, ":^", label=f"SConE ({label})")
+            ax2.plot(x, correct, ":^", label=f"SConE ({label})")
     share = [next((s["mean_neighbour_share"] for s in b["summaries"] if s.get("mean_neighbour_share") is not None), None)
              for b in zb]
     if any(s is not None for s in share):
