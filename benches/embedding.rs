@@ -1,7 +1,8 @@
 //! SConE on a 640x480 photograph with 1,000 keypoints, against FAST + FREAK alone in the same run:
 //! the whole path (extraction + constellations + ONNX Runtime), inference alone at 1 and 2 intra-op
 //! threads, and matching 1,000 x 1,000 SConE embeddings (L2) against FREAK (Hamming), brute force, with the
-//! plain and the same-corner ratio test. Also the relative-pose estimators (plain RANSAC against USAC_ACCURATE)
+//! plain and the same-corner ratio test, and MatchPair's matchers (freak, rerank, scale-aware) between the
+//! photograph and a mild and a 2x zoomed view of it. Also the relative-pose estimators (plain RANSAC against USAC_ACCURATE)
 //! on 300 synthetic correspondences, 25 % outliers.
 //! Model: `models/scone-freak-k20.onnx`, or `$SCONE_MODEL`.
 //! Run: `cargo bench --bench embedding`.
@@ -16,7 +17,7 @@ use scone::constellation;
 use scone::decode::{decode_grey, ImageLimitSettings};
 use scone::embedding::{default_model_path, Embedder, EmbedderSettings};
 use scone::features::{self, ExtractorSettings};
-use scone::matching::{match_hamming, match_l2, RatioTest};
+use scone::matching::{match_hamming, match_l2, match_scone, RatioTest, SconeFrame, SconeMatcher};
 use scone::pose::{relative_pose, EssentialMethod, RansacSettings};
 
 fn bench(c: &mut Criterion) {
@@ -59,6 +60,29 @@ fn bench(c: &mut Criterion) {
             g.bench_function("match_freak_hamming_same_corner_1000x1000", |b| {
                 b.iter(|| match_hamming(black_box(&f), &f, &RatioTest::new(0.8)).unwrap())
             });
+            // MatchPair's matchers on two views of the photograph: a mild change (10 degrees, 1.1x: rerank's
+            // path) and a zoom of 2 (scale-aware answers with union there).
+            let frame = |img: &scone::decode::GreyImage| {
+                let f = features::extract(img, &cfg).unwrap();
+                let c = constellation::build(&f.keypoints, 20);
+                let emb = e.embed(&f, &c).unwrap();
+                (f, emb)
+            };
+            let (fa, ea) = frame(&img);
+            let freak_a = fa.descriptor_mat().unwrap();
+            let (pa, sa) = (fa.points(), fa.keypoints.iter().map(|k| k.size).collect::<Vec<f32>>());
+            for (name, zoom, degrees) in [("mild", 1.1, 10.0), ("zoom2", 2.0, 25.0)] {
+                let (fb, eb) = frame(&warped(&img, zoom, degrees));
+                let freak_b = fb.descriptor_mat().unwrap();
+                let (pb, sb) = (fb.points(), fb.keypoints.iter().map(|k| k.size).collect::<Vec<f32>>());
+                let a = SconeFrame { embeddings: &ea, dim: e.dim(), freak: &freak_a, points: &pa, sizes: &sa };
+                let b = SconeFrame { embeddings: &eb, dim: e.dim(), freak: &freak_b, points: &pb, sizes: &sb };
+                for matcher in [SconeMatcher::Freak, SconeMatcher::Rerank, SconeMatcher::ScaleAware] {
+                    g.bench_function(format!("pair_{name}_{}", matcher.name()), |bn| {
+                        bn.iter(|| match_scone(matcher, black_box(&a), &b, &RatioTest::new(0.8)).unwrap())
+                    });
+                }
+            }
         }
     }
     g.finish();
@@ -90,6 +114,19 @@ fn bench(c: &mut Criterion) {
 /// `n` correspondences between two views of random points 4-8 m ahead (0.5 m baseline, 5° yaw), 0.3 px
 /// noise, a share `outliers` of them replaced by random pixels.
 type Points = Vec<(f32, f32)>;
+
+/// `img` zoomed by `zoom` and turned by `degrees` about its centre (the same size).
+fn warped(img: &scone::decode::GreyImage, zoom: f64, degrees: f64) -> scone::decode::GreyImage {
+    use opencv::prelude::*;
+    let m = img.mat();
+    let centre = opencv::core::Point2f::new(m.cols() as f32 / 2.0, m.rows() as f32 / 2.0);
+    let r = opencv::imgproc::get_rotation_matrix_2d(centre, degrees, zoom).unwrap();
+    let mut out = opencv::core::Mat::default();
+    opencv::imgproc::warp_affine_def(m, &mut out, &r, m.size().unwrap()).unwrap();
+    let mut png = opencv::core::Vector::<u8>::new();
+    opencv::imgcodecs::imencode_def(".png", &out, &mut png).unwrap();
+    decode_grey(png.as_slice(), &ImageLimitSettings::default()).unwrap()
+}
 
 fn synthetic_pair(n: usize, outliers: f64) -> (Points, Points) {
     use rand::{Rng, SeedableRng};

@@ -244,10 +244,12 @@ pub fn match_scone(
         }
         SconeMatcher::Rerank => rerank(a, b, test),
         SconeMatcher::ScaleAware => {
-            let freak = match_descriptors(a.freak, b.freak, NORM_HAMMING, test, b.points)?;
+            // One FREAK search serves both the zoom estimate and the re-ranking.
+            let knn = freak_knn(a, b)?;
+            let freak = freak_ratio_matches(&knn, a, b, test)?;
             match pair_zoom(a.sizes, b.sizes, &freak) {
                 Some(zoom) if zoom >= SCALE_AWARE_ZOOM => union(a, b, test, freak),
-                _ => rerank(a, b, test),
+                _ => rerank_knn(&knn, a, b, test),
             }
         }
         SconeMatcher::Freak => match_descriptors(a.freak, b.freak, NORM_HAMMING, test, b.points),
@@ -269,13 +271,62 @@ fn l2(x: &[f32], y: &[f32]) -> f32 {
     x.iter().zip(y).map(|(p, q)| (p - q) * (p - q)).sum::<f32>().sqrt()
 }
 
-fn rerank(a: &SconeFrame, b: &SconeFrame, test: &RatioTest) -> Result<Vec<Match>, FeatureError> {
-    if a.freak.rows() < 1 || b.freak.rows() < 2 {
-        return Ok(Vec::new());
-    }
-    let matcher = BFMatcher::new(NORM_HAMMING, false)?;
+/// FREAK's [`RERANK_CANDIDATES`] nearest descriptors in `b` of each of `a`'s keypoints (empty when either frame
+/// has too few keypoints to rank).
+fn freak_knn(a: &SconeFrame, b: &SconeFrame) -> Result<Vector<Vector<DMatch>>, FeatureError> {
     let mut knn = Vector::<Vector<DMatch>>::new();
-    matcher.knn_train_match(a.freak, b.freak, &mut knn, RERANK_CANDIDATES, &Mat::default(), false)?;
+    if a.freak.rows() >= 1 && b.freak.rows() >= 2 {
+        BFMatcher::new(NORM_HAMMING, false)?.knn_train_match(
+            a.freak,
+            b.freak,
+            &mut knn,
+            RERANK_CANDIDATES,
+            &Mat::default(),
+            false,
+        )?;
+    }
+    Ok(knn)
+}
+
+/// FREAK's ratio-test matches read from `knn` (the same answer as [`match_descriptors`] on Hamming distance,
+/// whose same-corner search also looks at [`SAME_CORNER_CANDIDATES`] = [`RERANK_CANDIDATES`] candidates);
+/// with the mutual check, the full search runs instead.
+fn freak_ratio_matches(
+    knn: &Vector<Vector<DMatch>>,
+    a: &SconeFrame,
+    b: &SconeFrame,
+    test: &RatioTest,
+) -> Result<Vec<Match>, FeatureError> {
+    if test.mutual || (test.same_corner_px > 0.0 && RERANK_CANDIDATES != SAME_CORNER_CANDIDATES) {
+        return match_descriptors(a.freak, b.freak, NORM_HAMMING, test, b.points);
+    }
+    let mut out = Vec::new();
+    let mut cands: Vec<(f32, usize)> = Vec::with_capacity(RERANK_CANDIDATES as usize);
+    for row in knn.iter() {
+        if row.len() < 2 {
+            continue;
+        }
+        let m0 = row.get(0)?;
+        cands.clear();
+        cands.extend(row.iter().map(|m| (m.distance, m.train_idx as usize)));
+        if m0.distance < test.ratio * competitor(&cands, b.points, test.same_corner_px) {
+            out.push(Match { query: m0.query_idx as usize, train: m0.train_idx as usize, distance: m0.distance });
+        }
+    }
+    Ok(out)
+}
+
+fn rerank(a: &SconeFrame, b: &SconeFrame, test: &RatioTest) -> Result<Vec<Match>, FeatureError> {
+    rerank_knn(&freak_knn(a, b)?, a, b, test)
+}
+
+/// [`SconeMatcher::Rerank`] on FREAK candidates already found.
+fn rerank_knn(
+    knn: &Vector<Vector<DMatch>>,
+    a: &SconeFrame,
+    b: &SconeFrame,
+    test: &RatioTest,
+) -> Result<Vec<Match>, FeatureError> {
     let dim = a.dim;
     let mut out = Vec::new();
     let mut cand: Vec<(f32, usize)> = Vec::with_capacity(RERANK_CANDIDATES as usize);
@@ -469,6 +520,40 @@ mod tests {
         assert_eq!(run(SconeMatcher::ScaleAware, &one_scale), run(SconeMatcher::Rerank, &one_scale));
         assert_eq!(run(SconeMatcher::ScaleAware, &zoomed), run(SconeMatcher::Union, &zoomed));
         assert_ne!(run(SconeMatcher::Rerank, &zoomed), run(SconeMatcher::Union, &zoomed));
+    }
+
+    /// The FREAK matches scale-aware reads from rerank's candidates are those of the full ratio-test search.
+    #[test]
+    fn freak_matches_from_the_candidates_equal_the_full_search() {
+        let n = 200;
+        let mut state = 17u64;
+        let mut next = move || {
+            state = state.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
+            (state >> 33) as u32
+        };
+        let bits_a: Vec<u8> = (0..n * 64).map(|_| next() as u8).collect();
+        // b: a's descriptors with a few bits flipped, shuffled by a fixed stride, plus noise rows.
+        let mut bits_b = bits_a.clone();
+        for (i, v) in bits_b.iter_mut().enumerate() {
+            if i % 7 == 0 {
+                *v ^= 1 << (next() % 8);
+            }
+        }
+        bits_b.extend((0..50 * 64).map(|_| next() as u8));
+        let fa = Mat::new_rows_cols_with_data(n as i32, 64, &bits_a).unwrap().try_clone().unwrap();
+        let fb = Mat::new_rows_cols_with_data(n as i32 + 50, 64, &bits_b).unwrap().try_clone().unwrap();
+        let pa: Vec<(f32, f32)> = (0..n).map(|i| ((i % 20) as f32 * 3.0, (i / 20) as f32 * 3.0)).collect();
+        let pb: Vec<(f32, f32)> = (0..n + 50).map(|i| ((i % 20) as f32 * 1.5, (i / 20) as f32 * 1.5)).collect();
+        let e = vec![0.0f32; (n + 50) * 2];
+        let a = SconeFrame { embeddings: &e[..n * 2], dim: 2, freak: &fa, points: &pa, sizes: &[] };
+        let b = SconeFrame { embeddings: &e, dim: 2, freak: &fb, points: &pb, sizes: &[] };
+        for test in [RatioTest::new(0.8), RatioTest::plain(0.8), RatioTest::new(0.95)] {
+            let knn = freak_knn(&a, &b).unwrap();
+            let quick = freak_ratio_matches(&knn, &a, &b, &test).unwrap();
+            let full = match_descriptors(&fa, &fb, NORM_HAMMING, &test, &pb).unwrap();
+            assert!(!full.is_empty());
+            assert_eq!(quick, full, "{test:?}");
+        }
     }
 
     #[test]
