@@ -227,9 +227,7 @@ pub fn build_with(keypoints: &[Keypoint], k: usize, rule: NeighbourRule) -> Cons
     let window = rule.window_levels().map(|w| w * level + 1e-3);
     let size_units = matches!(rule, NeighbourRule::SizeUnits | NeighbourRule::SizeUnitsWindow2);
     let n = keypoints.len();
-    let mut neighbours = Vec::with_capacity(n * k);
-    let mut mask = Vec::with_capacity(n * k);
-    let mut relative = Vec::with_capacity(n * k);
+    let mut out = Constellations::with_capacity(n, k);
     let mut cands: Vec<(f32, u32)> = Vec::with_capacity(n);
     for (i, c) in keypoints.iter().enumerate() {
         cands.clear();
@@ -246,45 +244,50 @@ pub fn build_with(keypoints: &[Keypoint], k: usize, rule: NeighbourRule) -> Cons
         }
         cands.truncate(k);
         cands.sort_unstable_by(order);
-        for &(_, j) in &cands {
-            neighbours.push(j);
-            mask.push(1);
-            relative.push(relative_geometry(c, &keypoints[j as usize]));
-        }
-        for _ in cands.len()..k {
-            neighbours.push(i as u32);
-            mask.push(0);
-            relative.push([0.0; GEOMETRY_DIM]);
+        out.push(keypoints, i, &cands);
+    }
+    out
+}
+
+impl Constellations {
+    fn with_capacity(n: usize, k: usize) -> Self {
+        Self {
+            k,
+            neighbours: Vec::with_capacity(n * k),
+            mask: Vec::with_capacity(n * k),
+            relative: Vec::with_capacity(n * k),
         }
     }
-    Constellations { k, neighbours, mask, relative }
+
+    /// Appends keypoint `i`'s constellation: `members` (key, index) in order, then padding up to k.
+    fn push(&mut self, keypoints: &[Keypoint], i: usize, members: &[(f32, u32)]) {
+        let c = &keypoints[i];
+        for &(_, j) in members {
+            self.neighbours.push(j);
+            self.mask.push(1);
+            self.relative.push(relative_geometry(c, &keypoints[j as usize]));
+        }
+        for _ in members.len()..self.k {
+            self.neighbours.push(i as u32);
+            self.mask.push(0);
+            self.relative.push([0.0; GEOMETRY_DIM]);
+        }
+    }
 }
 
 /// Builds the constellation of every keypoint (exact k-nearest neighbours in pixel distance, found with a
 /// uniform grid: about `N·k` distance evaluations instead of `N²`).
 pub fn build(keypoints: &[Keypoint], k: usize) -> Constellations {
-    let n = keypoints.len();
-    let mut neighbours = Vec::with_capacity(n * k);
-    let mut mask = Vec::with_capacity(n * k);
-    let mut relative = Vec::with_capacity(n * k);
+    let mut out = Constellations::with_capacity(keypoints.len(), k);
     let grid = Grid::new(keypoints, (k as f32 / 4.0).max(1.0));
     let mut nearest: Vec<(f32, u32)> = Vec::with_capacity(4 * k);
-    for (i, c) in keypoints.iter().enumerate() {
+    for i in 0..keypoints.len() {
         if k > 0 {
             grid.nearest(keypoints, i, k, &mut nearest);
         }
-        for &(_, j) in &nearest {
-            neighbours.push(j);
-            mask.push(1);
-            relative.push(relative_geometry(c, &keypoints[j as usize]));
-        }
-        for _ in nearest.len()..k {
-            neighbours.push(i as u32);
-            mask.push(0);
-            relative.push([0.0; GEOMETRY_DIM]);
-        }
+        out.push(keypoints, i, &nearest);
     }
-    Constellations { k, neighbours, mask, relative }
+    out
 }
 
 #[cfg(test)]

@@ -78,6 +78,24 @@ fn competitor(cands: &[(f32, usize)], b_points: &[(f32, f32)], same_corner_px: f
         .map_or(cands[cands.len() - 1].0, |c| c.0)
 }
 
+/// A query's nearest candidate when it passes the ratio test against its competitor (`row`: the query's
+/// candidates nearest first; `cands` is scratch space).
+fn ratio_winner(
+    row: &Vector<DMatch>,
+    cands: &mut Vec<(f32, usize)>,
+    b_points: &[(f32, f32)],
+    test: &RatioTest,
+) -> Result<Option<Match>, FeatureError> {
+    if row.len() < 2 {
+        return Ok(None);
+    }
+    let m0 = row.get(0)?;
+    cands.clear();
+    cands.extend(row.iter().map(|m| (m.distance, m.train_idx as usize)));
+    let m = Match { query: m0.query_idx as usize, train: m0.train_idx as usize, distance: m0.distance };
+    Ok((m0.distance < test.ratio * competitor(cands, b_points, test.same_corner_px)).then_some(m))
+}
+
 /// Nearest neighbours of `a`'s rows in `b` with OpenCV's brute-force matcher, ratio test and optional mutual
 /// check. `b_points` are the pixel positions of `b`'s rows; they are read only when `test.same_corner_px > 0`.
 pub fn match_descriptors(
@@ -132,21 +150,11 @@ pub fn match_descriptors_masked(
     let mut out = Vec::new();
     let mut cands: Vec<(f32, usize)> = Vec::with_capacity(k as usize);
     for pair in knn.iter() {
-        if pair.len() < 2 {
+        let Some(m) = ratio_winner(&pair, &mut cands, b_points, test)? else { continue };
+        if reverse.as_ref().is_some_and(|rev| rev[m.train] != m.query as i32) {
             continue;
         }
-        let m0 = pair.get(0)?;
-        cands.clear();
-        cands.extend(pair.iter().map(|m| (m.distance, m.train_idx as usize)));
-        if m0.distance >= test.ratio * competitor(&cands, b_points, test.same_corner_px) {
-            continue;
-        }
-        if let Some(rev) = &reverse {
-            if rev[m0.train_idx as usize] != m0.query_idx {
-                continue;
-            }
-        }
-        out.push(Match { query: m0.query_idx as usize, train: m0.train_idx as usize, distance: m0.distance });
+        out.push(m);
     }
     Ok(out)
 }
@@ -303,15 +311,7 @@ fn freak_ratio_matches(
     let mut out = Vec::new();
     let mut cands: Vec<(f32, usize)> = Vec::with_capacity(RERANK_CANDIDATES as usize);
     for row in knn.iter() {
-        if row.len() < 2 {
-            continue;
-        }
-        let m0 = row.get(0)?;
-        cands.clear();
-        cands.extend(row.iter().map(|m| (m.distance, m.train_idx as usize)));
-        if m0.distance < test.ratio * competitor(&cands, b.points, test.same_corner_px) {
-            out.push(Match { query: m0.query_idx as usize, train: m0.train_idx as usize, distance: m0.distance });
-        }
+        out.extend(ratio_winner(&row, &mut cands, b.points, test)?);
     }
     Ok(out)
 }

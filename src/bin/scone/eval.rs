@@ -216,10 +216,7 @@ pub fn run(cmd: EvalCommand) -> anyhow::Result<()> {
             };
             let same_corner_px =
                 same_corner_px.unwrap_or(if single_scale { 0.0 } else { scone::matching::SAME_CORNER_PX });
-            anyhow::ensure!(
-                same_corner_px.is_finite() && same_corner_px >= 0.0,
-                "--same-corner-px must be a finite number >= 0"
-            );
+            check_same_corner(same_corner_px)?;
             ransac.validate().map_err(|e| {
                 anyhow::anyhow!("--ransac-px / --ransac-iters / --ransac-confidence / --duplicate-px: {e}")
             })?;
@@ -260,10 +257,7 @@ pub fn run(cmd: EvalCommand) -> anyhow::Result<()> {
             report: out,
             extractor,
         } => {
-            anyhow::ensure!(
-                same_corner_px.is_finite() && same_corner_px >= 0.0,
-                "--same-corner-px must be a finite number >= 0"
-            );
+            check_same_corner(same_corner_px)?;
             anyhow::ensure!(ransac_px > 0.0 && correct_px > 0.0, "--ransac-px and --correct-px must be > 0");
             let cfg = homography::HomographyConfig {
                 methods,
@@ -366,6 +360,11 @@ fn run_merge(
 }
 
 /// `A:B` as two fractions.
+fn check_same_corner(px: f32) -> anyhow::Result<()> {
+    anyhow::ensure!(px.is_finite() && px >= 0.0, "--same-corner-px must be a finite number >= 0");
+    Ok(())
+}
+
 fn parse_block(s: &str) -> Result<(f64, f64), String> {
     let (a, b) = s.split_once(':').ok_or("expected A:B, e.g. 0:0.5")?;
     let a: f64 = a.trim().parse().map_err(|_| format!("'{a}' is not a number"))?;

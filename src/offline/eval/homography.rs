@@ -461,22 +461,24 @@ pub fn evaluate(
                 .iter()
                 .map(|im| crate::features::extract(im, &cfg.extractor).map(|f| f.keypoints))
                 .collect::<Result<_, _>>()?;
-            let cons: Vec<Constellations> = kps.iter().map(|k| constellation::build(k, cfg.k)).collect();
-            for (i, h) in seq.homographies.iter().enumerate() {
-                shares[i] =
-                    neighbour_share(&kps[0], &cons[0], &kps[i + 1], &cons[i + 1], h, cfg.correct_px).map(|s| s.0);
-            }
-            for &rule in &cfg.neighbour_rules {
+            // Each pair's share under `rule`.
+            let shares_of = |rule: NeighbourRule| -> Vec<Option<f64>> {
                 let cons: Vec<Constellations> = kps.iter().map(|k| constellation::build_with(k, cfg.k, rule)).collect();
-                for (i, h) in seq.homographies.iter().enumerate() {
+                let share = |(i, h): (usize, &Matrix3<f64>)| {
+                    neighbour_share(&kps[0], &cons[0], &kps[i + 1], &cons[i + 1], h, cfg.correct_px).map(|s| s.0)
+                };
+                seq.homographies.iter().enumerate().map(share).collect()
+            };
+            shares = shares_of(NeighbourRule::Nearest);
+            for &rule in &cfg.neighbour_rules {
+                for (i, share) in shares_of(rule).into_iter().enumerate() {
                     rule_shares.push(RuleShare {
                         rule,
                         sequence: seq.name.clone(),
                         image: i + 2,
                         zoom: geometry[i].0,
                         rotation_deg: geometry[i].1,
-                        share: neighbour_share(&kps[0], &cons[0], &kps[i + 1], &cons[i + 1], h, cfg.correct_px)
-                            .map(|s| s.0),
+                        share,
                     });
                 }
             }
