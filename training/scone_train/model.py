@@ -19,7 +19,8 @@ Output `embeddings` float32 [N, 48], L2-normalised.
 Every normalisation happens in here, so the Rust side passes raw values and cannot drift from training:
 bits become ±1 (one table lookup per byte); angles become (sin, cos); u, v are divided by `UV_SCALE`; sizes become pyramid levels
 (log base 1.2 of size / 7). The descriptor MLP runs once per keypoint and neighbours are gathered by index
-(not embedded 21 times per keypoint). SELU follows every hidden fully connected layer; the last layer of
+(not embedded 21 times per keypoint). SELU (ReLU in the distilled students of issue 29) follows every hidden fully
+connected layer; the last layer of
 each block is linear (the head's output is L2-normalised, the neighbourhood block feeds the head).
 """
 
@@ -36,7 +37,10 @@ LEVEL_LOG = math.log(1.2)
 FAST_SIZE = 7.0
 
 
-def mlp(sizes: list[int], last_activation: bool) -> nn.Sequential:
+ACTIVATIONS = {"selu": nn.SELU, "relu": nn.ReLU}
+
+
+def mlp(sizes: list[int], last_activation: bool, activation: str = "selu") -> nn.Sequential:
     layers: list[nn.Module] = []
     for i, (a, b) in enumerate(zip(sizes[:-1], sizes[1:])):
         lin = nn.Linear(a, b)
@@ -45,7 +49,7 @@ def mlp(sizes: list[int], last_activation: bool) -> nn.Sequential:
         nn.init.zeros_(lin.bias)
         layers.append(lin)
         if i < len(sizes) - 2 or last_activation:
-            layers.append(nn.SELU())
+            layers.append(ACTIVATIONS[activation]())
     return nn.Sequential(*layers)
 
 
@@ -74,7 +78,7 @@ class SetEncoder(nn.Module):
     the other view removes one element of a set instead of shifting every later step of a sequence.
     """
 
-    def __init__(self, desc_dim: int, geo_dim: int, hidden: int):
+    def __init__(self, desc_dim: int, geo_dim: int, hidden: int, activation: str = "selu"):
         super().__init__()
         self.desc_part = nn.Linear(desc_dim, hidden)
         self.geo_part = nn.Linear(geo_dim, hidden, bias=False)
@@ -83,14 +87,14 @@ class SetEncoder(nn.Module):
             nn.init.normal_(lin.weight, std=1.0 / math.sqrt(fan_in))
         nn.init.zeros_(self.desc_part.bias)
         nn.init.zeros_(self.second.bias)
-        self.act = nn.SELU()
-        self.read = mlp([2 * hidden, 64, 32], last_activation=True)
+        self.act = ACTIVATIONS[activation]()
+        self.read = mlp([2 * hidden, 64, 32], last_activation=True, activation=activation)
 
     def forward(self, d: torch.Tensor, neighbours: torch.Tensor, geo: torch.Tensor, m: torch.Tensor) -> torch.Tensor:
         h = self.desc_part(d)[neighbours] + self.geo_part(geo)  # [n, k, hidden]
         h = self.act(self.second(self.act(h)))
         count = m.sum(1)
-        # SELU is bounded below by -1.7581, so -2 never wins the max against a real member.
+        # SELU is bounded below by -1.7581 (ReLU by 0), so -2 never wins the max against a real member.
         pooled_max = (h * m + (m - 1.0) * 2.0).max(1).values
         pooled_mean = (h * m).sum(1) / count.clamp_min(1.0)
         any_real = (count > 0).to(h.dtype)
@@ -111,18 +115,21 @@ class SconeNet(nn.Module):
         head_hidden: int = 64,
         bits_skip: int = 0,
         central_orientation: bool = True,
+        activation: str = "selu",
     ):
         super().__init__()
+        if activation not in ACTIVATIONS:
+            raise ValueError(f"unknown activation {activation!r} ({' or '.join(ACTIVATIONS)})")
         self.k = k
         self.use_neighbours = use_neighbours
         self.encoder = encoder
-        self.desc_mlp = mlp([512, *desc_hidden, desc_dim], last_activation=True)
+        self.desc_mlp = mlp([512, *desc_hidden, desc_dim], last_activation=True, activation=activation)
         geo_dim = 5  # u, v, sin dθ, cos dθ, Δlevel
         if encoder == "lstm":
             self.lstm = nn.LSTM(desc_dim + geo_dim, lstm_hidden, num_layers=2, bidirectional=True, batch_first=True)
-            self.neigh_mlp = mlp([2 * lstm_hidden, 64, 64, 32], last_activation=True)
+            self.neigh_mlp = mlp([2 * lstm_hidden, 64, 64, 32], last_activation=True, activation=activation)
         elif encoder == "set":
-            self.set_encoder = SetEncoder(desc_dim, geo_dim, set_hidden)
+            self.set_encoder = SetEncoder(desc_dim, geo_dim, set_hidden, activation)
         else:
             raise ValueError(f"unknown neighbourhood encoder {encoder!r} (lstm or set)")
         # Optional linear path from the central keypoint's bits to the head (bits_skip dimensions), beside the
@@ -134,7 +141,7 @@ class SconeNet(nn.Module):
         # The paper gives the head the central keypoint's orientation (sin, cos) and scale; without the
         # orientation the embedding cannot change with in-plane rotation of the whole image.
         self.central_orientation = central_orientation
-        self.head = mlp([32 + desc_dim + bits_skip + (3 if central_orientation else 1), head_hidden, head_hidden, embed_dim], last_activation=False)
+        self.head = mlp([32 + desc_dim + bits_skip + (3 if central_orientation else 1), head_hidden, head_hidden, embed_dim], last_activation=False, activation=activation)
 
     def embed_descriptors(self, descriptors: torch.Tensor) -> torch.Tensor:
         """Per keypoint: the descriptor MLP's output, followed by the linear skip path when there is one."""

@@ -123,7 +123,7 @@ def build_model(m: dict) -> SconeNet:
         k=max(m["k"], 1), embed_dim=m["embed_dim"], desc_dim=m["desc_dim"], lstm_hidden=m["lstm_hidden"],
         use_neighbours=m["k"] > 0, encoder=m.get("encoder", "lstm"), desc_hidden=tuple(m.get("desc_hidden", [512, 256])),
         set_hidden=m.get("set_hidden", 64), head_hidden=m.get("head_hidden", 64), bits_skip=m.get("bits_skip", 0),
-        central_orientation=m.get("central_orientation", True),
+        central_orientation=m.get("central_orientation", True), activation=m.get("activation", "selu"),
     )
 
 
