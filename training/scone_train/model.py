@@ -20,8 +20,7 @@ Every normalisation happens in here, so the Rust side passes raw values and cann
 bits become ±1 (one table lookup per byte); angles become (sin, cos); u, v are divided by `UV_SCALE`; sizes become pyramid levels
 (log base 1.2 of size / 7). The descriptor MLP runs once per keypoint and neighbours are gathered by index
 (not embedded 21 times per keypoint). SELU (ReLU in the distilled students of issue 29) follows every hidden fully
-connected layer; the last layer of
-each block is linear (the head's output is L2-normalised, the neighbourhood block feeds the head).
+connected layer; the last layer of each block is linear (the head's output is L2-normalised, the neighbourhood block feeds the head).
 """
 
 from __future__ import annotations
