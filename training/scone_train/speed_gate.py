@@ -1,0 +1,143 @@
+"""Issue 29's accuracy gate: may a faster model (a distilled student, a quantised graph) replace the shipped one?
+
+`python -m scone_train.speed_gate --candidate RUN/best.pt --out DIR [--stage selection|validation]` (from
+`training/`; `scripts/speed` runs it after `scone_train.distill`):
+
+- `selection` (the choice, training scenes only): AUC@10 of `scone eval pairs` (shipped matcher, each part's
+  window, 3 seeds) on every selection part of `splits.SPLIT`; the candidate passes when no part is lower than
+  the shipped model's by more than `--auc-tolerance` (0.005).
+- `validation` (run once per candidate that passed selection): AUC@10 of `scone_train.validation_pairs` on every
+  validation scene, within the same tolerance, and the NN precision of `scone_train.validate` on every
+  validation scene at least the lower end of the shipped model's 95 % bootstrap interval.
+
+A candidate given as a checkpoint (`.pt`) is exported to ONNX beside the results; a `.onnx` candidate (a
+quantised graph) is scored as it is, and its NN precision is then read through onnxruntime. Every report is
+cached under `--out`, so a rerun only scores what is missing. The verdict is printed and written to
+`DIR/<stage>.json`; the exit status is 0 when the candidate passes.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import subprocess
+import sys
+from pathlib import Path
+from types import SimpleNamespace
+
+import numpy as np
+import torch
+
+from .data import prefix_dir, scone_binary
+from .export import check_parity, export_onnx, run_onnx, session
+from .splits import write_selection_scenes
+from .validate import load_checkpoint
+
+SHIPPED = Path(__file__).resolve().parents[2] / "models" / "scone-freak-k20"
+
+
+def selection_auc(model: Path, out: Path, seeds: int) -> dict[str, float]:
+    """AUC@10 of the shipped matcher on every selection part, with `model`."""
+    scenes = write_selection_scenes(prefix_dir() / "work" / "sel")
+    out.mkdir(parents=True, exist_ok=True)
+    auc = {}
+    for name, (scene, window) in scenes.items():
+        report = out / f"{name}.json"
+        if not report.exists():
+            cmd = [str(scone_binary()), "eval", "pairs", "--scene", str(scene), "--methods", "scone", "--window",
+                   str(window), "--seeds", str(seeds), "--model", str(model), "--embed-threads", "1",
+                   "--opencv-threads", "1", "--json", str(report)]
+            (out / f"{name}.md").write_text(subprocess.run(cmd, check=True, capture_output=True, text=True).stdout)
+        auc[name] = json.loads(report.read_text())["summaries"][0]["auc10"]
+    return auc
+
+
+def validation_auc(model: Path, out: Path, seeds: int) -> dict[str, float]:
+    from .validation_pairs import run
+
+    return {name: r["summaries"][0]["auc10"] for name, r in run(out, seeds, str(model), "scone").items()}
+
+
+class OnnxNet:
+    """An exported graph behind the PyTorch model's call signature, for `validate` (NN precision)."""
+
+    def __init__(self, path: Path, k: int = 20, embed_dim: int = 48):
+        self.sess = session(path, threads=1)
+        self.k = k
+        self.head = [SimpleNamespace(out_features=embed_dim)]  # what evaluate.embed_frames reads of a model
+
+    def eval(self):
+        return self
+
+    def __call__(self, *inputs):
+        return torch.from_numpy(run_onnx(self.sess, *[t.numpy() for t in inputs]))
+
+
+def nn_precision(model, out: Path) -> dict:
+    from .validate import validate
+
+    report = out / "nn-precision.json"
+    if not report.exists():
+        report.parent.mkdir(parents=True, exist_ok=True)
+        report.write_text(json.dumps(validate(model), indent=1))
+    return json.loads(report.read_text())
+
+
+def compare(shipped: dict[str, float], candidate: dict[str, float], tolerance: float) -> tuple[list[dict], bool]:
+    rows = [{"scene": s, "shipped": shipped[s], "candidate": candidate[s], "delta": candidate[s] - shipped[s],
+             "passes": candidate[s] >= shipped[s] - tolerance} for s in shipped]
+    return rows, all(r["passes"] for r in rows)
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--candidate", required=True, type=Path, help="a checkpoint (.pt) or an exported graph (.onnx)")
+    ap.add_argument("--out", required=True, type=Path)
+    ap.add_argument("--stage", choices=["selection", "validation"], default="selection")
+    ap.add_argument("--auc-tolerance", type=float, default=0.005)
+    ap.add_argument("--seeds", type=int, default=3)
+    a = ap.parse_args()
+    torch.set_num_threads(1)
+    out = a.out
+    out.mkdir(parents=True, exist_ok=True)
+    if a.candidate.suffix == ".pt":
+        onnx = out / "candidate.onnx"
+        if not onnx.exists():
+            model = load_checkpoint(a.candidate)
+            export_onnx(model, onnx)
+            check_parity(model, onnx)
+        net = load_checkpoint(a.candidate)
+    else:
+        onnx, net = a.candidate, OnnxNet(a.candidate)
+    shipped_onnx = SHIPPED.with_suffix(".onnx")
+    # The shipped model's reports are cached by its file's content, so a new shipped model is scored anew.
+    from .export import sha256
+
+    base = prefix_dir() / "work" / "speed-gate" / f"shipped-{sha256(shipped_onnx)[:12]}"
+    verdict: dict = {"candidate": str(a.candidate), "stage": a.stage, "auc_tolerance": a.auc_tolerance}
+    if a.stage == "selection":
+        rows, ok = compare(selection_auc(shipped_onnx, base / "selection", a.seeds),
+                           selection_auc(onnx, out / "selection", a.seeds), a.auc_tolerance)
+        verdict.update(auc10=rows, passes=ok)
+    else:
+        rows, auc_ok = compare(validation_auc(shipped_onnx, base / "validation", a.seeds),
+                               validation_auc(onnx, out / "validation", a.seeds), a.auc_tolerance)
+        ref = nn_precision(load_checkpoint(SHIPPED.with_suffix(".pt")), base)
+        got = nn_precision(net, out)
+        nn_rows = [{"scene": s, "shipped": ref[s]["scone"]["precision"], "shipped_ci": ref[s]["scone"]["ci95"],
+                    "candidate": got[s]["scone"]["precision"],
+                    "passes": got[s]["scone"]["precision"] >= ref[s]["scone"]["ci95"][0]} for s in ref if s != "mean"]
+        verdict.update(auc10=rows, nn_precision=nn_rows, passes=auc_ok and all(r["passes"] for r in nn_rows))
+    (out / f"{a.stage}.json").write_text(json.dumps(verdict, indent=1))
+    for r in verdict["auc10"]:
+        print(f"AUC@10 {r['scene']:28s} shipped {r['shipped']:.4f} candidate {r['candidate']:.4f} "
+              f"({r['delta']:+.4f}) {'ok' if r['passes'] else 'FAILS'}")
+    for r in verdict.get("nn_precision", []):
+        print(f"NN precision {r['scene']:22s} shipped {r['shipped']:.4f} {np.round(r['shipped_ci'], 4).tolist()} "
+              f"candidate {r['candidate']:.4f} {'ok' if r['passes'] else 'FAILS'}")
+    print("PASSES" if verdict["passes"] else "DOES NOT PASS")
+    sys.exit(0 if verdict["passes"] else 1)
+
+
+if __name__ == "__main__":
+    main()
