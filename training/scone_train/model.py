@@ -87,14 +87,24 @@ class SetEncoder(nn.Module):
         nn.init.zeros_(self.desc_part.bias)
         nn.init.zeros_(self.second.bias)
         self.act = ACTIVATIONS[activation]()
+        self.nonnegative = activation == "relu"
         self.read = mlp([2 * hidden, 64, 32], last_activation=True, activation=activation)
 
     def forward(self, d: torch.Tensor, neighbours: torch.Tensor, geo: torch.Tensor, m: torch.Tensor) -> torch.Tensor:
-        h = self.desc_part(d)[neighbours] + self.geo_part(geo)  # [n, k, hidden]
-        h = self.act(self.second(self.act(h)))
+        n, k = neighbours.shape
+        # Written for the exported graph, with the same arithmetic as `desc_part(d)[neighbours] + geo_part(geo)`
+        # on [n, k, hidden]: rows gathered by index_select export as one Gather (advanced indexing exports as
+        # GatherND, slower), and the per-member layers run on a 2-D [n * k, hidden] matrix, which onnxruntime
+        # fuses with its bias and activation into one Gemm.
+        h = self.desc_part(d).index_select(0, neighbours.reshape(-1)) + self.geo_part(geo.reshape(n * k, -1))
+        h = self.act(self.second(self.act(h))).reshape(n, k, -1)
         count = m.sum(1)
-        # SELU is bounded below by -1.7581 (ReLU by 0), so -2 never wins the max against a real member.
-        pooled_max = (h * m + (m - 1.0) * 2.0).max(1).values
+        if self.nonnegative:
+            # ReLU's outputs are >= 0, so zeroed padding never wins the max against a real member.
+            pooled_max = (h * m).max(1).values
+        else:
+            # SELU is bounded below by -1.7581, so -2 never wins the max against a real member.
+            pooled_max = (h * m + (m - 1.0) * 2.0).max(1).values
         pooled_mean = (h * m).sum(1) / count.clamp_min(1.0)
         any_real = (count > 0).to(h.dtype)
         return self.read(torch.cat([pooled_max * any_real, pooled_mean], dim=-1))
