@@ -72,16 +72,55 @@ pub fn wrap_angle(a: f32) -> f32 {
 
 /// Relative geometry of `neighbour` in the frame of `centre` (the formulas of the module docs).
 pub fn relative_geometry(centre: &Keypoint, neighbour: &Keypoint) -> [f32; GEOMETRY_DIM] {
-    let theta = centre.angle.to_radians();
-    let (sin, cos) = theta.sin_cos();
-    let dx = neighbour.x - centre.x;
-    let dy = neighbour.y - centre.y;
-    [
-        (cos * dx + sin * dy) / centre.size,
-        (-sin * dx + cos * dy) / centre.size,
-        wrap_angle(neighbour.angle.to_radians() - theta),
-        (neighbour.size / centre.size).ln(),
-    ]
+    KeypointFrame::of(centre).relative(&KeypointFrame::of(neighbour))
+}
+
+/// What the relative geometry needs of one keypoint, computed once per keypoint rather than once for each of the
+/// ~k constellations it is a member of (the sine, cosine and logarithm were most of the build's time).
+#[derive(Debug, Clone, Copy)]
+struct KeypointFrame {
+    x: f32,
+    y: f32,
+    theta: f32,
+    sin: f32,
+    cos: f32,
+    inv_size: f32,
+    ln_size: f32,
+}
+
+impl KeypointFrame {
+    fn of(p: &Keypoint) -> Self {
+        let theta = p.angle.to_radians();
+        let (sin, cos) = theta.sin_cos();
+        Self { x: p.x, y: p.y, theta, sin, cos, inv_size: 1.0 / p.size, ln_size: p.size.ln() }
+    }
+
+    /// `other` in this keypoint's frame: u, v in its sizes, dθ wrapped into [−π, π), ln of the size ratio.
+    fn relative(&self, other: &Self) -> [f32; GEOMETRY_DIM] {
+        use std::f32::consts::PI;
+        let dx = other.x - self.x;
+        let dy = other.y - self.y;
+        // Both angles come from [0°, 360°), so one turn at most brings the difference into range; the general
+        // `wrap_angle` handles anything else.
+        let d = other.theta - self.theta;
+        let dtheta = if (-3.0 * PI..3.0 * PI).contains(&d) {
+            if d >= PI {
+                d - 2.0 * PI
+            } else if d < -PI {
+                d + 2.0 * PI
+            } else {
+                d
+            }
+        } else {
+            wrap_angle(d)
+        };
+        [
+            (self.cos * dx + self.sin * dy) * self.inv_size,
+            (-self.sin * dx + self.cos * dy) * self.inv_size,
+            dtheta,
+            other.ln_size - self.ln_size,
+        ]
+    }
 }
 
 /// A uniform grid over keypoint positions for exact k-nearest-neighbour search.
@@ -227,6 +266,7 @@ pub fn build_with(keypoints: &[Keypoint], k: usize, rule: NeighbourRule) -> Cons
     let window = rule.window_levels().map(|w| w * level + 1e-3);
     let size_units = matches!(rule, NeighbourRule::SizeUnits | NeighbourRule::SizeUnitsWindow2);
     let n = keypoints.len();
+    let frames: Vec<KeypointFrame> = keypoints.iter().map(KeypointFrame::of).collect();
     let mut out = Constellations::with_capacity(n, k);
     let mut cands: Vec<(f32, u32)> = Vec::with_capacity(n);
     for (i, c) in keypoints.iter().enumerate() {
@@ -244,7 +284,7 @@ pub fn build_with(keypoints: &[Keypoint], k: usize, rule: NeighbourRule) -> Cons
         }
         cands.truncate(k);
         cands.sort_unstable_by(order);
-        out.push(keypoints, i, &cands);
+        out.push(&frames, i, &cands);
     }
     out
 }
@@ -260,12 +300,12 @@ impl Constellations {
     }
 
     /// Appends keypoint `i`'s constellation: `members` (key, index) in order, then padding up to k.
-    fn push(&mut self, keypoints: &[Keypoint], i: usize, members: &[(f32, u32)]) {
-        let c = &keypoints[i];
+    fn push(&mut self, frames: &[KeypointFrame], i: usize, members: &[(f32, u32)]) {
+        let c = &frames[i];
         for &(_, j) in members {
             self.neighbours.push(j);
             self.mask.push(1);
-            self.relative.push(relative_geometry(c, &keypoints[j as usize]));
+            self.relative.push(c.relative(&frames[j as usize]));
         }
         for _ in members.len()..self.k {
             self.neighbours.push(i as u32);
@@ -279,13 +319,14 @@ impl Constellations {
 /// uniform grid: about `N·k` distance evaluations instead of `N²`).
 pub fn build(keypoints: &[Keypoint], k: usize) -> Constellations {
     let mut out = Constellations::with_capacity(keypoints.len(), k);
+    let frames: Vec<KeypointFrame> = keypoints.iter().map(KeypointFrame::of).collect();
     let grid = Grid::new(keypoints, (k as f32 / 4.0).max(1.0));
     let mut nearest: Vec<(f32, u32)> = Vec::with_capacity(4 * k);
     for i in 0..keypoints.len() {
         if k > 0 {
             grid.nearest(keypoints, i, k, &mut nearest);
         }
-        out.push(keypoints, i, &nearest);
+        out.push(&frames, i, &nearest);
     }
     out
 }
@@ -431,6 +472,34 @@ mod tests {
         assert!((g[0] - 2.0).abs() < 1e-6 && g[1].abs() < 1e-6, "{g:?}");
         assert!((g[2] - std::f32::consts::FRAC_PI_2).abs() < 1e-6);
         assert!((g[3] - 2f32.ln()).abs() < 1e-6);
+    }
+
+    /// The per-keypoint frames give the module docs' formulas, computed directly, for every pair of a set that
+    /// covers the angle wrap's edges (0°, 180°, 359.99°) and sizes from one pyramid end to the other.
+    #[test]
+    fn keypoint_frames_give_the_direct_formulas() {
+        let mut kps = keypoints(40, 11);
+        for (i, a) in [0.0f32, 180.0, 359.99, 90.0, 270.0, 0.001].into_iter().enumerate() {
+            kps[i].angle = a;
+            kps[i].size = 7.0 * 1.2f32.powi(i as i32);
+        }
+        for c in &kps {
+            for n in &kps {
+                let theta = c.angle.to_radians();
+                let (dx, dy) = (n.x - c.x, n.y - c.y);
+                let direct = [
+                    (theta.cos() * dx + theta.sin() * dy) / c.size,
+                    (-theta.sin() * dx + theta.cos() * dy) / c.size,
+                    wrap_angle(n.angle.to_radians() - theta),
+                    (n.size / c.size).ln(),
+                ];
+                let g = relative_geometry(c, n);
+                for (a, b) in g.iter().zip(direct) {
+                    assert!((a - b).abs() <= 1e-5 * b.abs().max(1.0), "{g:?} vs {direct:?}");
+                }
+                assert!((-std::f32::consts::PI..std::f32::consts::PI).contains(&g[2]), "{g:?}");
+            }
+        }
     }
 
     #[test]
