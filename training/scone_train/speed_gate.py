@@ -36,8 +36,8 @@ from .validate import load_checkpoint
 SHIPPED = Path(__file__).resolve().parents[2] / "models" / "scone-freak-k20"
 
 
-def selection_auc(model: Path, out: Path, seeds: int) -> dict[str, float]:
-    """AUC@10 of the shipped matcher on every selection part, with `model`."""
+def selection_auc(model: Path, out: Path, seeds: int) -> dict[str, dict]:
+    """`scone eval pairs` reports of the shipped matcher on every selection part, with `model`."""
     scenes = write_selection_scenes(prefix_dir() / "work" / "sel")
     out.mkdir(parents=True, exist_ok=True)
     auc = {}
@@ -48,14 +48,31 @@ def selection_auc(model: Path, out: Path, seeds: int) -> dict[str, float]:
                    str(window), "--seeds", str(seeds), "--model", str(model), "--embed-threads", "1",
                    "--opencv-threads", "1", "--json", str(report)]
             (out / f"{name}.md").write_text(subprocess.run(cmd, check=True, capture_output=True, text=True).stdout)
-        auc[name] = json.loads(report.read_text())["summaries"][0]["auc10"]
+        auc[name] = json.loads(report.read_text())
     return auc
 
 
-def validation_auc(model: Path, out: Path, seeds: int) -> dict[str, float]:
+def validation_auc(model: Path, out: Path, seeds: int) -> dict[str, dict]:
     from .validation_pairs import run
 
-    return {name: r["summaries"][0]["auc10"] for name, r in run(out, seeds, str(model), "scone").items()}
+    return run(out, seeds, str(model), "scone")
+
+
+def pair_scores(report: dict) -> dict[tuple[str, str], float]:
+    """Each pair's share of AUC@10 (the mean over seeds of max(0, 1 - error / 10 deg), as `stats::auc`)."""
+    return {(p["reference"], p["frame"]): float(np.mean([max(0.0, 1.0 - e / 10.0) for e in p["errors_deg"]]))
+            for p in report["pairs"] if p["method"] == "scone"}
+
+
+def paired_interval(a: dict, b: dict, reps: int = 2000, seed: int = 0) -> list[float]:
+    """95 % bootstrap interval of AUC@10(b) - AUC@10(a) over the pairs both reports scored (for reading the
+    tolerance against the protocol's own noise; the verdict does not use it)."""
+    keys = sorted(set(a) & set(b))
+    d = np.array([b[k] - a[k] for k in keys])
+    if len(d) == 0:
+        return [float("nan"), float("nan")]
+    means = d[np.random.default_rng(seed).integers(0, len(d), (reps, len(d)))].mean(1)
+    return [float(np.percentile(means, 2.5)), float(np.percentile(means, 97.5))]
 
 
 class OnnxNet:
@@ -83,9 +100,12 @@ def nn_precision(model, out: Path) -> dict:
     return json.loads(report.read_text())
 
 
-def compare(shipped: dict[str, float], candidate: dict[str, float], tolerance: float) -> tuple[list[dict], bool]:
-    rows = [{"scene": s, "shipped": shipped[s], "candidate": candidate[s], "delta": candidate[s] - shipped[s],
-             "passes": candidate[s] >= shipped[s] - tolerance} for s in shipped]
+def compare(shipped: dict[str, dict], candidate: dict[str, dict], tolerance: float) -> tuple[list[dict], bool]:
+    rows = []
+    for s in shipped:
+        a, b = shipped[s]["summaries"][0]["auc10"], candidate[s]["summaries"][0]["auc10"]
+        rows.append({"scene": s, "shipped": a, "candidate": b, "delta": b - a, "passes": b >= a - tolerance,
+                     "delta_ci95": paired_interval(pair_scores(shipped[s]), pair_scores(candidate[s]))})
     return rows, all(r["passes"] for r in rows)
 
 
@@ -131,7 +151,8 @@ def main() -> None:
     (out / f"{a.stage}.json").write_text(json.dumps(verdict, indent=1))
     for r in verdict["auc10"]:
         print(f"AUC@10 {r['scene']:28s} shipped {r['shipped']:.4f} candidate {r['candidate']:.4f} "
-              f"({r['delta']:+.4f}) {'ok' if r['passes'] else 'FAILS'}")
+              f"({r['delta']:+.4f}, paired bootstrap {np.round(r['delta_ci95'], 3).tolist()}) "
+              f"{'ok' if r['passes'] else 'FAILS'}")
     for r in verdict.get("nn_precision", []):
         print(f"NN precision {r['scene']:22s} shipped {r['shipped']:.4f} {np.round(r['shipped_ci'], 4).tolist()} "
               f"candidate {r['candidate']:.4f} {'ok' if r['passes'] else 'FAILS'}")
