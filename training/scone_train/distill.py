@@ -91,6 +91,7 @@ def main() -> None:
     ap.add_argument("--name", required=True)
     ap.add_argument("--teacher", type=Path, default=Path(__file__).resolve().parents[2] / "models" / "scone-freak-k20.pt")
     ap.add_argument("--activation", default="relu")
+    ap.add_argument("--member-activation", default=None, help="the set encoder's per-member layers (default: --activation)")
     ap.add_argument("--desc-hidden", default=None, help="comma-separated widths (default: the teacher's)")
     ap.add_argument("--set-hidden", type=int, default=None)
     ap.add_argument("--head-hidden", type=int, default=None)
@@ -116,6 +117,8 @@ def main() -> None:
     config = json.loads(json.dumps(teacher_ck["config"]))
     m = config["model"]
     m["activation"] = a.activation
+    if a.member_activation:
+        m["member_activation"] = a.member_activation
     if a.desc_hidden:
         m["desc_hidden"] = [int(w) for w in a.desc_hidden.split(",")]
     for key, value in (("set_hidden", a.set_hidden), ("head_hidden", a.head_hidden), ("bits_skip", a.bits_skip)):

@@ -19,7 +19,7 @@ Output `embeddings` float32 [N, 48], L2-normalised.
 Every normalisation happens in here, so the Rust side passes raw values and cannot drift from training:
 bits become ±1 (one table lookup per byte); angles become (sin, cos); u, v are divided by `UV_SCALE`; sizes become pyramid levels
 (log base 1.2 of size / 7). The descriptor MLP runs once per keypoint and neighbours are gathered by index
-(not embedded 21 times per keypoint). SELU (ReLU in the distilled students of issue 29) follows every hidden fully
+(not embedded 21 times per keypoint). SELU (ReLU in the students of issue 29) follows every hidden fully
 connected layer; the last layer of each block is linear (the head's output is L2-normalised, the neighbourhood block feeds the head).
 """
 
@@ -77,8 +77,9 @@ class SetEncoder(nn.Module):
     the other view removes one element of a set instead of shifting every later step of a sequence.
     """
 
-    def __init__(self, desc_dim: int, geo_dim: int, hidden: int, activation: str = "selu"):
+    def __init__(self, desc_dim: int, geo_dim: int, hidden: int, activation: str = "selu", member_activation: str | None = None):
         super().__init__()
+        member_activation = member_activation or activation
         self.desc_part = nn.Linear(desc_dim, hidden)
         self.geo_part = nn.Linear(geo_dim, hidden, bias=False)
         self.second = nn.Linear(hidden, hidden)
@@ -86,8 +87,10 @@ class SetEncoder(nn.Module):
             nn.init.normal_(lin.weight, std=1.0 / math.sqrt(fan_in))
         nn.init.zeros_(self.desc_part.bias)
         nn.init.zeros_(self.second.bias)
-        self.act = ACTIVATIONS[activation]()
-        self.nonnegative = activation == "relu"
+        # The per-member layers' activation may differ from the rest of the network's (`member_activation`):
+        # they run on [N, k, hidden], the largest activations of the graph.
+        self.act = ACTIVATIONS[member_activation]()
+        self.nonnegative = member_activation == "relu"
         self.read = mlp([2 * hidden, 64, 32], last_activation=True, activation=activation)
 
     def forward(self, d: torch.Tensor, neighbours: torch.Tensor, geo: torch.Tensor, m: torch.Tensor) -> torch.Tensor:
@@ -125,10 +128,12 @@ class SconeNet(nn.Module):
         bits_skip: int = 0,
         central_orientation: bool = True,
         activation: str = "selu",
+        member_activation: str | None = None,
     ):
         super().__init__()
-        if activation not in ACTIVATIONS:
-            raise ValueError(f"unknown activation {activation!r} ({' or '.join(ACTIVATIONS)})")
+        for a in (activation, member_activation or activation):
+            if a not in ACTIVATIONS:
+                raise ValueError(f"unknown activation {a!r} ({' or '.join(ACTIVATIONS)})")
         self.k = k
         self.use_neighbours = use_neighbours
         self.encoder = encoder
@@ -138,7 +143,7 @@ class SconeNet(nn.Module):
             self.lstm = nn.LSTM(desc_dim + geo_dim, lstm_hidden, num_layers=2, bidirectional=True, batch_first=True)
             self.neigh_mlp = mlp([2 * lstm_hidden, 64, 64, 32], last_activation=True, activation=activation)
         elif encoder == "set":
-            self.set_encoder = SetEncoder(desc_dim, geo_dim, set_hidden, activation)
+            self.set_encoder = SetEncoder(desc_dim, geo_dim, set_hidden, activation, member_activation)
         else:
             raise ValueError(f"unknown neighbourhood encoder {encoder!r} (lstm or set)")
         # Optional linear path from the central keypoint's bits to the head (bits_skip dimensions), beside the

@@ -124,6 +124,7 @@ def build_model(m: dict) -> SconeNet:
         use_neighbours=m["k"] > 0, encoder=m.get("encoder", "lstm"), desc_hidden=tuple(m.get("desc_hidden", [512, 256])),
         set_hidden=m.get("set_hidden", 64), head_hidden=m.get("head_hidden", 64), bits_skip=m.get("bits_skip", 0),
         central_orientation=m.get("central_orientation", True), activation=m.get("activation", "selu"),
+        member_activation=m.get("member_activation"),
     )
 
 
