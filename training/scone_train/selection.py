@@ -20,11 +20,11 @@ from .data import prefix_dir, scone_binary
 from .splits import write_selection_scenes
 
 
-def score(name: str, model: str | None, matcher: str, seeds: int, methods: str = "scone,freak") -> dict:
-    out = prefix_dir() / "runs" / "selection" / name
+def reports(out: Path, model: str | None, matcher: str, seeds: int, methods: str = "scone,freak") -> dict[str, dict]:
+    """`scone eval pairs` on every selection part with its window: part -> report, cached as `out/<part>.json`."""
     out.mkdir(parents=True, exist_ok=True)
     scenes = write_selection_scenes(prefix_dir() / "data" / "selection")
-    rows = {}
+    result = {}
     for part, (d, window) in scenes.items():
         report = out / f"{part}.json"
         if not report.exists():
@@ -34,7 +34,14 @@ def score(name: str, model: str | None, matcher: str, seeds: int, methods: str =
             if model:
                 cmd += ["--model", model]
             subprocess.run(cmd, check=True, stdout=subprocess.DEVNULL)
-        r = json.loads(report.read_text())
+        result[part] = json.loads(report.read_text())
+    return result
+
+
+def score(name: str, model: str | None, matcher: str, seeds: int, methods: str = "scone,freak") -> dict:
+    out = prefix_dir() / "runs" / "selection" / name
+    rows = {}
+    for part, r in reports(out, model, matcher, seeds, methods).items():
         rows[part] = {s["method"]: {"auc10": s["auc10"], "precision": s["match_precision"], "matches": s["mean_matches"],
                                     "pairs": s["pairs"]} for s in r["summaries"]}
     methods_seen = list(next(iter(rows.values())).keys())

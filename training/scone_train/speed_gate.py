@@ -20,7 +20,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import subprocess
 import sys
 from pathlib import Path
 from types import SimpleNamespace
@@ -28,9 +27,8 @@ from types import SimpleNamespace
 import numpy as np
 import torch
 
-from .data import prefix_dir, scone_binary
+from .data import prefix_dir
 from .export import check_parity, export_onnx, run_onnx, session
-from .splits import write_selection_scenes
 from .validate import load_checkpoint
 
 SHIPPED = Path(__file__).resolve().parents[2] / "models" / "scone-freak-k20"
@@ -38,18 +36,9 @@ SHIPPED = Path(__file__).resolve().parents[2] / "models" / "scone-freak-k20"
 
 def selection_auc(model: Path, out: Path, seeds: int) -> dict[str, dict]:
     """`scone eval pairs` reports of the shipped matcher on every selection part, with `model`."""
-    scenes = write_selection_scenes(prefix_dir() / "work" / "sel")
-    out.mkdir(parents=True, exist_ok=True)
-    auc = {}
-    for name, (scene, window) in scenes.items():
-        report = out / f"{name}.json"
-        if not report.exists():
-            cmd = [str(scone_binary()), "eval", "pairs", "--scene", str(scene), "--methods", "scone", "--window",
-                   str(window), "--seeds", str(seeds), "--model", str(model), "--embed-threads", "1",
-                   "--opencv-threads", "1", "--json", str(report)]
-            (out / f"{name}.md").write_text(subprocess.run(cmd, check=True, capture_output=True, text=True).stdout)
-        auc[name] = json.loads(report.read_text())
-    return auc
+    from .selection import reports
+
+    return reports(out, str(model), "scale-aware", seeds, "scone")
 
 
 def validation_auc(model: Path, out: Path, seeds: int) -> dict[str, dict]:
