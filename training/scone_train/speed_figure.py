@@ -69,7 +69,7 @@ def main() -> None:
 
     print("| candidate | inference, ratio to shipped | AUC@10 difference per selection part | worst | passes |")
     print("|---|---|---|---|---|")
-    fig, ax = plt.subplots(figsize=(8, 4.8))
+    fig, ax = plt.subplots(figsize=(10, 4.8))
     ax.axhspan(-a.tolerance, 0.2, color="tab:green", alpha=0.08, label=f"gate: no part below -{a.tolerance}")
     ax.axhline(0.0, color="grey", lw=0.8)
     ax.axvline(1.0, color="grey", lw=0.8, ls=":")
@@ -87,7 +87,7 @@ def main() -> None:
     ax.set_xlabel(f"SConE inference time, ratio to the shipped graph (onnxruntime, {a.threads} thread)")
     ax.set_ylabel("AUC@10 minus the shipped model's, per selection part")
     ax.set_title("Cheaper networks against the accuracy gate (issue 29, selection split)")
-    ax.legend(fontsize=7, loc="lower left")
+    ax.legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.01, 1.0))
     fig.tight_layout()
     a.out.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(a.out, dpi=110)
