@@ -17,7 +17,7 @@ steps the student is scored on the selection frames of the same scenes: the mean
 share of queries whose nearest neighbour in another frame is the teacher's (`nn_agreement`); `best.pt` keeps the
 highest `nn_agreement`. The run lives in `<prefix>/runs/distill-NAME` and resumes from `last.pt`. `best.onnx`
 is exported (with the parity check) at the end; whether it may ship is decided by issue 29's accuracy gate
-(`scripts/speed-gate`), not here.
+(`scone_train.speed_gate`, `scripts/speed`), not here.
 """
 
 from __future__ import annotations
@@ -137,6 +137,9 @@ def main() -> None:
     step, best = 0, -1.0
     if (run / "last.pt").exists():
         ck = torch.load(run / "last.pt", weights_only=False)
+        if ck.get("model_config") != m or ck.get("steps") != a.steps:
+            raise SystemExit(f"{run} holds a run of another network or length ({ck.get('model_config')}, "
+                             f"{ck.get('steps')} steps): pick another --name, or remove the directory")
         student.load_state_dict(ck["model"])
         opt.load_state_dict(ck["optimizer"])
         sched.load_state_dict(ck["scheduler"])
@@ -180,7 +183,7 @@ def main() -> None:
                 torch.save({"model": student.state_dict(), "config": config, "step": step, "nn_agreement": agree,
                             "select_cosine": cos}, run / "best.pt")
             torch.save({"model": student.state_dict(), "optimizer": opt.state_dict(), "scheduler": sched.state_dict(),
-                        "step": step, "best": best}, run / "last.pt")
+                        "step": step, "best": best, "model_config": m, "steps": a.steps}, run / "last.pt")
     best_model = load_checkpoint(run / "best.pt")
     export_onnx(best_model, run / "best.onnx")
     print(json.dumps({"onnx": str(run / "best.onnx"), "parity": check_parity(best_model, run / "best.onnx"),

@@ -95,12 +95,13 @@ class SetEncoder(nn.Module):
 
     def forward(self, d: torch.Tensor, neighbours: torch.Tensor, geo: torch.Tensor, m: torch.Tensor) -> torch.Tensor:
         n, k = neighbours.shape
+        hidden = self.second.out_features
         # Written for the exported graph, with the same arithmetic as `desc_part(d)[neighbours] + geo_part(geo)`
         # on [n, k, hidden]: rows gathered by index_select export as one Gather (advanced indexing exports as
         # GatherND, slower), and the per-member layers run on a 2-D [n * k, hidden] matrix, which onnxruntime
         # fuses with its bias and activation into one Gemm.
-        h = self.desc_part(d).index_select(0, neighbours.reshape(-1)) + self.geo_part(geo.reshape(n * k, -1))
-        h = self.act(self.second(self.act(h))).reshape(n, k, -1)
+        h = self.desc_part(d).index_select(0, neighbours.reshape(-1)) + self.geo_part(geo.reshape(n * k, geo.shape[-1]))
+        h = self.act(self.second(self.act(h))).reshape(n, k, hidden)
         count = m.sum(1)
         if self.nonnegative:
             # ReLU's outputs are >= 0, so zeroed padding never wins the max against a real member.

@@ -1,8 +1,8 @@
 """Issue 29's candidates on one picture: inference time against the accuracy gate on the selection split.
 
 `python -m scone_train.speed_figure --candidate LABEL=GATE_DIR [...] --out ../docs/figures/speed-gate.png`
-(from `training/`): each GATE_DIR is a `scone_train.speed_gate --out` directory (its `candidate.onnx` and
-`selection.json`). Inference time is measured here, in one process: the shipped graph and every candidate run
+(from `training/`): each GATE_DIR is a `scone_train.speed_gate --out` directory (its `selection.json`, which
+names the graph that was scored). Inference time is measured here, in one process: the shipped graph and every candidate run
 in turn, `--reps` rounds over the same real training frames (`--frames` per training scene, onnxruntime on
 `--threads` intra-op threads, spinning off); each time is the median round, given as a ratio to the shipped
 graph's. Prints the table and draws, per candidate, its AUC@10 difference to the shipped model on every
@@ -58,9 +58,9 @@ def main() -> None:
     a = ap.parse_args()
     labels, dirs = zip(*(c.split("=", 1) for c in a.candidate))
     dirs = [Path(d) for d in dirs]
-    ratios = inference_ratios([SHIPPED.with_suffix(".onnx"), *(d / "candidate.onnx" for d in dirs)], a.frames,
-                              a.threads, a.reps)[1:]
     verdicts = [json.loads((d / "selection.json").read_text()) for d in dirs]
+    ratios = inference_ratios([SHIPPED.with_suffix(".onnx"), *(Path(v["onnx"]) for v in verdicts)], a.frames,
+                              a.threads, a.reps)[1:]
 
     import matplotlib
 
@@ -83,7 +83,8 @@ def main() -> None:
         cells = ", ".join(f"{r['scene'].split('-')[0]} {r['delta']:+.3f}" for r in v["auc10"])
         print(f"| {label} | {ratio:.2f}x | {cells} | {min(deltas):+.3f} | {'yes' if v['passes'] else 'no'} |")
     ax.scatter([1.0], [0.0], s=90, color="black", marker="*", label="shipped model")
-    ax.set_ylim(min(lows + [-a.tolerance]) - 0.01, 0.03)
+    highs = [r["delta"] for v in verdicts for r in v["auc10"]]
+    ax.set_ylim(min(lows + [-a.tolerance]) - 0.01, max(highs + [0.02]) + 0.01)
     ax.set_xlabel(f"SConE inference time, ratio to the shipped graph (onnxruntime, {a.threads} thread)")
     ax.set_ylabel("AUC@10 minus the shipped model's, per selection part")
     ax.set_title("Cheaper networks against the accuracy gate (issue 29, selection split)")

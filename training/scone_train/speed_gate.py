@@ -10,16 +10,19 @@
   validation scene, within the same tolerance, and the NN precision of `scone_train.validate` on every
   validation scene at least the lower end of the shipped model's 95 % bootstrap interval.
 
-A candidate given as a checkpoint (`.pt`) is exported to ONNX beside the results; a `.onnx` candidate (a
-quantised graph) is scored as it is, and its NN precision is then read through onnxruntime. Every report is
-cached under `--out`, so a rerun only scores what is missing. The verdict is printed and written to
-`DIR/<stage>.json`; the exit status is 0 when the candidate passes.
+A candidate given as a checkpoint (`.pt`) is exported to ONNX beside its reports; a `.onnx` candidate (a
+quantised graph) is scored as it is, and its NN precision is then read through onnxruntime. Reports are cached
+under `--out/<key>`, the key naming the content of the candidate and of the `scone` binary (the shipped model's
+likewise, under `<prefix>/work/speed-gate/shipped-<key>`), so a rerun scores only what is missing and never
+reuses a report of another network or binary. The verdict, naming the candidate, its sha256 and the graph that
+was scored, is printed and written to `DIR/<stage>.json`; the exit status is 0 when the candidate passes.
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import shutil
 import sys
 from pathlib import Path
 from types import SimpleNamespace
@@ -98,6 +101,15 @@ def compare(shipped: dict[str, dict], candidate: dict[str, dict], tolerance: flo
     return rows, all(r["passes"] for r in rows)
 
 
+def content_key(*paths: Path) -> str:
+    """12 hex digits naming the content of these files together (a model and the `scone` binary that scores it)."""
+    import hashlib
+
+    from .export import sha256
+
+    return hashlib.sha256("".join(sha256(p) for p in paths).encode()).hexdigest()[:12]
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--candidate", required=True, type=Path, help="a checkpoint (.pt) or an exported graph (.onnx)")
@@ -107,37 +119,43 @@ def main() -> None:
     ap.add_argument("--seeds", type=int, default=3)
     a = ap.parse_args()
     torch.set_num_threads(1)
-    out = a.out
-    out.mkdir(parents=True, exist_ok=True)
-    if a.candidate.suffix == ".pt":
-        onnx = out / "candidate.onnx"
-        if not onnx.exists():
-            model = load_checkpoint(a.candidate)
-            export_onnx(model, onnx)
-            check_parity(model, onnx)
-        net = load_checkpoint(a.candidate)
-    else:
-        onnx, net = a.candidate, OnnxNet(a.candidate)
-    shipped_onnx = SHIPPED.with_suffix(".onnx")
-    # The shipped model's reports are cached by its file's content, so a new shipped model is scored anew.
+    from .data import scone_binary
     from .export import sha256
 
-    base = prefix_dir() / "work" / "speed-gate" / f"shipped-{sha256(shipped_onnx)[:12]}"
-    verdict: dict = {"candidate": str(a.candidate), "stage": a.stage, "auc_tolerance": a.auc_tolerance}
+    candidate = a.candidate.resolve()
+    # Reports are kept per content of the candidate and of the binary that scores it, so a retrained candidate or
+    # a rebuilt `scone` is scored anew, and a verdict can only ever name the graph it judged.
+    work = a.out / content_key(candidate, scone_binary())
+    work.mkdir(parents=True, exist_ok=True)
+    onnx = work / "candidate.onnx"
+    if candidate.suffix == ".pt":
+        net = load_checkpoint(candidate)
+        if not onnx.exists():
+            export_onnx(net, onnx)
+            check_parity(net, onnx)
+    else:
+        if not onnx.exists():
+            shutil.copyfile(candidate, onnx)
+        net = OnnxNet(onnx)
+    shipped_onnx = SHIPPED.with_suffix(".onnx")
+    base = prefix_dir() / "work" / "speed-gate" / f"shipped-{content_key(shipped_onnx, scone_binary())}"
+    verdict: dict = {"candidate": str(candidate), "candidate_sha256": sha256(candidate), "onnx": str(onnx),
+                     "stage": a.stage, "auc_tolerance": a.auc_tolerance}
     if a.stage == "selection":
         rows, ok = compare(selection_auc(shipped_onnx, base / "selection", a.seeds),
-                           selection_auc(onnx, out / "selection", a.seeds), a.auc_tolerance)
+                           selection_auc(onnx, work / "selection", a.seeds), a.auc_tolerance)
         verdict.update(auc10=rows, passes=ok)
     else:
         rows, auc_ok = compare(validation_auc(shipped_onnx, base / "validation", a.seeds),
-                               validation_auc(onnx, out / "validation", a.seeds), a.auc_tolerance)
+                               validation_auc(onnx, work / "validation", a.seeds), a.auc_tolerance)
         ref = nn_precision(load_checkpoint(SHIPPED.with_suffix(".pt")), base)
-        got = nn_precision(net, out)
+        got = nn_precision(net, work)
         nn_rows = [{"scene": s, "shipped": ref[s]["scone"]["precision"], "shipped_ci": ref[s]["scone"]["ci95"],
                     "candidate": got[s]["scone"]["precision"],
                     "passes": got[s]["scone"]["precision"] >= ref[s]["scone"]["ci95"][0]} for s in ref if s != "mean"]
         verdict.update(auc10=rows, nn_precision=nn_rows, passes=auc_ok and all(r["passes"] for r in nn_rows))
-    (out / f"{a.stage}.json").write_text(json.dumps(verdict, indent=1))
+    a.out.mkdir(parents=True, exist_ok=True)
+    (a.out / f"{a.stage}.json").write_text(json.dumps(verdict, indent=1))
     for r in verdict["auc10"]:
         print(f"AUC@10 {r['scene']:28s} shipped {r['shipped']:.4f} candidate {r['candidate']:.4f} "
               f"({r['delta']:+.4f}, paired bootstrap {np.round(r['delta_ci95'], 3).tolist()}) "
