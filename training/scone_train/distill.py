@@ -31,28 +31,11 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from .data import load_features, prefix_dir
+from .data import prefix_dir
 from .export import check_parity, export_onnx
-from .splits import SPLIT, part
+from .splits import exported_frames
 from .train import build_model
 from .validate import load_checkpoint
-
-
-def scene_frames(cache: Path, which: str, per_scene: int) -> dict[str, list]:
-    """Each real training scene's exported frames of its `which` part ("train" or "select"), at most
-    `per_scene` of them, evenly spaced."""
-    out = {}
-    for name in SPLIT:
-        npz = cache / f"{name}.features.npz"
-        if not npz.exists():
-            continue
-        _, frames = load_features(npz)
-        idx = part(name, which)[1]
-        step = max(len(idx) // per_scene, 1)
-        out[name] = [frames[i] for i in idx[::step][:per_scene] if len(frames[i]) >= 50]
-    if not out:
-        raise FileNotFoundError(f"no exported features under {cache}: run a training config with real_split first")
-    return out
 
 
 class Embedded:
@@ -148,10 +131,12 @@ def main() -> None:
     print(json.dumps({"run": str(run), "copied_from_teacher": copied, "resumed_at": step, "model": m}))
 
     cache = a.cache or prefix_dir() / "data" / "cache" / "real"
-    train = {s: [Embedded(f, teacher, k) for f in fs] for s, fs in scene_frames(cache, "train", a.train_frames).items()}
-    select = [(fs[i], fs[i + 1]) for fs in ({s: [Embedded(f, teacher, k) for f in v] for s, v in
-                                            scene_frames(cache, "select", a.select_frames).items()}).values()
-              for i in range(len(fs) - 1)]
+    def embedded(which: str, per_scene: int) -> dict[str, list[Embedded]]:
+        return {s: [Embedded(f, teacher, k) for f in fs if len(f) >= 50]
+                for s, fs in exported_frames(cache, which, per_scene).items()}
+
+    train = embedded("train", a.train_frames)
+    select = [(fs[i], fs[i + 1]) for fs in embedded("select", a.select_frames).values() for i in range(len(fs) - 1)]
     scenes = sorted(train)
     log = open(run / "log.jsonl", "a")
     t0 = time.time()

@@ -15,27 +15,16 @@ from pathlib import Path
 
 import numpy as np
 
-from .data import load_features, prefix_dir
+from .data import prefix_dir
 from .export import INPUT_NAMES
 
 
 def frames_for(cache: Path, per_scene: int, skip: int) -> list:
     """`per_scene` training frames (`splits.SPLIT`'s train part) of each real training scene's exported
-    features, evenly spaced, starting at `skip`."""
-    from .splits import SPLIT, part
+    features, with a step of len(part) // (2 * per_scene) from `skip`, so another `skip` gives other frames."""
+    from .splits import exported_frames
 
-    out = []
-    for name in SPLIT:
-        npz = cache / f"{name}.features.npz"
-        if not npz.exists():
-            continue
-        _, frames = load_features(npz)
-        train = part(name, "train")[1]
-        step = max(len(train) // (per_scene * 2), 1)
-        out.extend(frames[i] for i in train[skip::step][:per_scene])
-    if not out:
-        raise FileNotFoundError(f"no exported features under {cache}: run a training config with real_split first")
-    return out
+    return [f for frames in exported_frames(cache, "train", per_scene, skip, spread=2).values() for f in frames]
 
 
 def feeds(frames: list, k: int) -> list[dict]:

@@ -16,7 +16,7 @@ import argparse
 import os
 from pathlib import Path
 
-from .data import load_scene, prefix_dir, shared_data
+from .data import load_features, load_scene, prefix_dir, shared_data
 
 # scene -> (source, training frames, selection frames, eval window of the selection part, geometry overrides).
 # "refined" sources are written by scone_train.refine under $SCONE_PREFIX/data/refined.
@@ -73,6 +73,24 @@ def part(name: str, which: str) -> tuple[Path, list[int]]:
     src = scene_dir(name)
     stamps = [r.split()[0] for r in (src / "rgb.txt").read_text().splitlines() if r.strip() and r[0] != "#"]
     return src, frames(SPLIT[name][which], stamps)
+
+
+def exported_frames(cache: Path, which: str, per_scene: int, skip: int = 0, spread: int = 1) -> dict[str, list]:
+    """Each real training scene's Rust-exported frames (`<cache>/<scene>.features.npz`) of its `which` part
+    ("train" or "select"): at most `per_scene`, evenly spaced with a step of len(part) // (per_scene * spread),
+    starting at `skip`. Scenes without exported features are left out; none at all is an error."""
+    out = {}
+    for name in SPLIT:
+        npz = cache / f"{name}.features.npz"
+        if not npz.exists():
+            continue
+        _, frames = load_features(npz)
+        idx = part(name, which)[1]
+        step = max(len(idx) // (per_scene * spread), 1)
+        out[name] = [frames[i] for i in idx[skip::step][:per_scene]]
+    if not out:
+        raise FileNotFoundError(f"no exported features under {cache}: run a training config with real_split first")
+    return out
 
 
 def write_selection_scenes(out: Path) -> dict[str, tuple[Path, int]]:
