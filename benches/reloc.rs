@@ -32,7 +32,7 @@ use scone::camera::Camera;
 use scone::decode::{decode_depth_png, ImageLimitSettings, TUM_DEPTH_SCALE};
 use scone::embedding::{Embedder, EmbedderSettings};
 use scone::features::{ExtractorSettings, KeypointLimitSettings};
-use scone::map::builder::{Depth, KeyframeInput};
+use scone::map::builder::{plan, BuildSettings, Depth, KeyframeInput};
 use scone::map::index::{exact_search, l2_squared, EmbeddingIndex, IndexSettings};
 use scone::map::localize::{localize, LocalizeSettings};
 use scone::map::model::MapData;
@@ -219,6 +219,7 @@ fn main() {
     let mut notes = Vec::new();
     let mut sweeps = Vec::new();
     let mut levers = Vec::new();
+    let mut adds = Vec::new();
     // Maps stay open until the level is done, so a later measurement does not reuse their freed memory.
     let mut open_maps = Vec::new();
     {
@@ -248,6 +249,11 @@ fn main() {
             if built.resumed { " (resumed; the last part)" } else { "" },
             if fresh { " (this run)" } else { " (an earlier run; kept under the prefix)" },
         ));
+        if std::env::var_os("SCONE_BENCH_ADD_ONLY").is_some() {
+            // AddKeyframe alone (while working on map building).
+            println!("@add {}", add_keyframes(&dir, &info, &described, &camera, built.observations));
+            return;
+        }
         // The exact row comes right after the HNSW row, before anything allocates and frees much, so its RSS
         // growth is the map data's. The capped row's open is not measured.
         // The last row is the pipeline before issue 27 (stage 1 alone), the baseline of the defaults' latency.
@@ -378,12 +384,15 @@ fn main() {
         // Then the sweep and the lever, on the HNSW row's map.
         let (store, observations) = (&open_maps[0], built.observations);
         sweeps.push(sweep(store, &described, &camera, observations));
+        adds.push(add_keyframes(&dir, &info, &described, &camera, observations));
         if target >= 1_000_000 || std::env::var_os("SCONE_BENCH_PER_LANDMARK").is_some() {
             levers.push(per_landmark(store, &described, &camera));
         }
     }
     // One level per process (see `run_levels`): hand the lines to the parent.
-    for (tag, lines) in [("row", rows), ("note", notes), ("sweep", sweeps.concat()), ("lever", levers.concat())] {
+    for (tag, lines) in
+        [("row", rows), ("note", notes), ("sweep", sweeps.concat()), ("lever", levers.concat()), ("add", adds)]
+    {
         for l in lines {
             println!("@{tag} {l}");
         }
@@ -425,7 +434,7 @@ fn run_levels() {
         }
     }
     let of = |tag: &str| tagged.iter().filter(|(t, _)| t == tag).map(|(_, l)| l.clone()).collect::<Vec<_>>();
-    let (rows, notes, sweeps, levers) = (of("row"), of("note"), of("sweep"), of("lever"));
+    let (rows, notes, sweeps, levers, adds) = (of("row"), of("note"), of("sweep"), of("lever"), of("add"));
     println!();
     for n in notes {
         println!("{n}");
@@ -448,6 +457,17 @@ fn run_levels() {
     );
     println!("|---|---|---|---|---|---|---|---|---|");
     for r in sweeps {
+        println!("{r}");
+    }
+    println!();
+    println!("AddKeyframe on a copy of the level's map: the held-out kitchen frames added as keyframes, in order:");
+    println!();
+    println!(
+        "| observations | keyframes added | plan alone p50 ms | AddKeyframe p50 ms | p90 ms | max ms | observations \
+         added (median) |"
+    );
+    println!("|---|---|---|---|---|---|---|");
+    for r in adds {
         println!("{r}");
     }
     println!();
@@ -559,6 +579,60 @@ fn per_landmark(store: &MapStore, described: &[Described], camera: &Camera) -> V
         kept.push(index);
     }
     rows
+}
+
+/// Most keyframes [`add_keyframes`] adds to one level's map.
+const ADDED_KEYFRAMES: usize = 20;
+
+/// AddKeyframe through the store (plan, check, log append with fsync, apply, index insert) on a copy of the
+/// level's map, so the kept map stays as built: the first [`ADDED_KEYFRAMES`] held-out kitchen frames (real
+/// frames the map does not hold, posed, no depth, so their landmarks are triangulated) as new keyframes.
+fn add_keyframes(
+    dir: &Path,
+    info: &ModelInfo,
+    described: &[Described],
+    camera: &Camera,
+    observations: usize,
+) -> String {
+    let copy = dir.with_extension("add-keyframes");
+    let _ = std::fs::remove_dir_all(&copy);
+    let status = std::process::Command::new("cp").arg("-r").arg(dir).arg(&copy).status().unwrap();
+    assert!(status.success(), "copying the map for AddKeyframe");
+    let store = MapStore::open(config(&copy, IndexSettings::default()), info.clone()).unwrap();
+    let first = store.summary("m").unwrap().keyframes as u64;
+    let (mut times, mut plans, mut added) = (Vec::new(), Vec::new(), Vec::new());
+    for (i, (d, gt)) in described.iter().take(ADDED_KEYFRAMES).enumerate() {
+        let input = KeyframeInput {
+            id: 1_000_000 + first + i as u64,
+            pose: *gt,
+            camera: *camera,
+            features: &d.features,
+            embeddings: &d.embeddings,
+            depth: None,
+            external: None,
+        };
+        // The plan alone (matching, triangulation), read-only, then the whole write.
+        let t = Instant::now();
+        store.get("m").unwrap().read(|data, _| plan(data, &input, &BuildSettings::default()).unwrap());
+        plans.push(t.elapsed().as_secs_f64() * 1e3);
+        let t = Instant::now();
+        let a = store.add_keyframe("m", &input).unwrap();
+        times.push(t.elapsed().as_secs_f64() * 1e3);
+        added.push(a.observations as f64);
+    }
+    drop(store);
+    let _ = std::fs::remove_dir_all(&copy);
+    let n = times.len();
+    let mut sorted = times.clone();
+    sorted.sort_by(f64::total_cmp);
+    format!(
+        "| {observations} | {n} | {:.0} | {:.0} | {:.0} | {:.0} | {:.0} |",
+        median(plans),
+        median(times),
+        sorted[(n * 9 / 10).min(n - 1)],
+        sorted[n - 1],
+        median(added)
+    )
 }
 
 /// Query keypoint caps measured on one map: `usize::MAX` is every keypoint.

@@ -55,6 +55,7 @@ use std::collections::{HashMap, HashSet};
 use nalgebra::{Isometry3, Point3, Vector3};
 use opencv::core::{Mat, Point2d, Vector};
 use opencv::prelude::*;
+use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
 use crate::camera::Camera;
@@ -335,7 +336,6 @@ pub fn plan(data: &MapData, input: &KeyframeInput, params: &BuildSettings) -> Re
     }
     let kp = |i: usize| (input.features.keypoints[i].x, input.features.keypoints[i].y);
 
-    let observed = data.observed_keypoints();
     let centre = input.pose.translation.vector;
     let dir = viewing_direction(&input.pose);
     let mut candidates: Vec<&Keyframe> =
@@ -348,14 +348,25 @@ pub fn plan(data: &MapData, input: &KeyframeInput, params: &BuildSettings) -> Re
     candidates.truncate(params.candidates);
     if params.covisible_candidates > 0 && !candidates.is_empty() {
         let near: HashSet<u64> = candidates.iter().map(|k| k.id).collect();
-        let shared = data.observations.iter().filter(|o| o.live && near.contains(&o.keyframe)).map(|o| o.landmark);
+        let shared = candidates
+            .iter()
+            .flat_map(|k| data.keyframe_observations(k.id))
+            .map(|&o| &data.observations[o as usize])
+            .filter(|o| o.live)
+            .map(|o| o.landmark);
         let seeing =
             |k: u64| !near.contains(&k) && viewing_direction(&data.keyframes[&k].pose.isometry()).dot(&dir) > 0.0;
         let ranked = data.covisible_keyframes(shared, seeing, params.covisible_candidates);
         candidates.extend(ranked.iter().map(|k| &data.keyframes[k]));
     }
 
+    // (candidate, keypoint) -> landmark, for the candidates' live observations.
+    let observed: HashMap<(u64, u32), u64> = candidates
+        .iter()
+        .flat_map(|k| data.keypoint_landmarks(k.id).into_iter().map(|(kp, lm)| ((k.id, kp), lm)))
+        .collect();
     let mut assigned: HashMap<u32, u64> = HashMap::new(); // keypoint of the new keyframe -> landmark
+    let mut assigned_landmarks: HashSet<u64> = HashSet::new();
     let mut used_old: HashSet<(u64, u32)> = HashSet::new();
     let mut new_landmarks: Vec<(u64, [f64; 3])> = Vec::new();
     let mut observations: Vec<NewObservation> = Vec::new();
@@ -363,8 +374,11 @@ pub fn plan(data: &MapData, input: &KeyframeInput, params: &BuildSettings) -> Re
     let mut to_triangulate: Vec<(&Keyframe, usize, usize)> = Vec::new();
 
     let mut matched_pairs: Vec<(&Keyframe, usize, u32)> = Vec::new();
-    for cand in &candidates {
-        let matches = candidate_matches(input, cand, dim, params)?;
+    // The matching is most of a keyframe's cost and each candidate's is independent: on rayon's threads,
+    // then taken in the candidates' order, as before.
+    let per_candidate: Vec<Vec<crate::matching::Match>> =
+        candidates.par_iter().map(|cand| candidate_matches(input, cand, dim, params)).collect::<Result<_, _>>()?;
+    for (cand, matches) in candidates.iter().zip(per_candidate) {
         for m in matches {
             let (a, b) = (m.query, m.train as u32);
             matched_pairs.push((cand, a, b));
@@ -374,9 +388,10 @@ pub fn plan(data: &MapData, input: &KeyframeInput, params: &BuildSettings) -> Re
             if let Some(&lm) = observed.get(&(cand.id, b)) {
                 let point = Point3::from(data.landmarks[&lm].point);
                 if reproj_err(&input.pose, &input.camera, &point, kp(a)).is_some_and(|e| e <= params.reproj_px)
-                    && !assigned.values().any(|&l| l == lm)
+                    && !assigned_landmarks.contains(&lm)
                 {
                     assigned.insert(a as u32, lm);
+                    assigned_landmarks.insert(lm);
                     observations.push(NewObservation { landmark: lm, keyframe: input.id, keypoint: a as u32 });
                 }
             } else if input.depth.is_none() {

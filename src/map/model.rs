@@ -8,7 +8,7 @@
 //! maps it to the landmark, so observations of one external id in several keyframes are one landmark. The
 //! mapping is part of the map (snapshot, export) and changes only through [`Record::AddExternalKeyframe`].
 
-use std::collections::BTreeMap;
+use std::collections::{BTreeMap, HashMap};
 
 use serde::{Deserialize, Serialize};
 
@@ -148,6 +148,11 @@ pub struct MapData {
     pub version: u64,
     /// External landmark id (the SfM's point id) -> landmark id, for landmarks given by an external SfM.
     pub external_ids: BTreeMap<u64, u64>,
+    /// Observation ids of each keyframe, in order: derived from `observations`, so map building and
+    /// relocalisation reach a keyframe's observations without scanning them all. Not stored; rebuilt when a
+    /// snapshot is decoded ([`MapData::rebuild_derived`]). A removed keyframe's entry goes with it.
+    #[serde(skip)]
+    by_keyframe: HashMap<u64, Vec<u64>>,
 }
 
 impl MapData {
@@ -161,7 +166,34 @@ impl MapData {
             next_landmark: 0,
             version: 0,
             external_ids: BTreeMap::new(),
+            by_keyframe: HashMap::new(),
         }
+    }
+
+    /// Rebuilds what is derived from the stored fields (after decoding them).
+    pub(crate) fn rebuild_derived(&mut self) {
+        self.by_keyframe.clear();
+        // Observations stay live until their keyframe is removed, and the removal drops its entry.
+        for (i, o) in self.observations.iter().enumerate() {
+            if o.live {
+                self.by_keyframe.entry(o.keyframe).or_default().push(i as u64);
+            }
+        }
+    }
+
+    /// Ids of the observations keyframe `id` makes (live while the keyframe exists; none once removed).
+    pub fn keyframe_observations(&self, id: u64) -> &[u64] {
+        self.by_keyframe.get(&id).map_or(&[], Vec::as_slice)
+    }
+
+    /// Keypoint -> landmark for the live observations of keyframe `id`.
+    pub fn keypoint_landmarks(&self, id: u64) -> HashMap<u32, u64> {
+        self.keyframe_observations(id)
+            .iter()
+            .map(|&o| &self.observations[o as usize])
+            .filter(|o| o.live)
+            .map(|o| (o.keypoint, o.landmark))
+            .collect()
     }
 
     /// Counts of the map as it is now, for listings.
@@ -193,7 +225,8 @@ impl MapData {
             }
             Record::RemoveKeyframe { id } => {
                 s.keyframes -= usize::from(self.keyframes.contains_key(id));
-                s.live_observations -= self.observations.iter().filter(|o| o.keyframe == *id && o.live).count();
+                s.live_observations -=
+                    self.keyframe_observations(*id).iter().filter(|&&o| self.observations[o as usize].live).count();
             }
             Record::Reembed { model_id, .. } => s.model_id = model_id.clone(),
             Record::Merge { keyframes, new_landmarks, observations, .. } => {
@@ -284,13 +317,20 @@ impl MapData {
             }
         }
         let mut seen = std::collections::HashSet::new();
-        let observed = self.observed_keypoints();
+        // The keypoints already observed, of the existing keyframes these observations name.
+        let mut observed: HashMap<u64, HashMap<u32, u64>> = HashMap::new();
+        for o in observations {
+            if self.keyframes.contains_key(&o.keyframe) && !observed.contains_key(&o.keyframe) {
+                observed.insert(o.keyframe, self.keypoint_landmarks(o.keyframe));
+            }
+        }
         for o in observations {
             let known = self.landmarks.contains_key(&o.landmark) || fresh_landmarks.contains(&o.landmark);
             let size =
                 sizes.get(&o.keyframe).copied().or_else(|| self.keyframes.get(&o.keyframe).map(|k| k.keypoints.len()));
             let in_range = size.is_some_and(|s| (o.keypoint as usize) < s);
-            let fresh = seen.insert((o.keyframe, o.keypoint)) && !observed.contains_key(&(o.keyframe, o.keypoint));
+            let fresh = seen.insert((o.keyframe, o.keypoint))
+                && !observed.get(&o.keyframe).is_some_and(|k| k.contains_key(&o.keypoint));
             if !known || !in_range || !fresh {
                 return Err(format!(
                     "observation of landmark {} by keyframe {} keypoint {} is inconsistent",
@@ -406,6 +446,7 @@ impl MapData {
                 keypoint: o.keypoint,
                 live: true,
             });
+            self.by_keyframe.entry(o.keyframe).or_default().push(oid);
             let e = self.keyframes[&o.keyframe].embedding(o.keypoint as usize, dim).to_vec();
             self.embeddings.extend_from_slice(&e);
             if let Some(l) = self.landmarks.get_mut(&o.landmark) {
@@ -429,8 +470,8 @@ impl MapData {
             }
             Record::RemoveKeyframe { id } => {
                 self.keyframes.remove(id);
-                for o in self.observations.iter_mut().filter(|o| o.keyframe == *id) {
-                    o.live = false;
+                for o in self.by_keyframe.remove(id).unwrap_or_default() {
+                    self.observations[o as usize].live = false;
                 }
             }
             Record::Reembed { model_id, k, dim, keyframes } => {

@@ -539,3 +539,40 @@ fn a_merge_record_is_checked_applied_and_replayed_as_one() {
     let (replayed, _, _) = LocalJournal::open(&dir, 0).unwrap();
     assert_eq!(replayed, data);
 }
+
+/// The per-keyframe observation lists (derived, not stored) follow every record, come back the same from a
+/// snapshot, and a keyframe removed then added again under its id lists only its new observations.
+#[test]
+fn keyframe_observation_lists_follow_records_and_snapshots() {
+    let mut data = MapData::new(meta(8));
+    for r in [keyframe_record(0, 6, 0, 8, 1), keyframe_record(1, 4, 6, 8, 2)] {
+        data.check(&r).unwrap();
+        data.apply(&r);
+    }
+    // Keyframe 1 also sees landmark 0 through its keypoint 3... which it observes already: refused.
+    let twice = Record::AddKeyframe {
+        keyframe: match keyframe_record(2, 2, 100, 8, 3) {
+            Record::AddKeyframe { keyframe, .. } => keyframe,
+            _ => unreachable!(),
+        },
+        new_landmarks: vec![],
+        observations: vec![
+            NewObservation { landmark: 0, keyframe: 2, keypoint: 0 },
+            NewObservation { landmark: 1, keyframe: 1, keypoint: 3 },
+        ],
+    };
+    assert!(data.check(&twice).unwrap_err().contains("keyframe 1 keypoint 3"));
+    assert_eq!(data.keyframe_observations(0), &[0, 1, 2, 3, 4, 5]);
+    assert_eq!(data.keypoint_landmarks(1).get(&3), Some(&9));
+    let remove = Record::RemoveKeyframe { id: 0 };
+    assert_eq!(data.stats_after(&remove).live_observations, 4);
+    data.apply(&remove);
+    assert!(data.keyframe_observations(0).is_empty());
+    let again = keyframe_record(0, 3, 200, 8, 4);
+    data.check(&again).unwrap();
+    data.apply(&again);
+    assert_eq!(data.keyframe_observations(0), &[10, 11, 12]);
+    assert_eq!(data.live_observations(), 7);
+    let p = PathBuf::from("x");
+    assert_eq!(decode_snapshot(&encode_snapshot(&data).unwrap(), &p).unwrap(), data);
+}

@@ -104,16 +104,15 @@ pub struct MapDataV1 {
 
 impl From<MapDataV1> for MapData {
     fn from(v: MapDataV1) -> Self {
-        Self {
-            meta: v.meta,
-            keyframes: v.keyframes,
-            landmarks: v.landmarks,
-            observations: v.observations,
-            embeddings: v.embeddings,
-            next_landmark: v.next_landmark,
-            version: v.version,
-            external_ids: BTreeMap::new(),
-        }
+        let mut data = MapData::new(v.meta);
+        data.keyframes = v.keyframes;
+        data.landmarks = v.landmarks;
+        data.observations = v.observations;
+        data.embeddings = v.embeddings;
+        data.next_landmark = v.next_landmark;
+        data.version = v.version;
+        data.rebuild_derived();
+        data
     }
 }
 
@@ -163,7 +162,9 @@ pub fn decode_snapshot(bytes: &[u8], path: &Path) -> Result<MapData, MapError> {
     } else {
         bincode::deserialize::<MapData>(payload)
     };
-    decoded.map_err(|e| corrupt(path, format!("cannot decode (format {version}): {e}")))
+    let mut data = decoded.map_err(|e| corrupt(path, format!("cannot decode (format {version}): {e}")))?;
+    data.rebuild_derived();
+    Ok(data)
 }
 
 /// An index dump as bytes (to upload it, or to carry it in an export): `index.json` and hnsw_rs's two files
