@@ -6,7 +6,12 @@
 //! after a restart (snapshot + index dump), and memory per observation (RSS growth over the open; the exact row
 //! opens the map data without its graph while the HNSW row's map is still open, so the difference of the two
 //! rows is the graph's). Then a sweep of how many query keypoints are searched
-//! (`store.localize.max_query_keypoints`) over every query of the level.
+//! (`store.localize.max_query_keypoints`) over every query of the level, and AddKeyframe on a copy of the
+//! level's map (the first 20 queries added as keyframes: the plan alone, then the whole write).
+//!
+//! The index of one point per landmark (`store.index.points = "landmarks"`) is measured in a process of its
+//! own on a copy of the level's map with its own dump (made once, in the build process): the same row and
+//! recall (against exact search over the same points), and every query of the level.
 //!
 //! Map: real, different frames, never repeated. The posed frames of the training scenes of `../shared/data`,
 //! in this order: `7scenes-redkitchen` (every frame but the held-out ones, triangulated with its poses),
@@ -33,7 +38,7 @@ use scone::decode::{decode_depth_png, ImageLimitSettings, TUM_DEPTH_SCALE};
 use scone::embedding::{Embedder, EmbedderSettings};
 use scone::features::{ExtractorSettings, KeypointLimitSettings};
 use scone::map::builder::{plan, BuildSettings, Depth, KeyframeInput};
-use scone::map::index::{exact_search, l2_squared, EmbeddingIndex, IndexSettings};
+use scone::map::index::{exact_search, EmbeddingIndex, IndexPoints, IndexSettings};
 use scone::map::localize::{localize, LocalizeSettings};
 use scone::map::model::MapData;
 use scone::map::store::{MapStore, ModelInfo, StoreSettings};
@@ -122,13 +127,14 @@ fn prepare(
         let _ = std::fs::remove_dir_all(&dir);
     }
     if let Some(b) = std::fs::read(&done).ok().and_then(|b| serde_json::from_slice::<Built>(&b).ok()) {
+        per_landmark_copy(&dir, info);
         return (dir, b, false);
     }
     std::fs::create_dir_all(&dir).unwrap();
     eprintln!("reloc bench: building the {target} map in {}", dir.display());
     let limits = ImageLimitSettings::default();
     let t = Instant::now();
-    let store = MapStore::open(config(&dir, IndexSettings::default()), info.clone()).unwrap();
+    let store = MapStore::open(config(&dir, per_observation_settings()), info.clone()).unwrap();
     if store.summary("m").is_err() {
         store.create("m").unwrap();
     }
@@ -173,7 +179,39 @@ fn prepare(
     let s = store.summary("m").unwrap();
     let built = Built { frames: next, observations: s.observations, build_seconds: t.elapsed().as_secs_f64(), resumed };
     scone::map::storage::format::write_atomic(&done, &serde_json::to_vec(&built).unwrap()).unwrap();
+    per_landmark_copy(&dir, info);
     (dir, built, true)
+}
+
+/// Settings of the index with one point per landmark.
+fn per_landmark_settings() -> IndexSettings {
+    IndexSettings { points: IndexPoints::Landmarks, ..IndexSettings::default() }
+}
+
+/// Settings of the index with one point per observation (the default before issue 31: the kept map's dump,
+/// and the rows comparable with earlier runs).
+fn per_observation_settings() -> IndexSettings {
+    IndexSettings { points: IndexPoints::Observations, ..IndexSettings::default() }
+}
+
+/// The level's map again under `<dir>/per-landmark` (its snapshot and log, not its index dump), with the
+/// index dump of one point per landmark: made once (in the build process), then reloaded as the other map is.
+fn per_landmark_copy(dir: &Path, info: &ModelInfo) -> PathBuf {
+    let copy = dir.join("per-landmark");
+    if copy.join("built").exists() {
+        return copy;
+    }
+    let _ = std::fs::remove_dir_all(&copy);
+    std::fs::create_dir_all(copy.join("maps/m")).unwrap();
+    for f in ["snapshot.bin", "log.bin"] {
+        std::fs::copy(dir.join("maps/m").join(f), copy.join("maps/m").join(f)).unwrap();
+    }
+    let t = Instant::now();
+    let store = MapStore::open(config(&copy, per_landmark_settings()), info.clone()).unwrap();
+    assert!(store.flush().is_empty(), "the per-landmark map was not dumped");
+    eprintln!("reloc bench: one point per landmark: graph built in {:.0} s", t.elapsed().as_secs_f64());
+    std::fs::write(copy.join("built"), b"").unwrap();
+    copy
 }
 
 fn jpeg(path: &Path) -> Vec<u8> {
@@ -218,7 +256,6 @@ fn main() {
     let mut rows = Vec::new();
     let mut notes = Vec::new();
     let mut sweeps = Vec::new();
-    let mut levers = Vec::new();
     let mut adds = Vec::new();
     // Maps stay open until the level is done, so a later measurement does not reuse their freed memory.
     let mut open_maps = Vec::new();
@@ -257,12 +294,20 @@ fn main() {
         // The exact row comes right after the HNSW row, before anything allocates and frees much, so its RSS
         // growth is the map data's. The capped row's open is not measured.
         // The last row is the pipeline before issue 27 (stage 1 alone), the baseline of the defaults' latency.
-        for (label, index, cap) in [
-            ("HNSW", IndexSettings::default(), usize::MAX),
-            ("exact", IndexSettings { exact_below: usize::MAX, ..IndexSettings::default() }, usize::MAX),
-            ("HNSW, 400 query keypoints", IndexSettings::default(), 400),
-            ("HNSW, stage 1 only", IndexSettings::default(), usize::MAX),
-        ] {
+        // The per-landmark index is measured in a process of its own (`run_levels`), its map opened first as
+        // the HNSW row's is, so neither row's memory is lowered by what the other freed.
+        let per_landmark = std::env::var_os(PER_LANDMARK_ENV).is_some();
+        let row_list = if per_landmark {
+            vec![(PER_LANDMARK, per_landmark_settings(), usize::MAX)]
+        } else {
+            vec![
+                (PER_OBSERVATION, per_observation_settings(), usize::MAX),
+                ("exact", IndexSettings { exact_below: usize::MAX, ..IndexSettings::default() }, usize::MAX),
+                ("HNSW per observation, 400 query keypoints", per_observation_settings(), 400),
+                ("HNSW per observation, stage 1 only", per_observation_settings(), usize::MAX),
+            ]
+        };
+        for (label, index, cap) in row_list {
             // The exact row opens the map without its graph (the dump set aside), so its time to ready is the
             // map data's alone.
             if label == "exact" {
@@ -270,7 +315,8 @@ fn main() {
             }
             let rss_before = rss_mb();
             let t = Instant::now();
-            let mut cfg = config(&dir, index);
+            let map_dir = if label == PER_LANDMARK { dir.join("per-landmark") } else { dir.clone() };
+            let mut cfg = config(&map_dir, index);
             cfg.localize.max_query_keypoints = cap;
             if label.ends_with("stage 1 only") {
                 cfg.localize = cfg.localize.stage_one_only();
@@ -299,8 +345,9 @@ fn main() {
                     index.loaded_from_dump(),
                 )
             });
-            // Recall of the index against exact search, on the first queries' own embeddings (k = 2).
-            let recall = if label == "HNSW" {
+            // Recall of the index against exact search over the same points (every observation, or each
+            // landmark's representative), on the first queries' own embeddings (k = 2).
+            let recall = if label == PER_OBSERVATION || label == PER_LANDMARK {
                 let sample = if target >= 1_000_000 { 1 } else { 3 };
                 let embeddings: Vec<f32> =
                     described.iter().take(sample).flat_map(|(d, _)| d.embeddings.iter().copied()).collect();
@@ -310,7 +357,8 @@ fn main() {
                         .par_chunks_exact(dim)
                         .map(|q| {
                             let a = index.search(data, q, 2, None);
-                            let e = exact_search(data, q, 2, None);
+                            let point = |i: usize| index.admissible(data, i);
+                            let e = exact_search(data, q, 2, Some(&point));
                             let top1 =
                                 usize::from(a.first().map(|h| h.observation) == e.first().map(|h| h.observation));
                             let both = e.iter().filter(|h| a.iter().any(|x| x.observation == h.observation)).count();
@@ -367,12 +415,12 @@ fn main() {
                 m("stages"),
                 median(totals),
                 match label {
-                    "HNSW" => format!("{ready:.2}{}", if from_dump { "" } else { " (graph rebuilt)" }),
+                    PER_OBSERVATION | PER_LANDMARK => format!("{ready:.2}{}", if from_dump { "" } else { " (graph rebuilt)" }),
                     "exact" => format!("{ready:.2} (map data only)"),
                     _ => "-".into(),
                 },
                 match label {
-                    "HNSW" => {
+                    PER_OBSERVATION | PER_LANDMARK => {
                         format!("{rss_per_obs_kb:.2} (estimate {estimate_kb:.2}; keyframe payload {payload_kb:.2})")
                     }
                     "exact" => format!("{rss_per_obs_kb:.2} (map data only)"),
@@ -381,18 +429,18 @@ fn main() {
             ));
             open_maps.push(store);
         }
-        // Then the sweep and the lever, on the HNSW row's map.
+        // Then the sweep on the HNSW row's map and AddKeyframe; or every query against the per-landmark map.
         let (store, observations) = (&open_maps[0], built.observations);
-        sweeps.push(sweep(store, &described, &camera, observations));
-        adds.push(add_keyframes(&dir, &info, &described, &camera, observations));
-        if target >= 1_000_000 || std::env::var_os("SCONE_BENCH_PER_LANDMARK").is_some() {
-            levers.push(per_landmark(store, &described, &camera));
+        if per_landmark {
+            let label = "all, one point per landmark";
+            sweeps.push(sweep(store, &described, &camera, observations, &[usize::MAX], label));
+        } else {
+            sweeps.push(sweep(store, &described, &camera, observations, &CAPS, "all"));
+            adds.push(add_keyframes(&dir, &info, &described, &camera, observations));
         }
     }
     // One level per process (see `run_levels`): hand the lines to the parent.
-    for (tag, lines) in
-        [("row", rows), ("note", notes), ("sweep", sweeps.concat()), ("lever", levers.concat()), ("add", adds)]
-    {
+    for (tag, lines) in [("row", rows), ("note", notes), ("sweep", sweeps.concat()), ("add", adds)] {
         for l in lines {
             println!("@{tag} {l}");
         }
@@ -411,30 +459,35 @@ fn run_levels() {
     }
     let mut tagged: Vec<(String, String)> = Vec::new();
     for target in targets {
-        let child = |build_only: bool| {
+        let child = |build_only: bool, per_landmark: bool| {
             let mut c = std::process::Command::new(std::env::current_exe().unwrap());
             c.args(std::env::args().skip(1)).env("SCONE_BENCH_LEVEL", target.to_string());
             if build_only {
                 c.env("SCONE_BENCH_BUILD_ONLY", "1");
             }
+            if per_landmark {
+                c.env(PER_LANDMARK_ENV, "1");
+            }
             c.stderr(std::process::Stdio::inherit()).output().unwrap()
         };
-        let built = child(true);
-        let out = if built.status.success() { child(false) } else { built };
-        if !out.status.success() {
-            eprintln!("reloc bench: the {target} level failed; the tables below leave it out");
-            continue;
-        }
-        for line in String::from_utf8_lossy(&out.stdout).lines() {
-            if let Some((tag, rest)) = line.strip_prefix('@').and_then(|l| l.split_once(' ')) {
-                tagged.push((tag.to_string(), rest.to_string()));
-            } else {
-                println!("{line}");
+        let built = child(true, false);
+        let outs = if built.status.success() { vec![child(false, false), child(false, true)] } else { vec![built] };
+        for out in outs {
+            if !out.status.success() {
+                eprintln!("reloc bench: a process of the {target} level failed; the tables below leave it out");
+                continue;
+            }
+            for line in String::from_utf8_lossy(&out.stdout).lines() {
+                if let Some((tag, rest)) = line.strip_prefix('@').and_then(|l| l.split_once(' ')) {
+                    tagged.push((tag.to_string(), rest.to_string()));
+                } else {
+                    println!("{line}");
+                }
             }
         }
     }
     let of = |tag: &str| tagged.iter().filter(|(t, _)| t == tag).map(|(_, l)| l.clone()).collect::<Vec<_>>();
-    let (rows, notes, sweeps, levers, adds) = (of("row"), of("note"), of("sweep"), of("lever"), of("add"));
+    let (rows, notes, sweeps, adds) = (of("row"), of("note"), of("sweep"), of("add"));
     println!();
     for n in notes {
         println!("{n}");
@@ -468,17 +521,6 @@ fn run_levels() {
     );
     println!("|---|---|---|---|---|---|---|");
     for r in adds {
-        println!("{r}");
-    }
-    println!();
-    println!("Lever: one index point per landmark (its medoid observation) against one per observation, largest map:");
-    println!();
-    println!(
-        "| index | points | graph build s | graph RSS KB/obs of the map | search ms (median) | localised | \
-         within (0.25 m, 2°) | within (0.5 m, 5°) |"
-    );
-    println!("|---|---|---|---|---|---|---|---|");
-    for r in levers {
         println!("{r}");
     }
 }
@@ -528,59 +570,6 @@ fn score(
     out
 }
 
-/// The lever of indexing landmarks instead of observations, measured on a copy of the map: every observation
-/// but each landmark's medoid (the one nearest, in embedding space, to its landmark's others, as ORB-SLAM
-/// picks a map point's descriptor) is left out of the graph, which is then built from scratch beside one with
-/// every observation; both answer every query with every keypoint searched.
-fn per_landmark(store: &MapStore, described: &[Described], camera: &Camera) -> Vec<String> {
-    let mut data = store.get("m").unwrap().read(|data, _| data.clone());
-    let n = data.observations.len();
-    let mut rows = Vec::new();
-    // Both graphs stay alive, so the second's RSS growth is not lowered by reusing the first's memory.
-    let mut kept = Vec::new();
-    for label in ["per observation", "per landmark (medoid)"] {
-        if label != "per observation" {
-            let medoids: Vec<usize> = data
-                .landmarks
-                .values()
-                .filter_map(|l| {
-                    let obs: Vec<usize> =
-                        l.observations.iter().map(|&o| o as usize).filter(|&o| data.observations[o].live).collect();
-                    obs.iter().copied().min_by(|&a, &b| {
-                        let cost = |i: usize| -> f32 {
-                            obs.iter().map(|&j| l2_squared(data.embedding(i), data.embedding(j)).sqrt()).sum()
-                        };
-                        cost(a).total_cmp(&cost(b))
-                    })
-                })
-                .collect();
-            for o in &mut data.observations {
-                o.live = false;
-            }
-            for m in medoids {
-                data.observations[m].live = true;
-            }
-        }
-        let points = data.live_observations();
-        let before = rss_mb();
-        let t = Instant::now();
-        let mut index = EmbeddingIndex::new(IndexSettings::default());
-        index.sync(&data);
-        let build = t.elapsed().as_secs_f64();
-        let graph_kb = (rss_mb() - before) * 1024.0 / n as f64;
-        let Scored { search_ms, localised, within, within5, .. } =
-            score(&data, &index, described, camera, &LocalizeSettings::default());
-        rows.push(format!(
-            "| {label} | {points} | {build:.0} | {graph_kb:.2} | {:.1} | {localised}/{q} | {within}/{q} | {within5}/{q} |",
-            median(search_ms),
-            q = described.len(),
-        ));
-        eprintln!("{}", rows.last().unwrap());
-        kept.push(index);
-    }
-    rows
-}
-
 /// Most keyframes [`add_keyframes`] adds to one level's map.
 const ADDED_KEYFRAMES: usize = 20;
 
@@ -596,9 +585,11 @@ fn add_keyframes(
 ) -> String {
     let copy = dir.with_extension("add-keyframes");
     let _ = std::fs::remove_dir_all(&copy);
-    let status = std::process::Command::new("cp").arg("-r").arg(dir).arg(&copy).status().unwrap();
+    std::fs::create_dir_all(&copy).unwrap();
+    let from = dir.join("per-landmark/maps");
+    let status = std::process::Command::new("cp").arg("-r").arg(from).arg(&copy).status().unwrap();
     assert!(status.success(), "copying the map for AddKeyframe");
-    let store = MapStore::open(config(&copy, IndexSettings::default()), info.clone()).unwrap();
+    let store = MapStore::open(config(&copy, per_landmark_settings()), info.clone()).unwrap();
     let first = store.summary("m").unwrap().keyframes as u64;
     let (mut times, mut plans, mut added) = (Vec::new(), Vec::new(), Vec::new());
     for (i, (d, gt)) in described.iter().take(ADDED_KEYFRAMES).enumerate() {
@@ -635,22 +626,36 @@ fn add_keyframes(
     )
 }
 
+/// Label of the row of one index point per observation (before issue 31)...
+const PER_OBSERVATION: &str = "HNSW, one point per observation";
+/// ...and of one point per landmark (the default since), ...
+const PER_LANDMARK: &str = "HNSW, one point per landmark";
+/// ...measured in a child process with this variable set.
+const PER_LANDMARK_ENV: &str = "SCONE_BENCH_PER_LANDMARK";
+
 /// Query keypoint caps measured on one map: `usize::MAX` is every keypoint.
 const CAPS: [usize; 5] = [usize::MAX, 1000, 600, 400, 250];
 
 /// Search and PnP of every query with each cap of [`CAPS`] (the service's localisation, called on the map
 /// directly so one opened map serves every cap).
-fn sweep(store: &MapStore, described: &[Described], camera: &Camera, observations: usize) -> Vec<String> {
+fn sweep(
+    store: &MapStore,
+    described: &[Described],
+    camera: &Camera,
+    observations: usize,
+    caps: &[usize],
+    all: &str,
+) -> Vec<String> {
     let map = store.get("m").unwrap();
     let mut rows = Vec::new();
-    for cap in CAPS {
+    for &cap in caps {
         let params = LocalizeSettings { max_query_keypoints: cap, ..LocalizeSettings::default() };
         let Scored { search_ms, pnp_ms, matches, localised, within, within5 } =
             map.read(|data, index| score(data, index, described, camera, &params));
         let n = described.len();
         rows.push(format!(
             "| {observations} | {} | {n} | {localised} | {within} | {within5} | {:.0} | {:.1} | {:.1} |",
-            if cap == usize::MAX { "all".to_string() } else { cap.to_string() },
+            if cap == usize::MAX { all.to_string() } else { cap.to_string() },
             median(matches),
             median(search_ms),
             median(pnp_ms),

@@ -5,6 +5,12 @@
 //! tombstones (`live = false`) that are filtered at query time, since HNSW cannot delete points. When
 //! tombstones exceed `rebuild_dead_share` of the points the graph is rebuilt from the live observations.
 //!
+//! What the graph's points are is a setting ([`IndexSettings::points`]): one representative view per landmark
+//! (the default), or every live observation. A real map has ~2.5 views per landmark, so the first takes ~0.4
+//! of the points, and of the graph's memory, build and reload time. A representative is chosen again when its landmark's
+//! live views reach a power of two or its keyframe is removed; the point it replaces stays in the graph as a
+//! tombstone does, and counts toward the rebuild. The representatives are recorded in the dump's manifest.
+//!
 //! Persistence: `hnsw_rs`'s dump (a graph and a data file under one base name) plus `index.json`, which
 //! names that base and records the model id, CRC-32s of both files, how many observations were offered to
 //! the graph and how many it holds, and a CRC-32 of their embeddings. Each dump goes under a new base name
@@ -23,7 +29,9 @@ use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
 use crate::error::MapError;
-use crate::map::model::MapData;
+use std::collections::{BTreeSet, HashMap};
+
+use crate::map::model::{Landmark, MapData};
 use crate::map::storage::format::{
     file_crc, io_error, remove_dump, remove_dumps_except, valid_base, DumpManifest, DATA_SUFFIX, DUMP_MANIFEST,
     GRAPH_SUFFIX,
@@ -39,15 +47,63 @@ pub struct IndexSettings {
     pub m: usize,
     pub ef_construction: usize,
     pub ef_search: usize,
-    /// Rebuild when this share of indexed points are tombstones.
+    /// Rebuild when this share of indexed points are tombstones (or, with one point per landmark, points a
+    /// landmark's newer representative replaced).
     pub rebuild_dead_share: f64,
+    /// What the graph's points are: every observation, or one representative view per landmark.
+    pub points: IndexPoints,
 }
 
 impl Default for IndexSettings {
     fn default() -> Self {
-        Self { exact_below: 1_000, m: 16, ef_construction: 100, ef_search: 16, rebuild_dead_share: 0.3 }
+        Self {
+            exact_below: 1_000,
+            m: 16,
+            ef_construction: 100,
+            ef_search: 16,
+            rebuild_dead_share: 0.3,
+            points: IndexPoints::Landmarks,
+        }
     }
 }
+
+/// What the HNSW graph indexes (the exact search below `exact_below` always reads every observation). The
+/// service's default is one point per landmark (issue 31: the rule in BENCHMARKS.md); dump manifests written
+/// before the setting existed read as one point per observation, which is what they hold.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize, clap::ValueEnum)]
+#[serde(rename_all = "snake_case")]
+pub enum IndexPoints {
+    /// One point per live observation: every view of a landmark.
+    #[default]
+    Observations,
+    /// One point per landmark: its medoid view (the live view nearest, in embedding space, to its other
+    /// views, as ORB-SLAM picks a map point's descriptor). It is chosen when the landmark is first indexed and
+    /// chosen again each time its live views reach a power of two (2, 4, 8, ...) or its view's keyframe is
+    /// removed; the replaced point stays in the graph, passed over by searches, until a rebuild.
+    Landmarks,
+}
+
+/// The medoid of a landmark's live views among observations `[0, limit)`: the one with the least summed
+/// distance to the others, the first of equals (so of two views, the older).
+fn medoid(data: &MapData, landmark: &Landmark, limit: usize) -> Option<usize> {
+    let views: Vec<usize> =
+        landmark.observations.iter().map(|&o| o as usize).filter(|&o| o < limit && data.observations[o].live).collect();
+    if views.len() <= 2 {
+        return views.first().copied();
+    }
+    let cost =
+        |i: usize| -> f32 { views.iter().map(|&j| l2_squared(data.embedding(i), data.embedding(j)).sqrt()).sum() };
+    views.iter().map(|&v| (cost(v), v)).min_by(|a, b| a.0.total_cmp(&b.0)).map(|(_, v)| v)
+}
+
+/// Live views of a landmark among observations `[0, limit)`.
+fn live_views(data: &MapData, landmark: &Landmark, limit: usize) -> usize {
+    landmark.observations.iter().filter(|&&o| (o as usize) < limit && data.observations[o as usize].live).count()
+}
+
+/// Extra neighbours an unfiltered search asks for, so that a few points that may not be results (tombstones,
+/// replaced representatives) do not force a filtered search.
+const SEARCH_SLACK: usize = 2;
 
 /// hnsw_rs's dump only reloads with 16 layers.
 const MAX_LAYER: usize = 16;
@@ -69,8 +125,15 @@ pub struct EmbeddingIndex {
     in_graph: usize,
     /// Whether the graph came from a dump (rather than being built here).
     from_dump: bool,
-    /// Points in the graph whose keyframe was removed since (tombstones).
+    /// Points in the graph whose keyframe was removed since (tombstones), or, with one point per landmark,
+    /// that no longer stand for their landmark.
     dead_in_graph: usize,
+    /// With one point per landmark: landmark -> the observation that stands for it...
+    representatives: HashMap<u64, usize>,
+    /// ...which observations are points of the graph (by id)...
+    in_graph_ids: Vec<bool>,
+    /// ...and how many observations below `indexed` were live at the last sync (fewer now: a removal).
+    live_indexed: usize,
 }
 
 impl std::fmt::Debug for EmbeddingIndex {
@@ -122,7 +185,17 @@ pub fn exact_search(data: &MapData, query: &[f32], k: usize, accept: Accept) -> 
 
 impl EmbeddingIndex {
     pub fn new(params: IndexSettings) -> Self {
-        Self { params, hnsw: None, indexed: 0, in_graph: 0, from_dump: false, dead_in_graph: 0 }
+        Self {
+            params,
+            hnsw: None,
+            indexed: 0,
+            in_graph: 0,
+            from_dump: false,
+            dead_in_graph: 0,
+            representatives: HashMap::new(),
+            in_graph_ids: Vec::new(),
+            live_indexed: 0,
+        }
     }
 
     pub fn params(&self) -> &IndexSettings {
@@ -167,6 +240,9 @@ impl EmbeddingIndex {
         self.in_graph = 0;
         self.from_dump = false;
         self.dead_in_graph = 0;
+        self.representatives.clear();
+        self.in_graph_ids.clear();
+        self.live_indexed = 0;
     }
 
     /// Brings the index up to date with `data` (new observations; a rebuild when there are too many
@@ -174,11 +250,12 @@ impl EmbeddingIndex {
     pub fn sync(&mut self, data: &MapData) {
         let total = data.observations.len();
         if total < self.params.exact_below {
-            self.hnsw = None;
+            self.reset();
             self.indexed = total;
-            self.in_graph = 0;
-            self.dead_in_graph = 0;
             return;
+        }
+        if self.params.points == IndexPoints::Landmarks {
+            return self.sync_landmarks(data);
         }
         // Points in the graph whose keyframe has since been removed.
         let live_indexed = data.observations[..self.indexed.min(total)].iter().filter(|o| o.live).count();
@@ -214,19 +291,112 @@ impl EmbeddingIndex {
         self.indexed = total;
     }
 
+    /// [`EmbeddingIndex::sync`] with one point per landmark ([`IndexPoints::Landmarks`]).
+    fn sync_landmarks(&mut self, data: &MapData) {
+        let total = data.observations.len();
+        let live_before = data.observations[..self.indexed.min(total)].iter().filter(|o| o.live).count();
+        let live_now = live_before + data.observations[self.indexed.min(total)..].iter().filter(|o| o.live).count();
+        let replaced = self.in_graph.saturating_sub(self.representatives.len());
+        let rebuild = self.hnsw.is_none()
+            || self.indexed > total
+            || replaced as f64 > self.params.rebuild_dead_share * self.in_graph.max(1) as f64;
+        if rebuild {
+            let mut ids: Vec<usize> = data.landmarks.par_iter().filter_map(|(_, l)| medoid(data, l, total)).collect();
+            ids.sort_unstable();
+            let graph = self.new_graph(ids.len());
+            let points: Vec<(&[f32], usize)> = ids.iter().map(|&i| (data.embedding(i), i)).collect();
+            graph.parallel_insert_slice(&points);
+            self.in_graph_ids = vec![false; total];
+            for &i in &ids {
+                self.in_graph_ids[i] = true;
+            }
+            self.representatives = ids.iter().map(|&i| (data.observations[i].landmark, i)).collect();
+            self.in_graph = ids.len();
+            self.hnsw = Some(graph);
+            self.from_dump = false;
+            self.indexed = total;
+            self.live_indexed = live_now;
+            self.dead_in_graph = 0;
+            return;
+        }
+        // Landmarks whose representative may change: those with new views, and, after a removal, those whose
+        // representative's keyframe went.
+        let mut touched: BTreeSet<u64> =
+            data.observations[self.indexed..total].iter().filter(|o| o.live).map(|o| o.landmark).collect();
+        if live_before < self.live_indexed {
+            touched.extend(self.representatives.iter().filter(|(_, &o)| !data.observations[o].live).map(|(&l, _)| l));
+        }
+        let mut inserts = Vec::new();
+        for lm in touched {
+            let current = self.representatives.get(&lm).copied();
+            let Some(l) = data.landmarks.get(&lm) else {
+                self.representatives.remove(&lm);
+                continue;
+            };
+            if current.is_some_and(|o| data.observations[o].live) {
+                // Chosen again only when its live views reach a power of two.
+                let (before, after) = (live_views(data, l, self.indexed), live_views(data, l, total));
+                let reached = after.checked_ilog2().is_some_and(|p| (1usize << p) > before);
+                if !reached {
+                    continue;
+                }
+            }
+            match medoid(data, l, total) {
+                Some(n) if Some(n) != current => {
+                    self.representatives.insert(lm, n);
+                    inserts.push(n);
+                }
+                Some(_) => {}
+                None => {
+                    self.representatives.remove(&lm);
+                }
+            }
+        }
+        self.in_graph_ids.resize(total, false);
+        inserts.retain(|&i| !std::mem::replace(&mut self.in_graph_ids[i], true));
+        inserts.sort_unstable();
+        if let Some(graph) = &self.hnsw {
+            let points: Vec<(&[f32], usize)> = inserts.iter().map(|&i| (data.embedding(i), i)).collect();
+            if points.len() > 64 {
+                graph.parallel_insert_slice(&points);
+            } else {
+                for p in points {
+                    graph.insert_slice(p);
+                }
+            }
+        }
+        self.in_graph += inserts.len();
+        self.indexed = total;
+        self.live_indexed = live_now;
+        self.dead_in_graph = self.in_graph.saturating_sub(self.representatives.len());
+    }
+
+    /// Whether observation `id` may be a search result (before the caller's own restriction): live, and,
+    /// with one point per landmark, its landmark's representative.
+    pub fn admissible(&self, data: &MapData, id: usize) -> bool {
+        data.observations.get(id).is_some_and(|o| {
+            o.live
+                && (self.params.points == IndexPoints::Observations
+                    || self.representatives.get(&o.landmark) == Some(&id))
+        })
+    }
+
     /// The k nearest live observations to `query` that `accept` admits.
     pub fn search(&self, data: &MapData, query: &[f32], k: usize, accept: Accept) -> Vec<Hit> {
         let Some(graph) = &self.hnsw else {
             return exact_search(data, query, k, accept);
         };
-        let ef = self.params.ef_search.max(k);
-        // hnsw_rs's filtered search is markedly slower: search unfiltered when nothing should be left out, and
-        // fall back to the filter if a tombstone shows up anyway (e.g. a removal not yet synced).
-        let admit = |id: usize| data.observations.get(id).is_some_and(|o| o.live) && accept.is_none_or(|a| a(id));
+        let ef = self.params.ef_search.max(k + SEARCH_SLACK);
+        // hnsw_rs's filtered search is markedly slower: without the caller's restriction, search unfiltered for
+        // a few more than k and pass over the points that may not be results (tombstones, replaced
+        // representatives); only when fewer than k remain, search again with the filter.
+        let admit = |id: usize| self.admissible(data, id) && accept.is_none_or(|a| a(id));
         let filter = |id: &usize| admit(*id);
-        let found = if accept.is_none() && self.dead_in_graph == 0 {
-            let found = graph.search(query, k, ef);
-            if found.iter().all(|n| admit(n.d_id)) {
+        let found = if accept.is_none() {
+            let mut found = graph.search(query, k + SEARCH_SLACK, ef);
+            found.retain(|n| admit(n.d_id));
+            if found.len() >= k {
+                found.truncate(k);
                 found
             } else {
                 graph.search_filter(query, k, ef, Some(&filter))
@@ -299,6 +469,12 @@ impl EmbeddingIndex {
                 graph_crc: file_crc(&dir.join(format!("{name}{GRAPH_SUFFIX}")))?,
                 data_crc: file_crc(&dir.join(format!("{name}{DATA_SUFFIX}")))?,
                 embeddings_crc: embeddings_crc(data, self.indexed),
+                index_points: self.params.points,
+                representatives: {
+                    let mut r: Vec<usize> = self.representatives.values().copied().collect();
+                    r.sort_unstable();
+                    r
+                },
             };
             let json = serde_json::to_vec(&manifest).expect("manifest serialises");
             crate::map::storage::format::write_atomic(&manifest_path, &json)
@@ -316,12 +492,16 @@ impl EmbeddingIndex {
     /// rest. Anything else rebuilds from the map data.
     pub fn load_or_build(params: IndexSettings, dir: &Path, data: &MapData) -> Self {
         let mut index = Self::new(params);
-        match Self::try_load(dir, data) {
-            Ok(Some(LoadedDump { graph, points, in_graph })) => {
+        match Self::try_load(dir, data, params.points) {
+            Ok(Some(LoadedDump { graph, points, in_graph, representatives, in_graph_ids })) => {
                 index.hnsw = Some(graph);
                 index.indexed = points;
                 index.in_graph = in_graph;
                 index.from_dump = true;
+                index.representatives = representatives;
+                index.in_graph_ids = in_graph_ids;
+                // Unknown until the first sync: it looks for representatives a removal took since the dump.
+                index.live_indexed = usize::MAX;
             }
             Ok(None) => {}
             Err(reason) => tracing::warn!(dir = %dir.display(), %reason, "index dump not used: rebuilding"),
@@ -332,12 +512,15 @@ impl EmbeddingIndex {
 
     /// The dump in `dir` if it matches `data`; `Ok(None)` when there is none, `Err` with the reason when it
     /// does not match.
-    fn try_load(dir: &Path, data: &MapData) -> Result<Option<LoadedDump>, String> {
+    fn try_load(dir: &Path, data: &MapData, points: IndexPoints) -> Result<Option<LoadedDump>, String> {
         let Ok(bytes) = std::fs::read(dir.join(DUMP_MANIFEST)) else { return Ok(None) };
         let manifest: DumpManifest =
             serde_json::from_slice(&bytes).map_err(|e| format!("{DUMP_MANIFEST} does not read: {e}"))?;
         if manifest.model_id != data.meta.model_id {
             return Err(format!("dumped for model {}", manifest.model_id));
+        }
+        if manifest.index_points != points {
+            return Err(format!("dumped with points {:?}, the settings say {points:?}", manifest.index_points));
         }
         if manifest.points > data.observations.len() {
             return Err(format!("holds {} observations, the map {}", manifest.points, data.observations.len()));
@@ -363,16 +546,50 @@ impl EmbeddingIndex {
             Ok(Err(e)) => return Err(format!("hnsw_rs cannot load it: {e}")),
             Err(_) => return Err("hnsw_rs panicked loading it".into()),
         };
-        check_graph(&graph, data, manifest.points, manifest.in_graph)?;
-        Ok(Some(LoadedDump { graph, points: manifest.points, in_graph: manifest.in_graph }))
+        let in_graph_ids = check_graph(&graph, data, &manifest)?;
+        let representatives = if points == IndexPoints::Landmarks {
+            check_representatives(data, &manifest, &in_graph_ids)?
+        } else {
+            HashMap::new()
+        };
+        let in_graph_ids = if points == IndexPoints::Landmarks { in_graph_ids } else { Vec::new() };
+        Ok(Some(LoadedDump {
+            graph,
+            points: manifest.points,
+            in_graph: manifest.in_graph,
+            representatives,
+            in_graph_ids,
+        }))
     }
 }
 
-/// A dump that matched its map: the graph, and its manifest's counts.
+/// A dump that matched its map: the graph, its manifest's counts, and with one point per landmark, the
+/// representatives and which observations are points.
 struct LoadedDump {
     graph: Hnsw<'static, f32, DistL2>,
     points: usize,
     in_graph: usize,
+    representatives: HashMap<u64, usize>,
+    in_graph_ids: Vec<bool>,
+}
+
+/// The representatives a landmark dump records, checked against the map and the graph: each an observation
+/// in the graph, one per landmark.
+fn check_representatives(
+    data: &MapData,
+    manifest: &DumpManifest,
+    in_graph_ids: &[bool],
+) -> Result<HashMap<u64, usize>, String> {
+    let mut out = HashMap::with_capacity(manifest.representatives.len());
+    for &o in &manifest.representatives {
+        if !in_graph_ids.get(o).copied().unwrap_or(false) {
+            return Err(format!("representative {o} is not in the graph"));
+        }
+        if out.insert(data.observations[o].landmark, o).is_some() {
+            return Err(format!("landmark {} has two representatives", data.observations[o].landmark));
+        }
+    }
+    Ok(out)
 }
 
 /// CRC-32 of the embeddings of observations `[0, points)`: what the graph was built from.
@@ -385,14 +602,15 @@ fn embeddings_crc(data: &MapData, points: usize) -> u32 {
 }
 
 /// Whether a loaded graph holds exactly what the map says it should: `in_graph` points, each an observation
-/// below `points` (once) with the map's embedding, and every observation below `points` that is still live
-/// (a removed keyframe's observations may stay as tombstones; a live one never went missing).
+/// below `points` (once) with the map's embedding; with one point per observation, also every observation
+/// below `points` that is still live (a removed keyframe's observations may stay as tombstones; a live one
+/// never went missing). Returns which observations are points.
 fn check_graph(
     graph: &Hnsw<'static, f32, DistL2>,
     data: &MapData,
-    points: usize,
-    in_graph: usize,
-) -> Result<(), String> {
+    manifest: &DumpManifest,
+) -> Result<Vec<bool>, String> {
+    let (points, in_graph) = (manifest.points, manifest.in_graph);
     let mut seen = vec![false; points];
     let mut count = 0usize;
     for p in graph.get_point_indexation() {
@@ -409,8 +627,10 @@ fn check_graph(
     if count != in_graph {
         return Err(format!("the graph holds {count} points, the manifest says {in_graph}"));
     }
-    if let Some(missing) = (0..points).find(|&i| data.observations[i].live && !seen[i]) {
-        return Err(format!("live observation {missing} is not in the graph"));
+    if manifest.index_points == IndexPoints::Observations {
+        if let Some(missing) = (0..points).find(|&i| data.observations[i].live && !seen[i]) {
+            return Err(format!("live observation {missing} is not in the graph"));
+        }
     }
-    Ok(())
+    Ok(seen)
 }

@@ -250,6 +250,98 @@ fn a_dump_from_another_model_or_damaged_is_rebuilt() {
     assert!(reloaded.is_approximate() && !reloaded.loaded_from_dump(), "a damaged dump was used");
 }
 
+/// Keyframe `id` with `n` keypoints, each a further view of landmark `i` (made by [`keyframe_record`]).
+fn views_record(id: u64, n: usize, dim: usize, seed: u64) -> Record {
+    let Record::AddKeyframe { keyframe, .. } = keyframe_record(id, n, 0, dim, seed) else { unreachable!() };
+    let observations =
+        (0..n).map(|i| NewObservation { landmark: i as u64, keyframe: id, keypoint: i as u32 }).collect();
+    Record::AddKeyframe { keyframe, new_landmarks: Vec::new(), observations }
+}
+
+/// Every landmark with a live view has one representative, a live view of its own, and searches return
+/// representatives only.
+fn assert_representatives(data: &MapData, index: &EmbeddingIndex) {
+    let mut found = 0;
+    for (&lm, l) in &data.landmarks {
+        let views: Vec<usize> =
+            l.observations.iter().map(|&o| o as usize).filter(|&o| data.observations[o].live).collect();
+        let Some(&any) = views.first() else { continue };
+        let hits = index.search(data, data.embedding(any), 3, None);
+        assert!(hits.iter().all(|h| {
+            let o = &data.observations[h.observation];
+            o.live && index.search(data, data.embedding(h.observation), 1, None)[0].observation == h.observation
+        }));
+        found += usize::from(data.observations[hits[0].observation].landmark == lm);
+    }
+    assert!(found as f64 >= 0.9 * data.landmarks.len() as f64, "{found} of {} landmarks", data.landmarks.len());
+}
+
+#[test]
+fn one_point_per_landmark_follows_new_views_removals_and_a_dump() {
+    use crate::map::index::IndexPoints;
+    let dir = temp_dir("hnsw-landmarks");
+    // Half the points will be replaced ones: the rebuild share is raised so they stay (tested at the end).
+    let params = IndexSettings {
+        exact_below: 100,
+        points: IndexPoints::Landmarks,
+        rebuild_dead_share: 0.6,
+        ..IndexSettings::default()
+    };
+    let mut data = MapData::new(meta(48));
+    let mut index = EmbeddingIndex::new(params);
+    data.apply(&keyframe_record(0, 300, 0, 48, 1));
+    index.sync(&data);
+    assert_eq!(index.graph_shape().unwrap().0, 300);
+    // Views close to the first (the same vectors, nudged), so a landmark's views lie near each other.
+    let first = data.keyframes[&0].embeddings.clone();
+    let nudged = |id: u64, step: f32| {
+        let mut r = views_record(id, 300, 48, 9);
+        if let Record::AddKeyframe { keyframe, .. } = &mut r {
+            keyframe.embeddings = first.iter().map(|v| v + step).collect();
+        }
+        r
+    };
+    // Two and three views: the first view stays the representative (no new points).
+    for (k, step) in [(1, 0.02), (2, 0.01)] {
+        data.apply(&nudged(k, step));
+        index.sync(&data);
+        assert_eq!(index.graph_shape().unwrap().0, 300, "after keyframe {k}");
+    }
+    // Four views: chosen again. Views 0 and 3 lie at the ends of the line, 1 and 2 (shifts 0.02 and 0.01)
+    // between: they tie as the medoid, and the first, keyframe 1's, replaces keyframe 0's.
+    data.apply(&nudged(3, 0.03));
+    index.sync(&data);
+    assert_eq!(index.graph_shape().unwrap().0, 600);
+    let hit = index.search(&data, data.embedding(0), 1, None)[0].observation;
+    assert_eq!((data.observations[hit].landmark, data.observations[hit].keyframe), (0, 1));
+    assert_representatives(&data, &index);
+    // The dump keeps the representatives; another setting's dump is not used.
+    index.dump(&dir, &data).unwrap();
+    let reloaded = EmbeddingIndex::load_or_build(params, &dir, &data);
+    assert!(reloaded.loaded_from_dump());
+    for i in (0..data.observations.len()).step_by(13) {
+        let q = data.embedding(i);
+        assert_eq!(reloaded.search(&data, q, 3, None), index.search(&data, q, 3, None));
+    }
+    let other =
+        EmbeddingIndex::load_or_build(IndexSettings { points: IndexPoints::Observations, ..params }, &dir, &data);
+    assert!(!other.loaded_from_dump());
+    // Removing keyframe 1 takes every representative: each landmark gets another, none from keyframe 1.
+    let mut index = reloaded;
+    data.apply(&Record::RemoveKeyframe { id: 1 });
+    index.sync(&data);
+    assert_representatives(&data, &index);
+    for i in (0..data.observations.len()).step_by(5) {
+        let hits = index.search(&data, data.embedding(i), 2, None);
+        assert!(hits.iter().all(|h| data.observations[h.observation].keyframe != 1));
+    }
+    // At the default share, the replaced points (over half) have the graph rebuilt with one per landmark.
+    let rebuilt = EmbeddingIndex::load_or_build(IndexSettings { rebuild_dead_share: 0.3, ..params }, &dir, &data);
+    assert!(!rebuilt.loaded_from_dump());
+    assert_eq!(rebuilt.graph_shape().unwrap().0, 300);
+    assert_representatives(&data, &rebuilt);
+}
+
 // ---------------------------------------------------------------------------------------------------------
 // External landmarks and the format upgrade
 // ---------------------------------------------------------------------------------------------------------

@@ -123,6 +123,10 @@ pub enum EvalCommand {
         /// Every N-th frame of the foreign scenes.
         #[arg(long, default_value_t = 5)]
         foreign_stride: usize,
+        /// What the index's graph holds once distractors make the map large (`store.index.points`; the
+        /// service's default).
+        #[arg(long, value_enum, default_value = "landmarks")]
+        index_points: scone::map::index::IndexPoints,
         #[command(flatten)]
         report: ReportArgs,
         #[command(flatten)]
@@ -292,6 +296,7 @@ pub fn run(cmd: EvalCommand) -> anyhow::Result<()> {
             stages,
             foreign,
             foreign_stride,
+            index_points,
             report: out,
             extractor,
         } => {
@@ -327,6 +332,7 @@ pub fn run(cmd: EvalCommand) -> anyhow::Result<()> {
             }
             rc.foreign = foreign;
             rc.foreign_stride = foreign_stride;
+            rc.index_points = index_points;
             rc.localize.validate().map_err(|e| anyhow::anyhow!(e))?;
             let report = reloc::evaluate(&s, &rc, embedder.as_ref()).map_err(|e| anyhow::anyhow!("{e}"))?;
             print!("{}", reloc::markdown(&report));

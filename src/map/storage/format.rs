@@ -374,6 +374,13 @@ pub(crate) struct DumpManifest {
     pub(crate) data_crc: u32,
     /// CRC-32 of the embeddings of observations `[0, points)` at the dump.
     pub(crate) embeddings_crc: u32,
+    /// What the graph's points are (absent in dumps before the setting: one per observation).
+    #[serde(default)]
+    pub(crate) index_points: crate::map::index::IndexPoints,
+    /// With one point per landmark: the observation that stands for each landmark now, in id order (the
+    /// graph also holds points it has replaced since, which searches pass over).
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub(crate) representatives: Vec<usize>,
 }
 
 /// The manifest of a dump, and the suffixes hnsw_rs gives its two files.

@@ -40,7 +40,7 @@ use crate::decode::{decode_depth_png, decode_grey, ImageLimitSettings};
 use crate::embedding::Embedder;
 use crate::features::{ExtractorSettings, Features};
 use crate::map::builder::{plan_keyframe, BuildSettings, Depth, KeyframeInput};
-use crate::map::index::{EmbeddingIndex, IndexSettings};
+use crate::map::index::{EmbeddingIndex, IndexPoints, IndexSettings};
 use crate::map::localize::{localize, within_confidence_tolerance, LocalizeSettings};
 use crate::map::model::{MapData, MapMeta};
 use crate::offline::eval::methods::{describe, Described, Method};
@@ -87,6 +87,10 @@ pub struct RelocConfig {
     /// Every N-th frame of the foreign scenes.
     #[serde(default = "five")]
     pub foreign_stride: usize,
+    /// What the index's graph holds once distractors make the map large: the service's default (reports
+    /// written before the setting read as one point per observation, which they ran with).
+    #[serde(default)]
+    pub index_points: IndexPoints,
 }
 
 /// The parts of issue 27 an evaluation can turn on one by one (`--stages`); the rest stay as today's pipeline.
@@ -157,6 +161,7 @@ impl Default for RelocConfig {
             centre_principal_point: false,
             foreign: Vec::new(),
             foreign_stride: 5,
+            index_points: IndexSettings::default().points,
         }
     }
 }
@@ -371,7 +376,7 @@ pub fn evaluate(scene: &Scene, cfg: &RelocConfig, embedder: Option<&Embedder>) -
         // Exact search on the scene alone (the descriptors compared, not the index); the service's index
         // (HNSW above `exact_below`) once distractors make the map large, as a deployment's is.
         let params = if distractor_observations > 0 {
-            IndexSettings::default()
+            IndexSettings { points: cfg.index_points, ..IndexSettings::default() }
         } else {
             IndexSettings { exact_below: usize::MAX, ..IndexSettings::default() }
         };
