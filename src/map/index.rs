@@ -574,7 +574,8 @@ struct LoadedDump {
 }
 
 /// The representatives a landmark dump records, checked against the map and the graph: each an observation
-/// in the graph, one per landmark.
+/// in the graph, one per landmark, and one for every landmark with a live view in the graph's range (a
+/// representative a removal took since the dump is chosen again at the first sync).
 fn check_representatives(
     data: &MapData,
     manifest: &DumpManifest,
@@ -588,6 +589,12 @@ fn check_representatives(
         if out.insert(data.observations[o].landmark, o).is_some() {
             return Err(format!("landmark {} has two representatives", data.observations[o].landmark));
         }
+    }
+    let points = manifest.points;
+    let seen =
+        |l: &Landmark| l.observations.iter().any(|&o| (o as usize) < points && data.observations[o as usize].live);
+    if let Some((id, _)) = data.landmarks.iter().find(|(id, l)| !out.contains_key(id) && seen(l)) {
+        return Err(format!("landmark {id} has no representative"));
     }
     Ok(out)
 }
