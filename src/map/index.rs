@@ -31,6 +31,7 @@ use serde::{Deserialize, Serialize};
 use crate::error::MapError;
 use std::collections::{BTreeSet, HashMap};
 
+pub use crate::map::model::IndexPoints;
 use crate::map::model::{Landmark, MapData};
 use crate::map::storage::format::{
     file_crc, io_error, remove_dump, remove_dumps_except, valid_base, DumpManifest, DATA_SUFFIX, DUMP_MANIFEST,
@@ -65,22 +66,6 @@ impl Default for IndexSettings {
             points: IndexPoints::Landmarks,
         }
     }
-}
-
-/// What the HNSW graph indexes (the exact search below `exact_below` always reads every observation). The
-/// service's default is one point per landmark (issue 31: the rule in BENCHMARKS.md); dump manifests written
-/// before the setting existed read as one point per observation, which is what they hold.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize, clap::ValueEnum)]
-#[serde(rename_all = "snake_case")]
-pub enum IndexPoints {
-    /// One point per live observation: every view of a landmark.
-    #[default]
-    Observations,
-    /// One point per landmark: its medoid view (the live view nearest, in embedding space, to its other
-    /// views, as ORB-SLAM picks a map point's descriptor). It is chosen when the landmark is first indexed and
-    /// chosen again each time its live views reach a power of two (2, 4, 8, ...) or its view's keyframe is
-    /// removed; the replaced point stays in the graph, passed over by searches, until a rebuild.
-    Landmarks,
 }
 
 /// The medoid of a landmark's live views among observations `[0, limit)`: the one with the least summed

@@ -27,6 +27,23 @@ pub fn validate_map_id(id: &str) -> Result<(), MapError> {
     }
 }
 
+/// What the HNSW graph indexes (the exact search below `exact_below` always reads every observation). The
+/// service's default is one point per landmark (issue 31: the rule in BENCHMARKS.md); dump manifests written
+/// before the setting existed read as one point per observation, which is what they hold. Here, beside the
+/// data it names, so the index ([`crate::map::index`]) and its dump's manifest share it.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize, clap::ValueEnum)]
+#[serde(rename_all = "snake_case")]
+pub enum IndexPoints {
+    /// One point per live observation: every view of a landmark.
+    #[default]
+    Observations,
+    /// One point per landmark: its medoid view (the live view nearest, in embedding space, to its other
+    /// views, as ORB-SLAM picks a map point's descriptor). It is chosen when the landmark is first indexed and
+    /// chosen again each time its live views reach a power of two (2, 4, 8, ...) or its view's keyframe is
+    /// removed; the replaced point stays in the graph, passed over by searches, until a rebuild.
+    Landmarks,
+}
+
 /// Identity of a map and of the model that embedded it.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct MapMeta {

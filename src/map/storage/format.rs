@@ -376,7 +376,7 @@ pub(crate) struct DumpManifest {
     pub(crate) embeddings_crc: u32,
     /// What the graph's points are (absent in dumps before the setting: one per observation).
     #[serde(default)]
-    pub(crate) index_points: crate::map::index::IndexPoints,
+    pub(crate) index_points: crate::map::model::IndexPoints,
     /// With one point per landmark: the observation that stands for each landmark now, in id order (the
     /// graph also holds points it has replaced since, which searches pass over).
     #[serde(default, skip_serializing_if = "Vec::is_empty")]
