@@ -111,9 +111,16 @@ def test_grey_formula_equals_cvtcolor_on_every_colour():
 
 
 def _pose_error(a: pb.Pose, b: pb.Pose) -> tuple[float, float]:
+    """Translation and rotation (degrees) between two poses. The angle is that of the relative rotation
+    conj(a) * b by atan2: acos of the quaternions' dot product cannot resolve less than ~1.7e-6 degrees (one
+    ulp below 1 already reads as that)."""
     dt = math.dist((a.tx, a.ty, a.tz), (b.tx, b.ty, b.tz))
-    dot = abs(a.qx * b.qx + a.qy * b.qy + a.qz * b.qz + a.qw * b.qw)
-    return dt, math.degrees(2 * math.acos(min(1.0, dot)))
+    aw, ax, ay, az = a.qw, -a.qx, -a.qy, -a.qz
+    w = aw * b.qw - ax * b.qx - ay * b.qy - az * b.qz
+    x = aw * b.qx + ax * b.qw + ay * b.qz - az * b.qy
+    y = aw * b.qy - ax * b.qz + ay * b.qw + az * b.qx
+    z = aw * b.qz + ax * b.qy - ay * b.qx + az * b.qw
+    return dt, math.degrees(2 * math.atan2(math.hypot(x, y, z), abs(w)))
 
 
 def _gt(frame: tum.Frame) -> pb.Pose:
