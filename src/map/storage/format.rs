@@ -158,13 +158,15 @@ pub fn decode_snapshot(bytes: &[u8], path: &Path) -> Result<MapData, MapError> {
         return Err(corrupt(path, "checksum mismatch"));
     }
     let decoded = if version == 1 {
+        // The conversion rebuilds what is derived.
         bincode::deserialize::<MapDataV1>(payload).map(MapData::from)
     } else {
-        bincode::deserialize::<MapData>(payload)
+        bincode::deserialize::<MapData>(payload).map(|mut data| {
+            data.rebuild_derived();
+            data
+        })
     };
-    let mut data = decoded.map_err(|e| corrupt(path, format!("cannot decode (format {version}): {e}")))?;
-    data.rebuild_derived();
-    Ok(data)
+    decoded.map_err(|e| corrupt(path, format!("cannot decode (format {version}): {e}")))
 }
 
 /// An index dump as bytes (to upload it, or to carry it in an export): `index.json` and hnsw_rs's two files
