@@ -11,7 +11,8 @@
 //!
 //! The index of one point per landmark (`store.index.points = "landmarks"`) is measured in a process of its
 //! own on a copy of the level's map with its own dump (made once, in the build process): the same row and
-//! recall (against exact search over the same points), and every query of the level.
+//! recall (against exact search over the same points), and every query of the level. `SCONE_BENCH_ADD_ONLY=1`
+//! with `SCONE_BENCH_LEVEL=N` measures AddKeyframe alone at level N.
 //!
 //! Map: real, different frames, never repeated. The posed frames of the training scenes of `../shared/data`,
 //! in this order: `7scenes-redkitchen` (every frame but the held-out ones, triangulated with its poses),
