@@ -348,12 +348,8 @@ pub fn plan(data: &MapData, input: &KeyframeInput, params: &BuildSettings) -> Re
     candidates.truncate(params.candidates);
     if params.covisible_candidates > 0 && !candidates.is_empty() {
         let near: HashSet<u64> = candidates.iter().map(|k| k.id).collect();
-        let shared = candidates
-            .iter()
-            .flat_map(|k| data.keyframe_observations(k.id))
-            .map(|&o| &data.observations[o as usize])
-            .filter(|o| o.live)
-            .map(|o| o.landmark);
+        let near_ids: Vec<u64> = near.iter().copied().collect();
+        let shared = data.observations_of_keyframes(&near_ids).map(|o| o.landmark);
         let seeing =
             |k: u64| !near.contains(&k) && viewing_direction(&data.keyframes[&k].pose.isometry()).dot(&dir) > 0.0;
         let ranked = data.covisible_keyframes(shared, seeing, params.covisible_candidates);
@@ -361,10 +357,9 @@ pub fn plan(data: &MapData, input: &KeyframeInput, params: &BuildSettings) -> Re
     }
 
     // (candidate, keypoint) -> landmark, for the candidates' live observations.
-    let observed: HashMap<(u64, u32), u64> = candidates
-        .iter()
-        .flat_map(|k| data.keypoint_landmarks(k.id).into_iter().map(|(kp, lm)| ((k.id, kp), lm)))
-        .collect();
+    let candidate_ids: Vec<u64> = candidates.iter().map(|k| k.id).collect();
+    let observed: HashMap<(u64, u32), u64> =
+        data.observations_of_keyframes(&candidate_ids).map(|o| ((o.keyframe, o.keypoint), o.landmark)).collect();
     let mut assigned: HashMap<u32, u64> = HashMap::new(); // keypoint of the new keyframe -> landmark
     let mut assigned_landmarks: HashSet<u64> = HashSet::new();
     let mut used_old: HashSet<(u64, u32)> = HashSet::new();

@@ -81,6 +81,17 @@ fn medoid(data: &MapData, landmark: &Landmark, limit: usize) -> Option<usize> {
     views.iter().map(|&v| (cost(v), v)).min_by(|a, b| a.0.total_cmp(&b.0)).map(|(_, v)| v)
 }
 
+/// Adds points to a graph: in parallel when there are many, one by one otherwise.
+fn insert_points(graph: &Hnsw<'static, f32, DistL2>, points: Vec<(&[f32], usize)>) {
+    if points.len() > 64 {
+        graph.parallel_insert_slice(&points);
+    } else {
+        for p in points {
+            graph.insert_slice(p);
+        }
+    }
+}
+
 /// Live views of a landmark among observations `[0, limit)`.
 fn live_views(data: &MapData, landmark: &Landmark, limit: usize) -> usize {
     landmark.observations.iter().filter(|&&o| (o as usize) < limit && data.observations[o as usize].live).count()
@@ -265,13 +276,7 @@ impl EmbeddingIndex {
             let points: Vec<(&[f32], usize)> =
                 (self.indexed..total).filter(|&i| data.observations[i].live).map(|i| (data.embedding(i), i)).collect();
             self.in_graph += points.len();
-            if points.len() > 64 {
-                graph.parallel_insert_slice(&points);
-            } else {
-                for p in points {
-                    graph.insert_slice(p);
-                }
-            }
+            insert_points(graph, points);
         }
         self.indexed = total;
     }
@@ -341,14 +346,7 @@ impl EmbeddingIndex {
         inserts.retain(|&i| !std::mem::replace(&mut self.in_graph_ids[i], true));
         inserts.sort_unstable();
         if let Some(graph) = &self.hnsw {
-            let points: Vec<(&[f32], usize)> = inserts.iter().map(|&i| (data.embedding(i), i)).collect();
-            if points.len() > 64 {
-                graph.parallel_insert_slice(&points);
-            } else {
-                for p in points {
-                    graph.insert_slice(p);
-                }
-            }
+            insert_points(graph, inserts.iter().map(|&i| (data.embedding(i), i)).collect());
         }
         self.in_graph += inserts.len();
         self.indexed = total;

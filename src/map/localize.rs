@@ -45,7 +45,7 @@ use crate::camera::Camera;
 use crate::error::MapError;
 use crate::features::{bits_mat, Features, DESCRIPTOR_BYTES};
 use crate::map::index::{l2_squared, EmbeddingIndex};
-use crate::map::model::{MapData, Observation};
+use crate::map::model::MapData;
 use crate::matching::embedding_mat;
 use crate::pose::{absolute_pose, absolute_pose_unknown_focal, AbsolutePose, RansacSettings};
 
@@ -240,25 +240,14 @@ fn one_per_landmark(found: Vec<Ranked>) -> Vec<Ranked> {
 /// Live views (observation ids) of the landmarks the keyframes `candidates` observe (within the prior), at most
 /// [`VIEWS_PER_LANDMARK`] per landmark, grouped by landmark in landmark order.
 fn candidate_views(data: &MapData, candidates: &[u64], prior: Option<&Prior>) -> Vec<usize> {
-    let mut landmarks: Vec<u64> = candidate_observations(data, candidates)
+    let mut landmarks: Vec<u64> = data
+        .observations_of_keyframes(candidates)
         .filter(|o| within_prior(data, o.landmark, prior))
         .map(|o| o.landmark)
         .collect();
     landmarks.sort_unstable();
     landmarks.dedup();
     landmark_views(data, &landmarks)
-}
-
-/// The live observations of the keyframes `candidates` (each keyframe once).
-fn candidate_observations<'a>(data: &'a MapData, candidates: &'a [u64]) -> impl Iterator<Item = &'a Observation> {
-    let mut unique = candidates.to_vec();
-    unique.sort_unstable();
-    unique.dedup();
-    unique
-        .into_iter()
-        .flat_map(|k| data.keyframe_observations(k).iter())
-        .map(|&o| &data.observations[o as usize])
-        .filter(|o| o.live)
 }
 
 fn landmark_views(data: &MapData, landmarks: &[u64]) -> Vec<usize> {
@@ -417,7 +406,8 @@ fn guided_matches(
         data.covisible_keyframes(inliers.iter().map(|r| r.m.landmark), |_| true, params.candidate_keyframes);
     let taken_landmarks: HashSet<u64> = matched.iter().map(|r| r.m.landmark).collect();
     let taken_keypoints: HashSet<usize> = matched.iter().map(|r| r.m.keypoint).collect();
-    let mut landmarks: Vec<u64> = candidate_observations(data, &candidates)
+    let mut landmarks: Vec<u64> = data
+        .observations_of_keyframes(&candidates)
         .filter(|o| !taken_landmarks.contains(&o.landmark) && within_prior(data, o.landmark, prior))
         .map(|o| o.landmark)
         .collect();

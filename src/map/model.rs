@@ -203,14 +203,21 @@ impl MapData {
         self.by_keyframe.get(&id).map_or(&[], Vec::as_slice)
     }
 
+    /// The live observations of keyframes `ids` (each keyframe once, in id order).
+    pub fn observations_of_keyframes<'a>(&'a self, ids: &[u64]) -> impl Iterator<Item = &'a Observation> + 'a {
+        let mut unique = ids.to_vec();
+        unique.sort_unstable();
+        unique.dedup();
+        unique
+            .into_iter()
+            .flat_map(move |k| self.keyframe_observations(k).iter())
+            .map(move |&o| &self.observations[o as usize])
+            .filter(|o| o.live)
+    }
+
     /// Keypoint -> landmark for the live observations of keyframe `id`.
     pub fn keypoint_landmarks(&self, id: u64) -> HashMap<u32, u64> {
-        self.keyframe_observations(id)
-            .iter()
-            .map(|&o| &self.observations[o as usize])
-            .filter(|o| o.live)
-            .map(|o| (o.keypoint, o.landmark))
-            .collect()
+        self.observations_of_keyframes(&[id]).map(|o| (o.keypoint, o.landmark)).collect()
     }
 
     /// Counts of the map as it is now, for listings.
@@ -242,8 +249,7 @@ impl MapData {
             }
             Record::RemoveKeyframe { id } => {
                 s.keyframes -= usize::from(self.keyframes.contains_key(id));
-                s.live_observations -=
-                    self.keyframe_observations(*id).iter().filter(|&&o| self.observations[o as usize].live).count();
+                s.live_observations -= self.observations_of_keyframes(&[*id]).count();
             }
             Record::Reembed { model_id, .. } => s.model_id = model_id.clone(),
             Record::Merge { keyframes, new_landmarks, observations, .. } => {
