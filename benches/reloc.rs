@@ -167,7 +167,7 @@ fn prepare(
             depth: depth.as_ref().map(|m| Depth { image: m, scale: TUM_DEPTH_SCALE }),
             external: None,
         };
-        store.add_keyframe("m", &input).unwrap();
+        store.add_keyframe(&store.get("m").unwrap(), &input).unwrap();
         next += 1;
         if next.is_multiple_of(100) {
             eprintln!(
@@ -392,7 +392,7 @@ fn main() {
                     distortion: Default::default(),
                 };
                 let t = Instant::now();
-                let o = service.localize("m", frame, None).unwrap();
+                let o = service.localize(&service.map("m").unwrap(), frame, None).unwrap();
                 if i == 0 {
                     continue; // warm-up
                 }
@@ -608,7 +608,7 @@ fn add_keyframes(
         store.get("m").unwrap().read(|data, _| plan(data, &input, &BuildSettings::default()).unwrap());
         plans.push(t.elapsed().as_secs_f64() * 1e3);
         let t = Instant::now();
-        let a = store.add_keyframe("m", &input).unwrap();
+        let a = store.add_keyframe(&store.get("m").unwrap(), &input).unwrap();
         times.push(t.elapsed().as_secs_f64() * 1e3);
         added.push(a.observations as f64);
     }

@@ -139,7 +139,7 @@ fn main() {
                     depth: depth.as_ref().map(|m| Depth { image: m, scale: TUM_DEPTH_SCALE }),
                     external: None,
                 };
-                writer.add_keyframe("m", &input).unwrap();
+                writer.add_keyframe(&writer.get("m").unwrap(), &input).unwrap();
                 id += 1;
                 frames[si] += 1;
             }

@@ -92,6 +92,14 @@ pub enum MapError {
     Corrupt { path: std::path::PathBuf, reason: String },
     #[error("{path}: {source}")]
     Io { path: std::path::PathBuf, source: std::io::Error },
+    /// Object storage did not complete a call: unreachable, an error answer after the client's own retries,
+    /// or a write whose outcome it could not confirm. Nothing of the request was acknowledged, and a retry
+    /// can succeed. `detail` (the object and the storage service's answer) is for the log, not the client.
+    #[error("the map storage did not complete the request ({detail}); nothing of it was acknowledged: retry it")]
+    StorageUnavailable { detail: String },
+    /// The object storage bucket the maps are configured to live in does not exist.
+    #[error("the object storage bucket '{bucket}' does not exist: create it, or set store.backend.bucket")]
+    NoBucket { bucket: String },
     /// The volume that holds the maps (or their index dumps) has no space left (ENOSPC, or a quota). The write
     /// that met it was undone: nothing of it is stored.
     #[error("no space left on the data volume: {path} could not be written")]

@@ -14,7 +14,7 @@
 //! evicted, and loaded again when asked for. Existence is the backend's, not the cache's: the store asks the
 //! backend on create, import, delete and listings, so a map another replica created or deleted is seen at
 //! this replica's next request for it. The server loads a map before it queues the request's CPU work
-//! ([`MapStore::prepare`](crate::map::store::MapStore::prepare)), so a load never holds a CPU worker that
+//! ([`crate::server::app::App::map`]), so a load never holds a CPU worker that
 //! queries of loaded maps need.
 //!
 //! **Freshness**: a request for a loaded map whose copy was last checked more than `freshness_ms` ago first
@@ -194,6 +194,7 @@ pub(crate) fn held_back_reason(e: &MapError) -> String {
         MapError::StorageFull { path } => format!("{} cannot be written: the data volume is full", file(path)),
         MapError::ModelMismatch { .. }
         | MapError::Unavailable { .. }
+        | MapError::NoBucket { .. }
         | MapError::WriterConflict { .. }
         | MapError::InvalidInput { .. }
         | MapError::InvalidMapId { .. } => e.to_string(),
@@ -201,6 +202,7 @@ pub(crate) fn held_back_reason(e: &MapError) -> String {
         | MapError::MapExists { .. }
         | MapError::UnknownKeyframe { .. }
         | MapError::KeyframeExists { .. }
+        | MapError::StorageUnavailable { .. }
         | MapError::Feature(_)
         | MapError::Embedding(_)
         | MapError::Pose(_) => "it could not be loaded; the server log has the details".to_string(),
@@ -461,6 +463,10 @@ impl MapCache {
                 // Storage unreachable: this request fails; the next one tries again (nothing is held back).
                 tracing::warn!(map = %id, error = %e, "cannot load the map");
                 Err(MapError::Unavailable { map: id.to_string(), reason: held_back_reason(&e) })
+            }
+            Err(e @ (MapError::StorageUnavailable { .. } | MapError::NoBucket { .. })) => {
+                tracing::warn!(map = %id, error = %e, "cannot load the map");
+                Err(e)
             }
             Err(e) => {
                 tracing::error!(map = %id, error = %e, "map held back");

@@ -66,7 +66,8 @@ fn add(store: &MapStore, map: &str, id: u64, f: &Frame) -> Result<u64, MapError>
         depth: None,
         external: Some(&f.external),
     };
-    store.add_keyframe(map, &input).map(|a| a.version)
+    let held = store.get(map)?;
+    store.add_keyframe(&held, &input).map(|a| a.version)
 }
 
 struct Bucket {

@@ -145,7 +145,8 @@ impl MapStore {
         Ok(store)
     }
 
-    /// The map, or why it cannot be used (loaded on demand in lazy mode, checked for freshness).
+    /// The map, or why it cannot be used (loaded on demand in lazy mode, checked for freshness). The
+    /// operations on one map take what this returns: a request looks its map up once.
     pub fn get(&self, id: &str) -> Result<Arc<Map>, MapError> {
         self.cache.get(id, &|id| self.load_map(id))
     }
@@ -184,10 +185,10 @@ impl MapStore {
         self.backend.operation_stats()
     }
 
-    /// Loads `id` if it is not loaded and checks its freshness: what [`MapStore::get`] does first, for the
-    /// server to run before it queues the request's CPU work. Holding the map keeps it from being evicted.
-    pub fn prepare(&self, id: &str) -> Result<Arc<Map>, MapError> {
-        self.get(id)
+    /// Whether [`MapStore::get`] may wait on storage: a load (maps loaded on demand) or a freshness check
+    /// against object storage.
+    pub fn lookup_may_block(&self) -> bool {
+        self.cache.is_lazy() || self.backend.is_remote()
     }
 
     /// Whether `id` is in memory now.
@@ -293,14 +294,15 @@ impl MapStore {
         self.cache.held_back()
     }
 
+    /// Map `id`'s statistics (one lookup: for commands and tests; requests hold their map and ask it).
     pub fn summary(&self, id: &str) -> Result<MapSummary, MapError> {
         Ok(self.get(id)?.summary())
     }
 
     /// Keyframe poses and intrinsics, and at most `max_landmarks` landmarks (every n-th by id, so the
     /// subsample covers the whole map), read under the map's shared lock.
-    pub fn contents(&self, id: &str, max_landmarks: usize) -> Result<MapContents, MapError> {
-        Ok(self.get(id)?.read(|data, _| {
+    pub fn contents(&self, map: &Map, max_landmarks: usize) -> MapContents {
+        map.read(|data, _| {
             let total = data.landmarks.len();
             let step = total.div_ceil(max_landmarks.max(1)).max(1);
             MapContents {
@@ -315,7 +317,7 @@ impl MapStore {
                     .collect(),
                 landmarks_total: total,
             }
-        }))
+        })
     }
 
     /// Deletes a map: out of the registry first, then out of the backend.
@@ -332,10 +334,9 @@ impl MapStore {
         self.backend.delete(id)
     }
 
-    /// Adds a keyframe; returns after the record is durable and applied.
-    pub fn add_keyframe(&self, id: &str, input: &KeyframeInput) -> Result<KeyframeAdded, MapError> {
-        let map = self.get(id)?;
-        self.check_model(&map)?;
+    /// Adds a keyframe to `map`; returns after the record is durable and applied.
+    pub fn add_keyframe(&self, map: &Map, input: &KeyframeInput) -> Result<KeyframeAdded, MapError> {
+        self.check_model(map)?;
         let mut log = map.journal.lock();
         let planned = {
             let s = map.state.read();
@@ -349,7 +350,7 @@ impl MapStore {
             unreachable!("planned a keyframe")
         };
         let (new, obs) = (new_landmarks.len(), observations.len());
-        let version = self.commit(&map, log.as_mut(), planned.record)?;
+        let version = self.commit(map, log.as_mut(), planned.record)?;
         Ok(KeyframeAdded {
             keyframe: input.id,
             new_landmarks: new,
@@ -359,14 +360,14 @@ impl MapStore {
         })
     }
 
-    pub fn remove_keyframe(&self, id: &str, keyframe: u64) -> Result<u64, MapError> {
-        let map = self.get(id)?;
+    /// Removes a keyframe of `map`; returns the map's new version.
+    pub fn remove_keyframe(&self, map: &Map, keyframe: u64) -> Result<u64, MapError> {
         let mut log = map.journal.lock();
         let record = Record::RemoveKeyframe { id: keyframe };
         if map.state.read().data.check(&record).is_err() {
-            return Err(MapError::UnknownKeyframe { map: id.to_string(), keyframe });
+            return Err(MapError::UnknownKeyframe { map: map.id.clone(), keyframe });
         }
-        self.commit(&map, log.as_mut(), record)
+        self.commit(map, log.as_mut(), record)
     }
 
     /// Re-embeds every keyframe of a map with the current model (from the stored keypoints and FREAK
@@ -409,18 +410,17 @@ impl MapStore {
     /// read, never written. `transform` takes source coordinates to the target's; without it, it is estimated.
     pub fn merge(
         &self,
-        target: &str,
+        into: &Map,
         source: &str,
         transform: Option<nalgebra::Similarity3<f64>>,
     ) -> Result<(MergePlan, MapSummary), MapError> {
-        if target == source {
+        if into.id == source {
             return Err(MapError::InvalidInput {
                 field: "source_map_id".into(),
                 reason: "a map cannot be merged into itself".into(),
             });
         }
-        let into = self.get(target)?;
-        self.check_model(&into)?;
+        self.check_model(into)?;
         let from = self.get(source)?;
         self.check_model(&from)?;
         // A copy of the source, so that no lock of the source is held while the target's are: merges in both
@@ -428,7 +428,7 @@ impl MapStore {
         let source_data = from.read(|data, _| data.clone());
         let mut log = into.journal.lock();
         let plan = into.read(|data, index| plan_merge(data, index, &source_data, transform, &self.config.localize))?;
-        self.commit(&into, log.as_mut(), plan.record.clone())?;
+        self.commit(into, log.as_mut(), plan.record.clone())?;
         drop(log);
         Ok((plan, into.summary()))
     }
@@ -466,21 +466,8 @@ impl MapStore {
         Ok(version)
     }
 
-    /// Localises a query against a map.
+    /// Localises a query against `map`.
     pub fn localize(
-        &self,
-        id: &str,
-        features: &Features,
-        embeddings: &[f32],
-        camera: &Camera,
-        prior: Option<&Prior>,
-    ) -> Result<Localization, MapError> {
-        let map = self.get(id)?;
-        self.localize_map(&map, features, embeddings, camera, prior)
-    }
-
-    /// [`MapStore::localize`] against a map the caller already holds (looked up once per request).
-    pub fn localize_map(
         &self,
         map: &Map,
         features: &Features,
@@ -495,15 +482,14 @@ impl MapStore {
     /// The whole map in the versioned, checksummed export format, with its index dump when it has an HNSW
     /// graph ([`encode_export`]: an import then answers exactly as this map). The dump is written into the
     /// map's index directory first (as a compaction would); if that fails the export goes without it.
-    pub fn export(&self, id: &str) -> Result<Vec<u8>, MapError> {
-        let map = self.get(id)?;
+    pub fn export(&self, map: &Map) -> Result<Vec<u8>, MapError> {
         let log = map.journal.lock();
         let s = map.state.read();
         let dump = if s.index.is_approximate() {
             match s.index.dump(log.index_dir(), &s.data) {
                 Ok(()) => read_dump(log.index_dir()),
                 Err(e) => {
-                    tracing::warn!(map = %id, error = %e, "export without the index dump: an import rebuilds it");
+                    tracing::warn!(map = %map.id, error = %e, "export without the index dump: an import rebuilds it");
                     None
                 }
             }
@@ -592,7 +578,7 @@ impl MapStore {
     }
 
     /// Writes an export file atomically.
-    pub fn export_to_file(&self, id: &str, path: &Path) -> Result<(), MapError> {
-        write_atomic(path, &self.export(id)?)
+    pub fn export_to_file(&self, map: &Map, path: &Path) -> Result<(), MapError> {
+        write_atomic(path, &self.export(map)?)
     }
 }

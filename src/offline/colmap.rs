@@ -303,11 +303,11 @@ pub fn import(
     if matches!(store.get(map), Err(MapError::UnknownMap { .. })) {
         store.create(map)?;
     }
-    let mut summary =
-        ImportSummary { images: 0, skipped: 0, external: ExternalCounts::default(), map: store.summary(map)? };
+    let held = store.get(map)?;
+    let mut summary = ImportSummary { images: 0, skipped: 0, external: ExternalCounts::default(), map: held.summary() };
     for image in model.images.values() {
         let id = u64::from(image.id);
-        let exists = store.get(map)?.read(|data, _| data.keyframes.contains_key(&id));
+        let exists = held.read(|data, _| data.keyframes.contains_key(&id));
         if exists {
             summary.skipped += 1;
             on_image(&ImageImported { image_id: image.id, name: image.name.clone(), added: None });
@@ -334,7 +334,7 @@ pub fn import(
             depth: None,
             external: Some(&external),
         };
-        let added = store.add_keyframe(map, &input)?;
+        let added = store.add_keyframe(&held, &input)?;
         summary.images += 1;
         let (s, a) = (&mut summary.external, &added.external);
         s.given += a.given;
@@ -343,7 +343,7 @@ pub fn import(
         s.unassociated += a.unassociated;
         on_image(&ImageImported { image_id: image.id, name: image.name.clone(), added: Some(added) });
     }
-    summary.map = store.summary(map)?;
+    summary.map = held.summary();
     Ok(summary)
 }
 

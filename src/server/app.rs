@@ -1,6 +1,7 @@
 //! What every request handler holds: the service, the CPU pool, the keys, the metrics and the settings, and
-//! the one way a request reaches the service ([`App::call`], [`App::call_map`]): the key is checked, the map
-//! is loaded if it must be (lazy mode), and the work runs on the CPU pool under the request deadline.
+//! the one way a request reaches the service ([`App::call`]): with the key checked, the request's map is
+//! looked up once (loaded if it must be) and handed to the work, which runs on the CPU pool under the
+//! request deadline.
 
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::Arc;
@@ -9,8 +10,9 @@ use std::time::{Duration, Instant};
 use crate::cpu_pool::{CpuPool, PoolError};
 use crate::server::auth::{self, Authorized};
 use crate::server::metrics;
-use crate::service::{Service, ServiceError};
-use crate::settings::{Access, Settings};
+use crate::server::operation::Operation;
+use crate::service::{Map, Service, ServiceError};
+use crate::settings::Settings;
 
 /// Everything a request handler needs.
 pub struct App {
@@ -25,31 +27,59 @@ pub struct App {
     pub(crate) map_loads: tokio::sync::Semaphore,
 }
 
+/// What a request works on, found before its work is queued: nothing in particular ([`NoMap`]), or one map
+/// ([`MapId`]), looked up once per request and handed to the work.
+pub trait Subject: Send + 'static {
+    /// What the work is given.
+    type Held: Send + 'static;
+
+    /// Finds it (a map may be loaded or checked for freshness: see [`App::map`]).
+    fn find(self, app: &Arc<App>) -> impl std::future::Future<Output = Result<Self::Held, ServiceError>> + Send;
+}
+
+/// A request on no map (Describe, MatchPair, ListMaps, CreateMap, ...).
+pub struct NoMap;
+
+impl Subject for NoMap {
+    type Held = ();
+
+    async fn find(self, _app: &Arc<App>) -> Result<(), ServiceError> {
+        Ok(())
+    }
+}
+
+/// A request on one map.
+pub struct MapId(pub String);
+
+impl Subject for MapId {
+    type Held = Arc<Map>;
+
+    async fn find(self, app: &Arc<App>) -> Result<Arc<Map>, ServiceError> {
+        app.map(&self.0).await
+    }
+}
+
 impl App {
-    /// Checks `key` for `access` ([`auth::Keys::authorize`]): what [`App::call`] and [`App::call_map`] need.
-    pub fn authorize(&self, key: Option<&str>, access: Access, operation: &str) -> Result<Authorized, ServiceError> {
-        self.keys.authorize(key, access, operation)
+    /// Checks `key` for `operation` ([`auth::Keys::authorize`]). The transports call this before they read a
+    /// request's body.
+    pub fn authorize(&self, key: Option<&str>, operation: Operation) -> Result<Authorized, ServiceError> {
+        self.keys.authorize(key, operation)
     }
 
-    /// Runs `f` on the CPU pool under the request deadline (the key was checked: `_authorized`).
-    pub async fn call<R, F>(self: &Arc<Self>, _authorized: Authorized, operation: &str, f: F) -> Result<R, ServiceError>
+    /// The one way a request reaches the service: finds what it works on (`subject`: its map, once), then
+    /// runs `f` with it on the CPU pool under the request deadline. The key was checked (`authorized`).
+    pub async fn call<S, R, F>(self: &Arc<Self>, authorized: Authorized, subject: S, f: F) -> Result<R, ServiceError>
     where
+        S: Subject,
         R: Send + 'static,
-        F: FnOnce(&App) -> Result<R, ServiceError> + Send + 'static,
+        F: FnOnce(&App, S::Held) -> Result<R, ServiceError> + Send + 'static,
     {
-        self.run_on_pool(operation, f).await
-    }
-
-    /// Runs `f` on the CPU pool under the request deadline.
-    async fn run_on_pool<R, F>(self: &Arc<Self>, operation: &str, f: F) -> Result<R, ServiceError>
-    where
-        R: Send + 'static,
-        F: FnOnce(&App) -> Result<R, ServiceError> + Send + 'static,
-    {
+        let operation = authorized.operation().name();
+        let held = subject.find(self).await?;
         let timeout = self.settings.server.request_timeout_ms;
         let deadline = Instant::now() + Duration::from_millis(timeout);
         let app = Arc::clone(self);
-        match self.pool.run(deadline, move || f(&app)).await {
+        match self.pool.run(deadline, move || f(&app, held)).await {
             Ok(r) => r,
             Err(PoolError::Full(_)) => {
                 self.hold_refusal().await;
@@ -61,53 +91,23 @@ impl App {
         }
     }
 
-    /// [`App::call`] for a request on one map: first, when maps are loaded on demand, the map is loaded (or
-    /// checked for freshness) on tokio's blocking threads, so a load never holds a CPU worker that requests
-    /// for loaded maps need; an unknown map is refused before any CPU work.
-    pub async fn call_map<R, F>(
-        self: &Arc<Self>,
-        _authorized: Authorized,
-        operation: &str,
-        map: &str,
-        f: F,
-    ) -> Result<R, ServiceError>
-    where
-        R: Send + 'static,
-        F: FnOnce(&App) -> Result<R, ServiceError> + Send + 'static,
-    {
-        // The map, held until the request is done so that it cannot be evicted in between.
-        let mut _held = None;
-        if let Some(cold) = self.service.map_to_prepare(map) {
-            let _loading = match cold {
-                false => None,
-                true => Some(self.map_loads.acquire().await.map_err(|_| ServiceError::ShuttingDown)?),
-            };
-            let (app, id) = (Arc::clone(self), map.to_string());
-            _held = Some(
-                tokio::task::spawn_blocking(move || app.service.prepare(&id))
-                    .await
-                    .map_err(|_| ServiceError::Internal(format!("{operation}: loading the map panicked")))??,
-            );
+    /// Map `id`, looked up once for a request: an unknown map is refused before any CPU work. When a lookup
+    /// may block (maps loaded on demand, or a freshness check against object storage) it runs on tokio's
+    /// blocking threads, so a load never holds a CPU worker that requests for loaded maps need, and cold maps
+    /// load two at a time (`map_loads`).
+    pub async fn map(self: &Arc<Self>, id: &str) -> Result<Arc<Map>, ServiceError> {
+        let service = &self.service;
+        if !service.lookup_may_block() {
+            return service.map(id);
         }
-        self.run_on_pool(operation, f).await
-    }
-
-    /// [`App::call_map`] for a request on `map`, [`App::call`] without one.
-    pub async fn call_on<R, F>(
-        self: &Arc<Self>,
-        authorized: Authorized,
-        operation: &str,
-        map: Option<&str>,
-        f: F,
-    ) -> Result<R, ServiceError>
-    where
-        R: Send + 'static,
-        F: FnOnce(&App) -> Result<R, ServiceError> + Send + 'static,
-    {
-        match map {
-            Some(map) => self.call_map(authorized, operation, map, f).await,
-            None => self.call(authorized, operation, f).await,
-        }
+        let _loading = match service.is_loaded(id) {
+            true => None,
+            false => Some(self.map_loads.acquire().await.map_err(|_| ServiceError::ShuttingDown)?),
+        };
+        let (app, id) = (Arc::clone(self), id.to_string());
+        tokio::task::spawn_blocking(move || app.service.map(&id))
+            .await
+            .map_err(|_| ServiceError::Internal("loading the map panicked".into()))?
     }
 
     /// Refuses with [`ServiceError::Overloaded`] when every slot of the CPU pool is taken. The transports
@@ -133,11 +133,15 @@ impl App {
     }
 
     /// Logs errors that are ours (clients get a generic message for those) and a full data volume (the operator
-    /// must free space) at error level; the client's own mistakes at debug.
+    /// must free space) at error level, object storage that did not answer at warning level (with the object
+    /// and its answer, which the client is not told); the client's own mistakes at debug.
     pub fn log_error(&self, operation: &str, e: &ServiceError) {
+        use crate::error::MapError::{NoBucket, StorageUnavailable};
         use crate::service::ErrorKind::{InsufficientStorage, Internal};
         if matches!(e.kind(), Internal | InsufficientStorage) {
             tracing::error!(operation, error = %e, "request failed");
+        } else if matches!(e, ServiceError::Map(StorageUnavailable { .. } | NoBucket { .. })) {
+            tracing::warn!(operation, error = %e, "map storage unavailable");
         } else {
             tracing::debug!(operation, error = %e, "request refused");
         }

@@ -3,14 +3,22 @@
 
 use sha2::{Digest, Sha256};
 
+use crate::server::operation::Operation;
 use crate::service::ServiceError;
 use crate::settings::Access;
 
-/// Proof that a request's key was checked for the access its operation needs ([`Keys::authorize`]). The
-/// entry points to the CPU pool ([`crate::server::app::App::call`]) take it, so a key is checked once per
-/// request, and once per stream of keyframes.
+/// Proof that a request's key was checked for the access its operation needs ([`Keys::authorize`]), made
+/// before the request's body is read. The one entry point to the CPU pool ([`crate::server::app::App::call`])
+/// takes it, so a key is checked once per request, and once per stream of keyframes.
 #[derive(Debug, Clone, Copy)]
-pub struct Authorized(());
+pub struct Authorized(Operation);
+
+impl Authorized {
+    /// The operation the key was checked for.
+    pub fn operation(self) -> Operation {
+        self.0
+    }
+}
 
 /// The configured keys.
 pub struct Keys {
@@ -41,14 +49,9 @@ impl Keys {
         self.digests.is_empty()
     }
 
-    /// `presented` checked for an operation needing `needed`: the proof, or why not.
-    pub fn authorize(
-        &self,
-        presented: Option<&str>,
-        needed: Access,
-        operation: &str,
-    ) -> Result<Authorized, ServiceError> {
-        self.check(presented, needed, operation).map(|()| Authorized(()))
+    /// `presented` checked for `operation`: the proof, or why not.
+    pub fn authorize(&self, presented: Option<&str>, operation: Operation) -> Result<Authorized, ServiceError> {
+        self.check(presented, operation.access(), operation.name()).map(|()| Authorized(operation))
     }
 
     /// Whether `presented` may perform an operation needing `needed`.
@@ -70,6 +73,12 @@ impl Keys {
             Some(_) => Err(ServiceError::PermissionDenied { operation: operation.to_string() }),
         }
     }
+}
+
+/// The API key of a request (HTTP, or gRPC metadata): `x-api-key`, or `Authorization: Bearer`.
+pub fn request_key(headers: &axum::http::HeaderMap) -> Option<String> {
+    let get = |name: &str| headers.get(name).and_then(|v| v.to_str().ok());
+    key_from_headers(get("x-api-key"), get("authorization")).map(str::to_string)
 }
 
 /// The key in a header value: `x-api-key: K` or `authorization: Bearer K`.

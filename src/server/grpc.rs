@@ -1,9 +1,10 @@
 //! gRPC transport (tonic): `scone.v1.Maps`, `scone.v1.Matching`, `grpc.health.v1` and server reflection.
 //!
-//! Every `scone.v1` method runs on the CPU pool, and when the pool has no free slot a call is answered
-//! RESOURCE_EXHAUSTED before its message is read or decoded ([`AdmissionLayer`]), so a storm of clients
-//! that do not back off costs a request head each (HTTP/2 resets the stream, which stops the client sending
-//! the rest of the message).
+//! Every `scone.v1` method runs on the CPU pool. Before a call's message is read or decoded ([`GateLayer`]) it
+//! is answered RESOURCE_EXHAUSTED when the pool has no free slot, so a storm of clients that do not back off
+//! costs a request head each (HTTP/2 resets the stream, which stops the client sending the rest of the
+//! message), and UNAUTHENTICATED or PERMISSION_DENIED when its key does not allow it, so a client without a
+//! key cannot make the server read a large message.
 
 use std::future::Future;
 use std::pin::Pin;
@@ -13,23 +14,21 @@ use std::time::{Duration, Instant};
 
 use tokio_stream::wrappers::ReceiverStream;
 use tokio_stream::Stream;
-use tonic::metadata::MetadataMap;
 use tonic::{Code, Request, Response, Status, Streaming};
 
 use super::connections::{CountRequestsLayer, Listener};
 use super::metrics::CountedBody;
 use crate::camera::{quaternion_xyzw, Camera, Pose};
-use crate::decode::TUM_DEPTH_SCALE;
 use crate::features::Keypoint;
 use crate::matching::{SconeMatcher, DEFAULT_RATIO};
-use crate::server::app::App;
-use crate::server::auth::Authorized;
+use crate::server::app::{App, MapId, NoMap, Subject};
+use crate::server::auth::{self, Authorized};
+use crate::server::operation::Operation;
 use crate::server::proto::{self, frame::Source};
 use crate::service::{
     Distortion, DistortionModel, ErrorKind, ExternalObservation, FrameInput, FrameSource, KeyframeRequest,
     KeypointsInput, MapSummary, PairOptions, PoseConvention, Prior, ServiceError, Similarity,
 };
-use crate::settings::Access;
 
 /// Export chunks, bytes.
 const CHUNK: usize = 1 << 20;
@@ -56,11 +55,6 @@ pub fn to_status(e: &ServiceError) -> Status {
         }
     }
     status
-}
-
-fn key(meta: &MetadataMap) -> Option<String> {
-    let get = |name: &str| meta.get(name).and_then(|v| v.to_str().ok());
-    super::auth::key_from_headers(get("x-api-key"), get("authorization")).map(str::to_string)
 }
 
 /// A request's `pose_convention` (proto enum value), refused when unknown.
@@ -170,67 +164,18 @@ pub struct GrpcApi {
 }
 
 impl GrpcApi {
-    async fn call<R, F>(&self, route: &'static str, access: Access, key: Option<&str>, f: F) -> Result<R, Status>
+    /// The one way a method reaches the service: with the key its [`GateLayer`] checked (before the message
+    /// was read), finds what the request works on (its map, once) and runs `f` on the CPU pool
+    /// ([`App::call`]); the outcome is counted, logged and mapped to a status.
+    async fn call<S, R, F>(&self, authorized: Authorized, subject: S, f: F) -> Result<R, Status>
     where
+        S: Subject,
         R: Send + 'static,
-        F: FnOnce(&App) -> Result<R, ServiceError> + Send + 'static,
-    {
-        self.call_on(route, access, key, None, f).await
-    }
-
-    /// [`GrpcApi::call`] for a request on one map ([`App::call_map`]).
-    async fn call_map<R, F>(
-        &self,
-        route: &'static str,
-        access: Access,
-        key: Option<&str>,
-        map: &str,
-        f: F,
-    ) -> Result<R, Status>
-    where
-        R: Send + 'static,
-        F: FnOnce(&App) -> Result<R, ServiceError> + Send + 'static,
-    {
-        self.call_on(route, access, key, Some(map), f).await
-    }
-
-    async fn call_on<R, F>(
-        &self,
-        route: &'static str,
-        access: Access,
-        key: Option<&str>,
-        map: Option<&str>,
-        f: F,
-    ) -> Result<R, Status>
-    where
-        R: Send + 'static,
-        F: FnOnce(&App) -> Result<R, ServiceError> + Send + 'static,
-    {
-        match self.app.authorize(key, access, route) {
-            Ok(authorized) => self.call_authorized(route, authorized, map, f).await,
-            Err(e) => self.answer(route, Instant::now(), Err(e)),
-        }
-    }
-
-    /// [`GrpcApi::call_on`] for a request whose key was checked (a stream checks it once).
-    async fn call_authorized<R, F>(
-        &self,
-        route: &'static str,
-        authorized: Authorized,
-        map: Option<&str>,
-        f: F,
-    ) -> Result<R, Status>
-    where
-        R: Send + 'static,
-        F: FnOnce(&App) -> Result<R, ServiceError> + Send + 'static,
+        F: FnOnce(&App, S::Held) -> Result<R, ServiceError> + Send + 'static,
     {
         let t = Instant::now();
-        let r = self.app.call_on(authorized, route, map, f).await;
-        self.answer(route, t, r)
-    }
-
-    /// Counts and logs the outcome of `route` started at `t`, as a gRPC answer.
-    fn answer<R>(&self, route: &'static str, t: Instant, r: Result<R, ServiceError>) -> Result<R, Status> {
+        let r = self.app.call(authorized, subject, f).await;
+        let route = authorized.operation().name();
         let code = match &r {
             Ok(_) => Code::Ok,
             Err(e) => to_status(e).code(),
@@ -241,6 +186,13 @@ impl GrpcApi {
             to_status(&e)
         })
     }
+}
+
+/// The proof that [`GateLayer`] checked the call's key (a request extension).
+fn authorized<T>(req: &Request<T>) -> Result<Authorized, Status> {
+    req.extensions().get::<Authorized>().copied().ok_or_else(|| {
+        to_status(&ServiceError::Internal("a scone.v1 call reached its method without a key check".into()))
+    })
 }
 
 impl GrpcApi {
@@ -260,17 +212,16 @@ type BoxStream<T> = Pin<Box<dyn Stream<Item = Result<T, Status>> + Send + 'stati
 #[tonic::async_trait]
 impl proto::maps_server::Maps for GrpcApi {
     async fn create_map(&self, req: Request<proto::CreateMapRequest>) -> Result<Response<proto::MapInfo>, Status> {
-        let key = key(req.metadata());
+        let authorized = authorized(&req)?;
         let id = req.into_inner().map_id;
-        let s = self.call("CreateMap", Access::Write, key.as_deref(), move |a| a.service.create_map(&id)).await?;
+        let s = self.call(authorized, NoMap, move |a, ()| a.service.create_map(&id)).await?;
         Ok(Response::new(map_info(s)))
     }
 
     async fn get_map(&self, req: Request<proto::GetMapRequest>) -> Result<Response<proto::MapInfo>, Status> {
-        let key = key(req.metadata());
+        let authorized = authorized(&req)?;
         let id = req.into_inner().map_id;
-        let s =
-            self.call_map("GetMap", Access::Read, key.as_deref(), &id.clone(), move |a| a.service.get_map(&id)).await?;
+        let s = self.call(authorized, MapId(id), |_, map| Ok(map.summary())).await?;
         Ok(Response::new(map_info(s)))
     }
 
@@ -278,11 +229,14 @@ impl proto::maps_server::Maps for GrpcApi {
         &self,
         req: Request<proto::ListMapsRequest>,
     ) -> Result<Response<proto::ListMapsResponse>, Status> {
-        let key = key(req.metadata());
-        let (maps, held) = self.call("ListMaps", Access::Read, key.as_deref(), |a| a.service.list_maps()).await?;
+        let listing = self.call(authorized(&req)?, NoMap, |a, ()| a.service.list_maps()).await?;
         Ok(Response::new(proto::ListMapsResponse {
-            maps: maps.into_iter().map(map_info).collect(),
-            held_back: held.into_iter().map(|(map_id, reason)| proto::HeldBackMap { map_id, reason }).collect(),
+            maps: listing.maps.into_iter().map(map_info).collect(),
+            held_back: listing
+                .held_back
+                .into_iter()
+                .map(|(map_id, reason)| proto::HeldBackMap { map_id, reason })
+                .collect(),
         }))
     }
 
@@ -290,9 +244,9 @@ impl proto::maps_server::Maps for GrpcApi {
         &self,
         req: Request<proto::DeleteMapRequest>,
     ) -> Result<Response<proto::DeleteMapResponse>, Status> {
-        let key = key(req.metadata());
+        let authorized = authorized(&req)?;
         let id = req.into_inner().map_id;
-        self.call("DeleteMap", Access::Write, key.as_deref(), move |a| a.service.delete_map(&id)).await?;
+        self.call(authorized, NoMap, move |a, ()| a.service.delete_map(&id)).await?;
         Ok(Response::new(proto::DeleteMapResponse {}))
     }
 
@@ -302,9 +256,7 @@ impl proto::maps_server::Maps for GrpcApi {
         &self,
         req: Request<Streaming<proto::AddKeyframeRequest>>,
     ) -> Result<Response<Self::AddKeyframesStream>, Status> {
-        let key = key(req.metadata());
-        let authorized =
-            self.app.authorize(key.as_deref(), Access::Write, "AddKeyframes").map_err(|e| to_status(&e))?;
+        let authorized = authorized(&req)?;
         let mut inbound = req.into_inner();
         let (tx, rx) = tokio::sync::mpsc::channel(4);
         let api = self.clone();
@@ -318,9 +270,9 @@ impl proto::maps_server::Maps for GrpcApi {
                         break;
                     }
                 };
-                let map = msg.map_id.clone();
+                let map = MapId(msg.map_id.clone());
                 let r = api
-                    .call_authorized("AddKeyframes", authorized, Some(&map), move |a| {
+                    .call(authorized, map, move |a, map| {
                         let p = msg.pose.ok_or_else(|| invalid("pose", "is required"))?;
                         let request = KeyframeRequest {
                             id: msg.keyframe_id,
@@ -328,10 +280,10 @@ impl proto::maps_server::Maps for GrpcApi {
                             pose: Pose { translation: [p.tx, p.ty, p.tz], rotation: [p.qx, p.qy, p.qz, p.qw] },
                             convention: convention(msg.pose_convention)?,
                             depth_png: (!msg.depth_png.is_empty()).then_some(msg.depth_png),
-                            depth_scale: if msg.depth_scale == 0.0 { TUM_DEPTH_SCALE } else { msg.depth_scale },
+                            depth_scale: (msg.depth_scale != 0.0).then_some(msg.depth_scale),
                             external_landmarks: external_landmarks(msg.external_landmarks)?,
                         };
-                        let (added, times) = a.service.add_keyframe(&msg.map_id, request)?;
+                        let (added, times) = a.service.add_keyframe(&map, request)?;
                         a.metrics.stages(&times);
                         Ok(proto::KeyframeAck {
                             keyframe_id: added.keyframe,
@@ -356,14 +308,10 @@ impl proto::maps_server::Maps for GrpcApi {
         &self,
         req: Request<proto::RemoveKeyframeRequest>,
     ) -> Result<Response<proto::MapInfo>, Status> {
-        let key = key(req.metadata());
+        let authorized = authorized(&req)?;
         let r = req.into_inner();
-        let map = r.map_id.clone();
-        let s = self
-            .call_map("RemoveKeyframe", Access::Write, key.as_deref(), &map, move |a| {
-                a.service.remove_keyframe(&r.map_id, r.keyframe_id)
-            })
-            .await?;
+        let keyframe = r.keyframe_id;
+        let s = self.call(authorized, MapId(r.map_id), move |a, map| a.service.remove_keyframe(&map, keyframe)).await?;
         Ok(Response::new(map_info(s)))
     }
 
@@ -371,17 +319,17 @@ impl proto::maps_server::Maps for GrpcApi {
         &self,
         req: Request<proto::MergeMapsRequest>,
     ) -> Result<Response<proto::MergeMapsResponse>, Status> {
-        let key = key(req.metadata());
+        let authorized = authorized(&req)?;
         let r = req.into_inner();
-        let map = r.target_map_id.clone();
+        let target = MapId(r.target_map_id.clone());
         let o = self
-            .call_map("MergeMaps", Access::Write, key.as_deref(), &map, move |a| {
+            .call(authorized, target, move |a, map| {
                 let transform = r.transform.map(|t| Similarity {
                     translation: [t.tx, t.ty, t.tz],
                     rotation: [t.qx, t.qy, t.qz, t.qw],
                     scale: t.scale,
                 });
-                a.service.merge_maps(&r.target_map_id, &r.source_map_id, transform)
+                a.service.merge_maps(&map, &r.source_map_id, transform)
             })
             .await?;
         let t = o.transform;
@@ -413,19 +361,16 @@ impl proto::maps_server::Maps for GrpcApi {
         &self,
         req: Request<proto::ExportMapRequest>,
     ) -> Result<Response<Self::ExportMapStream>, Status> {
-        let key = key(req.metadata());
+        let authorized = authorized(&req)?;
         let id = req.into_inner().map_id;
-        let bytes = self
-            .call_map("ExportMap", Access::Read, key.as_deref(), &id.clone(), move |a| a.service.export_map(&id))
-            .await?;
+        let bytes = self.call(authorized, MapId(id), |a, map| a.service.export_map(&map)).await?;
         let chunks: Vec<Result<proto::MapChunk, Status>> =
             bytes.chunks(CHUNK).map(|c| Ok(proto::MapChunk { map_id: String::new(), data: c.to_vec() })).collect();
         Ok(Response::new(Box::pin(tokio_stream::iter(chunks))))
     }
 
     async fn import_map(&self, req: Request<Streaming<proto::MapChunk>>) -> Result<Response<proto::MapInfo>, Status> {
-        let key = key(req.metadata());
-        let authorized = self.app.authorize(key.as_deref(), Access::Write, "ImportMap").map_err(|e| to_status(&e))?;
+        let authorized = authorized(&req)?;
         let max = self.app.settings.server.max_map_bytes;
         let mut inbound = req.into_inner();
         let mut id = String::new();
@@ -440,7 +385,7 @@ impl proto::maps_server::Maps for GrpcApi {
             bytes.extend_from_slice(&chunk.data);
         }
         let s = self
-            .call_authorized("ImportMap", authorized, None, move |a| {
+            .call(authorized, NoMap, move |a, ()| {
                 if id.is_empty() {
                     return Err(invalid("map_id", "the first chunk must name the map"));
                 }
@@ -457,10 +402,10 @@ impl proto::matching_server::Matching for GrpcApi {
         &self,
         req: Request<proto::DescribeRequest>,
     ) -> Result<Response<proto::DescribeResponse>, Status> {
-        let key = key(req.metadata());
+        let authorized = authorized(&req)?;
         let r = req.into_inner();
         let out = self
-            .call("Describe", Access::Read, key.as_deref(), move |a| {
+            .call(authorized, NoMap, move |a, ()| {
                 let f = frame_input(r.frame, "frame")?;
                 let d = a.service.describe(f.source)?;
                 a.metrics.stages(&d.times);
@@ -480,10 +425,10 @@ impl proto::matching_server::Matching for GrpcApi {
         &self,
         req: Request<proto::MatchPairRequest>,
     ) -> Result<Response<proto::MatchPairResponse>, Status> {
-        let key = key(req.metadata());
+        let authorized = authorized(&req)?;
         let r = req.into_inner();
         let out = self
-            .call("MatchPair", Access::Read, key.as_deref(), move |a| {
+            .call(authorized, NoMap, move |a, ()| {
                 let matcher = match proto::PairMatcher::try_from(r.matcher) {
                     Ok(proto::PairMatcher::Default) => SconeMatcher::default(),
                     Ok(proto::PairMatcher::Plain) => SconeMatcher::Plain,
@@ -533,14 +478,13 @@ impl proto::matching_server::Matching for GrpcApi {
         &self,
         req: Request<proto::LocalizeRequest>,
     ) -> Result<Response<proto::LocalizeResponse>, Status> {
-        let key = key(req.metadata());
+        let authorized = authorized(&req)?;
         let r = req.into_inner();
-        let map = r.map_id.clone();
         let out = self
-            .call_map("Localize", Access::Read, key.as_deref(), &map, move |a| {
+            .call(authorized, MapId(r.map_id.clone()), move |a, map| {
                 let conv = convention(r.pose_convention)?;
                 let prior = r.prior.map(|p| Prior { position: [p.x, p.y, p.z], radius: p.radius });
-                let o = a.service.localize(&r.map_id, frame_input(r.frame, "frame")?, prior)?;
+                let o = a.service.localize(&map, frame_input(r.frame, "frame")?, prior)?;
                 a.metrics.stages(&o.times);
                 Ok(proto::LocalizeResponse {
                     localized: o.pose.is_some(),
@@ -559,40 +503,42 @@ impl proto::matching_server::Matching for GrpcApi {
     }
 }
 
-/// Refuses calls of the `scone.v1` services with RESOURCE_EXHAUSTED (and `retry-after`) when the CPU pool
-/// has no free slot, before their message is read (after [`App::hold_refusal`]); counts the bytes of the
-/// messages it lets through.
+/// The gate of the `scone.v1` services, before a call's message is read or decoded: a call is refused with
+/// RESOURCE_EXHAUSTED (and `retry-after`, after [`App::hold_refusal`]) when the CPU pool has no free slot, then
+/// with UNAUTHENTICATED or PERMISSION_DENIED when its key does not allow its operation ([`Operation`]); a call
+/// that passes carries the proof ([`Authorized`]) to its method. Counts the bytes of the messages it lets
+/// through.
 #[derive(Clone)]
-pub struct AdmissionLayer {
+pub struct GateLayer {
     app: Arc<App>,
     body_bytes: prometheus_client::metrics::counter::Counter,
 }
 
-impl AdmissionLayer {
+impl GateLayer {
     pub fn new(app: Arc<App>) -> Self {
         let body_bytes = app.metrics.body_bytes("grpc");
         Self { app, body_bytes }
     }
 }
 
-impl<S> tower::Layer<S> for AdmissionLayer {
-    type Service = Admission<S>;
+impl<S> tower::Layer<S> for GateLayer {
+    type Service = Gate<S>;
 
-    fn layer(&self, inner: S) -> Admission<S> {
-        Admission { inner, layer: self.clone() }
+    fn layer(&self, inner: S) -> Gate<S> {
+        Gate { inner, layer: self.clone() }
     }
 }
 
-/// See [`AdmissionLayer`].
+/// See [`GateLayer`].
 #[derive(Clone)]
-pub struct Admission<S> {
+pub struct Gate<S> {
     inner: S,
-    layer: AdmissionLayer,
+    layer: GateLayer,
 }
 
 const POOL_SERVICES: &str = "/scone.v1.";
 
-impl<S> tower::Service<axum::http::Request<tonic::body::Body>> for Admission<S>
+impl<S> tower::Service<axum::http::Request<tonic::body::Body>> for Gate<S>
 where
     S: tower::Service<axum::http::Request<tonic::body::Body>, Response = axum::http::Response<tonic::body::Body>>,
     S::Future: Send + 'static,
@@ -606,20 +552,36 @@ where
         self.inner.poll_ready(cx)
     }
 
-    fn call(&mut self, req: axum::http::Request<tonic::body::Body>) -> Self::Future {
+    fn call(&mut self, mut req: axum::http::Request<tonic::body::Body>) -> Self::Future {
         let path = req.uri().path();
         if path.starts_with(POOL_SERVICES) {
             let (app, t) = (Arc::clone(&self.layer.app), Instant::now());
-            if let Err(e) = app.check_room() {
-                let method = path.rsplit('/').next().unwrap_or(path).to_string();
+            let method = path.rsplit('/').next().unwrap_or(path).to_string();
+            let refusal = match app.check_room() {
+                Err(e) => Some((e, true)),
+                // An unknown method passes: tonic answers UNIMPLEMENTED.
+                Ok(()) => Operation::from_grpc_path(path).and_then(|operation| {
+                    match app.authorize(auth::request_key(req.headers()).as_deref(), operation) {
+                        Ok(authorized) => {
+                            req.extensions_mut().insert(authorized);
+                            None
+                        }
+                        Err(e) => Some((e, false)),
+                    }
+                }),
+            };
+            if let Some((e, overloaded)) = refusal {
                 app.log_error(&method, &e);
                 // The request, and with it the unread message, is dropped here.
                 drop(req);
                 return Box::pin(async move {
-                    app.hold_refusal().await;
-                    let code = format!("{:?}", Code::ResourceExhausted);
+                    if overloaded {
+                        app.hold_refusal().await;
+                    }
+                    let status = to_status(&e);
+                    let code = format!("{:?}", status.code());
                     app.metrics.request("grpc", &method, &code, t.elapsed().as_secs_f64());
-                    Ok(to_status(&e).into_http())
+                    Ok(status.into_http())
                 });
             }
         }
@@ -667,7 +629,7 @@ where
         .http2_keepalive_timeout(Some(keepalive_timeout))
         .max_concurrent_streams(max_streams)
         .layer(CountRequestsLayer)
-        .layer(AdmissionLayer::new(Arc::clone(&app)))
+        .layer(GateLayer::new(Arc::clone(&app)))
         .add_service(health)
         .add_service(reflection_v1)
         .add_service(reflection_v1alpha)

@@ -1,10 +1,12 @@
 //! The transports: gRPC ([`grpc`], tonic) and HTTP/JSON ([`http`], axum) over one [`Service`].
 //!
-//! Path of a request: the transport first refuses it when the CPU pool has no free slot
-//! ([`App::check_room`], before the body is read or decoded, so overload costs a request head), then
-//! authenticates it ([`auth`]), converts the wire format to the service's domain types, and hands a closure
-//! to [`App::call`], which runs it on the bounded CPU pool ([`crate::cpu_pool::CpuPool`]) under the request
-//! deadline; the result or the [`ServiceError`](crate::service::ServiceError) is converted back, each transport with exactly one error
+//! Path of a request: from its head alone, the transport first refuses it when the CPU pool has no free slot
+//! ([`App::check_room`], so overload costs a request head), then checks its key for its [`operation`]
+//! ([`auth`]), so a client without a key cannot make the server read a body. Then it reads the body, converts
+//! the wire format to the service's domain types, and hands a closure to [`App::call`], which looks the
+//! request's map up once and runs the closure with it on the bounded CPU pool
+//! ([`crate::cpu_pool::CpuPool`]) under the request deadline; the result or the
+//! [`ServiceError`](crate::service::ServiceError) is converted back, each transport with exactly one error
 //! mapping.
 //!
 //! Life cycle ([`start`]): settings are validated and the model is loaded (a model that breaks the contract
@@ -18,6 +20,7 @@ pub mod connections;
 pub mod grpc;
 pub mod http;
 pub mod metrics;
+pub mod operation;
 pub mod proto;
 
 pub use app::App;

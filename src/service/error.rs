@@ -100,7 +100,10 @@ fn map_kind(e: &MapError) -> ErrorKind {
         MapError::MapExists { .. } | MapError::KeyframeExists { .. } => ErrorKind::AlreadyExists,
         MapError::InvalidMapId { .. } | MapError::InvalidInput { .. } => ErrorKind::InvalidArgument,
         MapError::ModelMismatch { .. } => ErrorKind::FailedPrecondition,
-        MapError::Unavailable { .. } | MapError::WriterConflict { .. } => ErrorKind::Unavailable,
+        MapError::Unavailable { .. }
+        | MapError::WriterConflict { .. }
+        | MapError::StorageUnavailable { .. }
+        | MapError::NoBucket { .. } => ErrorKind::Unavailable,
         MapError::Corrupt { .. } | MapError::Io { .. } => ErrorKind::Internal,
         MapError::StorageFull { .. } => ErrorKind::InsufficientStorage,
         MapError::Feature(f) => feature_kind(f),
@@ -136,6 +139,9 @@ impl ServiceError {
     /// What the client is told: the precise message for its own mistakes, a generic one for ours (the real
     /// error goes to the log).
     pub fn client_message(&self) -> String {
+        if let Self::Map(MapError::StorageUnavailable { .. }) = self {
+            return "the map storage did not complete the request; nothing of it was acknowledged: retry it".into();
+        }
         match self.kind() {
             ErrorKind::Internal => "internal error; the server log has the details".to_string(),
             ErrorKind::InsufficientStorage => "insufficient storage: the data volume (store.data_dir) is full; \
@@ -151,6 +157,7 @@ impl ServiceError {
         match self {
             Self::Overloaded { .. } => Some(1),
             Self::NotReady | Self::ShuttingDown => Some(5),
+            Self::Map(MapError::StorageUnavailable { .. }) => Some(1),
             _ => None,
         }
     }

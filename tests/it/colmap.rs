@@ -184,7 +184,7 @@ fn a_colmap_model_imports_localises_and_keeps_its_merged_landmarks_across_restar
 
     let localise = |store: &MapStore, f: usize| {
         let d = describer.describe_image(&std::fs::read(&scene.frames[f].rgb).unwrap()).unwrap();
-        let loc = store.localize("sfm", &d.features, &d.embeddings, &scene.camera, None).unwrap();
+        let loc = store.localize(&store.get("sfm").unwrap(), &d.features, &d.embeddings, &scene.camera, None).unwrap();
         let pose = loc.pose.unwrap_or_else(|| panic!("frame {f} not localised"));
         let gt = scene.frames[f].pose.unwrap();
         let dt = (pose.camera_to_world.translation.vector - gt.translation.vector).norm();
@@ -214,7 +214,7 @@ fn a_colmap_model_imports_localises_and_keeps_its_merged_landmarks_across_restar
         depth: None,
         external: Some(views),
     };
-    let added = store.add_keyframe("sfm", &input).unwrap();
+    let added = store.add_keyframe(&store.get("sfm").unwrap(), &input).unwrap();
     assert!(added.observations > 30, "{added:?}");
     let known = views.iter().filter(|o| linked.contains_key(&o.landmark_id)).count();
     assert!(known * 10 > views.len() * 9, "{known} of {} views of frame 9 are of imported points", views.len());
@@ -223,7 +223,7 @@ fn a_colmap_model_imports_localises_and_keeps_its_merged_landmarks_across_restar
     assert_eq!(merged.landmarks, after.landmarks + added.new_landmarks);
 
     // Export / import keeps the links.
-    let bytes = store.export("sfm").unwrap();
+    let bytes = store.export(&store.get("sfm").unwrap()).unwrap();
     store.import("copy", &bytes).unwrap();
     let copied = store.get("copy").unwrap().read(|d, _| d.external_ids.clone());
     assert_eq!(copied, store.get("sfm").unwrap().read(|d, _| d.external_ids.clone()));

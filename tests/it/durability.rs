@@ -63,7 +63,7 @@ fn acknowledged_keyframes_survive_kill_9_and_the_map_localises() {
     let scene = Scene::load(&scene_dir).unwrap();
     let frame = &scene.frames[3];
     let d = describer.describe_image(&std::fs::read(&frame.rgb).unwrap()).unwrap();
-    let loc = store.localize("kill", &d.features, &d.embeddings, &scene.camera, None).unwrap();
+    let loc = store.localize(&store.get("kill").unwrap(), &d.features, &d.embeddings, &scene.camera, None).unwrap();
     let pose = loc.pose.expect("held-out frame not localised");
     let gt = frame.pose.unwrap();
     let dt = (pose.camera_to_world.translation.vector - gt.translation.vector).norm();
@@ -158,7 +158,7 @@ fn reads_of_one_map_go_on_while_another_is_written() {
             depth: Some(scone::map::builder::Depth { image: &depths[i], scale: 1.0 / 5000.0 }),
             external: None,
         };
-        store.add_keyframe(map, &input).unwrap();
+        store.add_keyframe(&store.get(map).unwrap(), &input).unwrap();
     };
     store.create("a").unwrap();
     store.create("b").unwrap();
@@ -178,7 +178,8 @@ fn reads_of_one_map_go_on_while_another_is_written() {
         let mut during = 0;
         while !done.load(std::sync::atomic::Ordering::SeqCst) {
             let q = &described[1];
-            let loc = store.localize("a", &q.features, &q.embeddings, &scene.camera, None).unwrap();
+            let loc =
+                store.localize(&store.get("a").unwrap(), &q.features, &q.embeddings, &scene.camera, None).unwrap();
             assert!(loc.pose.is_some());
             if !done.load(std::sync::atomic::Ordering::SeqCst) {
                 during += 1;
@@ -220,12 +221,15 @@ fn a_map_from_another_model_is_refused_until_re_embedded() {
                 depth: Some(scone::map::builder::Depth { image: &depth, scale: 1.0 / 5000.0 }),
                 external: None,
             };
-            store.add_keyframe("m", &input).unwrap();
+            store.add_keyframe(&store.get("m").unwrap(), &input).unwrap();
         }
     }
     let (store, describer) = open(&dir);
     let q = describer.describe_image(&std::fs::read(&scene.frames[3].rgb).unwrap()).unwrap();
-    let err = store.localize("m", &q.features, &q.embeddings, &scene.camera, None).unwrap_err().to_string();
+    let err = store
+        .localize(&store.get("m").unwrap(), &q.features, &q.embeddings, &scene.camera, None)
+        .unwrap_err()
+        .to_string();
     assert!(err.contains("sha256:older-model") && err.contains("re-embed"), "{err}");
     let summary = store
         .reembed("m", &|kf| {
@@ -235,7 +239,7 @@ fn a_map_from_another_model_is_refused_until_re_embedded() {
         })
         .unwrap();
     assert_eq!(summary.model_id, describer.embedder.model_id());
-    let loc = store.localize("m", &q.features, &q.embeddings, &scene.camera, None).unwrap();
+    let loc = store.localize(&store.get("m").unwrap(), &q.features, &q.embeddings, &scene.camera, None).unwrap();
     let pose = loc.pose.expect("not localised after re-embedding");
     let gt = scene.frames[3].pose.unwrap();
     assert!((pose.camera_to_world.translation.vector - gt.translation.vector).norm() < 0.05);

@@ -9,6 +9,7 @@ use tokio::net::TcpStream;
 use tonic::Code;
 
 use crate::common::{fixture, temp_dir};
+use crate::raw::{body_bytes_read, http_answer, RawCodec};
 use crate::service::{add_keyframes, clients, image_frame, keyframe_requests, multipart_keyframe, serve, settings};
 
 /// The soft limit on open files of this process (client and server sockets both count).
@@ -381,6 +382,14 @@ async fn regression_every_http_error_is_a_json_envelope() {
     assert_eq!((status, code.as_str()), (404, "NOT_FOUND"));
     let (status, code, _) = error_of(http.put(format!("{base}/v1/maps")).send().await.unwrap()).await;
     assert_eq!((status, code.as_str()), (405, "METHOD_NOT_ALLOWED"));
+    // Issue 42: the console's address typed with a trailing slash was a JSON 404; it is the console.
+    let no_follow = reqwest::Client::builder().redirect(reqwest::redirect::Policy::none()).build().unwrap();
+    let r = no_follow.get(format!("{base}/ui/?map=m")).send().await.unwrap();
+    assert_eq!(r.status(), 308);
+    assert_eq!(r.headers()["location"], "/ui?map=m");
+    let page = http.get(format!("{base}/ui/")).send().await.unwrap();
+    assert_eq!(page.status(), 200);
+    assert!(page.headers()["content-type"].to_str().unwrap().starts_with("text/html"));
     server.shutdown().await.unwrap();
 }
 
@@ -582,81 +591,6 @@ async fn regression_import_is_idempotent_for_identical_content() {
     let info = maps.get_map(proto::GetMapRequest { map_id: "copy".into() }).await.unwrap().into_inner();
     assert_eq!(info, first);
     server.shutdown().await.unwrap();
-}
-
-/// A complete HTTP/1.1 response (head and `content-length` body) read from `s`, or `None` if none came
-/// by `deadline`.
-async fn http_answer(s: &mut TcpStream, deadline: Instant) -> Option<String> {
-    let mut got = Vec::new();
-    let mut buf = [0u8; 4096];
-    loop {
-        if let Some(end) = got.windows(4).position(|w| w == b"\r\n\r\n") {
-            let head = String::from_utf8_lossy(&got[..end]).to_ascii_lowercase();
-            let len = head
-                .lines()
-                .find_map(|l| l.strip_prefix("content-length:"))
-                .and_then(|n| n.trim().parse::<usize>().ok())
-                .unwrap_or(0);
-            if got.len() >= end + 4 + len {
-                return Some(String::from_utf8_lossy(&got[..end + 4 + len]).into_owned());
-            }
-        }
-        let left = deadline.saturating_duration_since(Instant::now());
-        match tokio::time::timeout(left, s.read(&mut buf)).await {
-            Ok(Ok(n)) if n > 0 => got.extend_from_slice(&buf[..n]),
-            _ => return None,
-        }
-    }
-}
-
-/// `scone_request_body_bytes_total` of `transport`, from `/metrics`.
-async fn body_bytes_read(server: &scone::server::Running, transport: &str) -> u64 {
-    let text = reqwest::get(format!("http://{}/metrics", server.http_addr)).await.unwrap().text().await.unwrap();
-    let series = format!("scone_request_body_bytes_total{{transport=\"{transport}\"}} ");
-    text.lines().find_map(|l| l.strip_prefix(series.as_str())).map_or(0, |v| v.trim().parse().unwrap())
-}
-
-/// Sends any bytes as a gRPC message and ignores the answer's content: lets a test send a message that is
-/// not protobuf at all.
-#[derive(Clone, Copy, Default)]
-struct RawCodec;
-
-struct RawBytes;
-
-impl tonic::codec::Codec for RawCodec {
-    type Encode = Vec<u8>;
-    type Decode = ();
-    type Encoder = RawBytes;
-    type Decoder = RawBytes;
-
-    fn encoder(&mut self) -> RawBytes {
-        RawBytes
-    }
-
-    fn decoder(&mut self) -> RawBytes {
-        RawBytes
-    }
-}
-
-impl tonic::codec::Encoder for RawBytes {
-    type Item = Vec<u8>;
-    type Error = tonic::Status;
-
-    fn encode(&mut self, item: Vec<u8>, dst: &mut tonic::codec::EncodeBuf<'_>) -> Result<(), tonic::Status> {
-        prost::bytes::BufMut::put_slice(dst, &item);
-        Ok(())
-    }
-}
-
-impl tonic::codec::Decoder for RawBytes {
-    type Item = ();
-    type Error = tonic::Status;
-
-    fn decode(&mut self, src: &mut tonic::codec::DecodeBuf<'_>) -> Result<Option<()>, tonic::Status> {
-        let n = prost::bytes::Buf::remaining(src);
-        prost::bytes::Buf::advance(src, n);
-        Ok(Some(()))
-    }
 }
 
 /// Issue 16, item 3: with 24-32 clients that do not back off, answered Localize throughput fell to 45-60 %

@@ -10,11 +10,12 @@ mod embedding;
 mod full_disk;
 mod hostile;
 mod input_bounds;
+mod keys;
 mod lenses;
 mod merge;
 mod object_store;
-
 mod pipeline;
+mod raw;
 mod replicas;
 mod restarts;
 mod service;

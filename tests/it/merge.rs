@@ -240,7 +240,7 @@ fn a_merge_killed_at_any_moment_leaves_the_target_whole_or_merged_and_the_source
                     depth: None,
                     external: None,
                 };
-                store.add_keyframe(map, &input).unwrap();
+                store.add_keyframe(&store.get(map).unwrap(), &input).unwrap();
             }
         }
         assert!(store.flush().is_empty());

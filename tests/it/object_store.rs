@@ -180,13 +180,14 @@ impl Frames {
             depth: Some(Depth { image: &self.depths[i], scale: 1.0 / 5000.0 }),
             external: None,
         };
-        store.add_keyframe(map, &input).map(|a| a.version)
+        store.add_keyframe(&store.get(map).unwrap(), &input).map(|a| a.version)
     }
 
     /// Localises frame `i` (not in the map) and checks the pose within 5 cm and 1 degree.
     fn localises(&self, store: &MapStore, map: &str, i: usize) {
         let d = &self.described[i];
-        let loc = store.localize(map, &d.features, &d.embeddings, &self.scene.camera, None).unwrap();
+        let loc =
+            store.localize(&store.get(map).unwrap(), &d.features, &d.embeddings, &self.scene.camera, None).unwrap();
         let pose = loc.pose.expect("held-out frame not localised");
         let gt = self.scene.frames[i].pose.unwrap();
         let dt = (pose.camera_to_world.translation.vector - gt.translation.vector).norm();

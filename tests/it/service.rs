@@ -15,7 +15,7 @@ use tonic::{Code, Request};
 use crate::common::{fixture, shared_data, temp_dir};
 
 pub(crate) const WRITE_KEY: &str = "write-key-0123456789";
-const READ_KEY: &str = "read-key-0123456789";
+pub(crate) const READ_KEY: &str = "read-key-0123456789";
 
 pub(crate) fn settings(data: &Path) -> Settings {
     let mut s = Settings::default();
@@ -782,7 +782,7 @@ async fn shutdown_finishes_in_flight_requests_then_flushes() {
     assert!(reqwest::get(format!("http://{addr}/healthz")).await.is_err(), "still accepting after shutdown");
     assert!(data.join("maps/s/snapshot.bin").is_file());
     let server = serve(settings(&data)).await;
-    assert_eq!(server.app.service.get_map("s").unwrap().keyframes, 2);
+    assert_eq!(server.app.service.map("s").unwrap().summary().keyframes, 2);
     server.shutdown().await.unwrap();
 }
 

@@ -99,10 +99,11 @@ pub fn run(cmd: MapCommand) -> anyhow::Result<()> {
             if store.get(&map).is_err() {
                 store.create(&map)?;
             }
+            let held = store.get(&map)?;
             let s = Scene::load(&scene)?;
             let limits = ImageLimitSettings::default();
             let mut stdout = std::io::stdout().lock();
-            let mut next_id = store.summary(&map)?.keyframes as u64;
+            let mut next_id = held.summary().keyframes as u64;
             let per_pass = s.frames.iter().step_by(stride.max(1)).filter(|f| f.pose.is_some()).count();
             let mut progress = Progress::new(format!("write-scene {map}"), per_pass * repeat.max(1));
             for _ in 0..repeat.max(1) {
@@ -123,7 +124,7 @@ pub fn run(cmd: MapCommand) -> anyhow::Result<()> {
                         depth: depth.as_ref().map(|m| Depth { image: m, scale: scone::decode::TUM_DEPTH_SCALE }),
                         external: None,
                     };
-                    let added = store.add_keyframe(&map, &input)?;
+                    let added = store.add_keyframe(&held, &input)?;
                     writeln!(stdout, "ack {} frame {i} landmarks {}", added.keyframe, added.new_landmarks)?;
                     stdout.flush()?;
                     next_id += 1;
@@ -167,7 +168,8 @@ pub fn run(cmd: MapCommand) -> anyhow::Result<()> {
         }
         MapCommand::Merge { data_dir, target, source, model } => {
             let (store, _) = open_store(data_dir, model)?;
-            let (plan, summary) = store.merge(&target, &source, None)?;
+            let into = store.get(&target)?;
+            let (plan, summary) = store.merge(&into, &source, None)?;
             let mut stdout = std::io::stdout().lock();
             writeln!(stdout, "merged {}", summary.keyframes)?;
             stdout.flush()?;

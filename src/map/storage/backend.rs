@@ -50,6 +50,11 @@ pub trait MapBackend: Send + Sync {
     fn operation_stats(&self) -> Vec<OperationStats> {
         Vec::new()
     }
+
+    /// Whether the maps are behind a network (object storage): a freshness check is then a round trip.
+    fn is_remote(&self) -> bool {
+        false
+    }
 }
 
 /// Calls of one kind made to a storage service since start.

@@ -4,7 +4,7 @@
 use axum::body::Bytes;
 use axum::extract::{FromRequest, FromRequestParts, Multipart, Path, Query, Request};
 use axum::http::request::Parts;
-use axum::http::{header, HeaderMap, StatusCode};
+use axum::http::{header, HeaderMap, StatusCode, Uri};
 use base64::Engine;
 use serde::de::DeserializeOwned;
 use serde::Serialize;
@@ -357,7 +357,8 @@ pub struct IntrinsicsQuery {
 }
 
 impl IntrinsicsQuery {
-    fn parse(pairs: Vec<(String, String)>) -> Result<Self, ServiceError> {
+    /// The intrinsics among a query string's pairs ([`query_pairs`]).
+    pub fn parse(pairs: &[(String, String)]) -> Result<Self, ServiceError> {
         let mut q = Self::default();
         for (key, value) in pairs {
             fn set<T: std::str::FromStr>(
@@ -377,14 +378,14 @@ impl IntrinsicsQuery {
             let number = "a number";
             let pixels = "a whole number of pixels";
             match key.as_str() {
-                "fx" => set(&mut q.fx, &key, &value, number)?,
-                "fy" => set(&mut q.fy, &key, &value, number)?,
-                "cx" => set(&mut q.cx, &key, &value, number)?,
-                "cy" => set(&mut q.cy, &key, &value, number)?,
-                "width" => set(&mut q.width, &key, &value, pixels)?,
-                "height" => set(&mut q.height, &key, &value, pixels)?,
-                "distortion_model" => set(&mut q.distortion_model, &key, &value, "a model name")?,
-                "distortion" => set(&mut q.distortion, &key, &value, "a list")?,
+                "fx" => set(&mut q.fx, key, value, number)?,
+                "fy" => set(&mut q.fy, key, value, number)?,
+                "cx" => set(&mut q.cx, key, value, number)?,
+                "cy" => set(&mut q.cy, key, value, number)?,
+                "width" => set(&mut q.width, key, value, pixels)?,
+                "height" => set(&mut q.height, key, value, pixels)?,
+                "distortion_model" => set(&mut q.distortion_model, key, value, "a model name")?,
+                "distortion" => set(&mut q.distortion, key, value, "a list")?,
                 _ => {}
             }
         }
@@ -431,16 +432,6 @@ impl IntrinsicsQuery {
     }
 }
 
-impl<S: Send + Sync> FromRequestParts<S> for IntrinsicsQuery {
-    type Rejection = ApiError;
-
-    async fn from_request_parts(parts: &mut Parts, _: &S) -> Result<Self, ApiError> {
-        let Query(pairs) = Query::<Vec<(String, String)>>::try_from_uri(&parts.uri)
-            .map_err(|e| invalid("query string", e.body_text()))?;
-        Ok(Self::parse(pairs)?)
-    }
-}
-
 /// axum's `Path`, refused in the JSON envelope.
 pub struct ApiPath<T>(pub T);
 
@@ -467,21 +458,34 @@ impl<S: Send + Sync> FromRequestParts<S> for Render {
     type Rejection = ApiError;
 
     async fn from_request_parts(parts: &mut Parts, _: &S) -> Result<Self, ApiError> {
-        let Query(pairs) = Query::<Vec<(String, String)>>::try_from_uri(&parts.uri)
-            .map_err(|e| invalid("query string", e.body_text()))?;
-        let mut asked = pairs.iter().filter(|(k, _)| k == "render").map(|(_, v)| v.as_str());
-        match (asked.next(), asked.next()) {
-            (Some(_), Some(_)) => return Err(invalid("render", "is given more than once")),
-            (Some("png"), None) => return Ok(Self(true)),
-            (Some("json"), None) => return Ok(Self(false)),
-            (Some(other), None) => return Err(invalid("render", format!("'{other}' is not png or json"))),
-            (None, _) => {}
-        }
-        let accept = parts.headers.get(header::ACCEPT).and_then(|v| v.to_str().ok()).unwrap_or("");
-        let types: Vec<String> =
-            accept.split(',').map(|t| t.split(';').next().unwrap_or("").trim().to_ascii_lowercase()).collect();
-        Ok(Self(types.iter().any(|t| t == "image/png") && !types.iter().any(|t| t == "application/json")))
+        let accept = parts.headers.get(header::ACCEPT).and_then(|v| v.to_str().ok());
+        Ok(Self(wants_picture(&query_pairs(&parts.uri)?, accept)?))
     }
+}
+
+/// The pairs of a request's query string, refused as the client's error when it cannot be decoded.
+pub fn query_pairs(uri: &Uri) -> Result<Vec<(String, String)>, ServiceError> {
+    let Query(pairs) = Query::<Vec<(String, String)>>::try_from_uri(uri)
+        .map_err(|e| ServiceError::invalid("query string", e.body_text()))?;
+    Ok(pairs)
+}
+
+/// Whether the client asked for a picture instead of JSON ([`Render`]).
+pub fn wants_picture(pairs: &[(String, String)], accept: Option<&str>) -> Result<bool, ServiceError> {
+    let mut asked = pairs.iter().filter(|(k, _)| k == "render").map(|(_, v)| v.as_str());
+    match (asked.next(), asked.next()) {
+        (Some(_), Some(_)) => return Err(ServiceError::invalid("render", "is given more than once")),
+        (Some("png"), None) => return Ok(true),
+        (Some("json"), None) => return Ok(false),
+        (Some(other), None) => return Err(ServiceError::invalid("render", format!("'{other}' is not png or json"))),
+        (None, _) => {}
+    }
+    let types: Vec<String> = accept
+        .unwrap_or("")
+        .split(',')
+        .map(|t| t.split(';').next().unwrap_or("").trim().to_ascii_lowercase())
+        .collect();
+    Ok(types.iter().any(|t| t == "image/png") && !types.iter().any(|t| t == "application/json"))
 }
 
 #[cfg(test)]

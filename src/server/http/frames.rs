@@ -3,25 +3,25 @@
 
 use std::sync::Arc;
 
-use axum::extract::rejection::QueryRejection;
-use axum::extract::{Query, Request, State};
-use axum::http::{header, HeaderMap};
+use axum::extract::{Request, State};
+use axum::http::{header, Uri};
 use axum::response::{IntoResponse, Response};
-use axum::Json;
+use axum::{Extension, Json};
 use base64::Engine;
 
 use super::body::{
-    frame_input, parse_json, read_body, ApiPath, IntrinsicsQuery, Render, FRAME_BODIES, JSON_OR_MULTIPART,
+    frame_input, parse_json, query_pairs, read_body, wants_picture, ApiPath, Body, IntrinsicsQuery, Render,
+    FRAME_BODIES, JSON_OR_MULTIPART,
 };
-use super::error::{invalid, ApiErrors, ApiResult};
+use super::error::{ApiErrors, ApiResult};
 use super::wire::{self, examples};
 use crate::camera::quaternion_xyzw;
 use crate::matching::DEFAULT_RATIO;
 use crate::render::{self, Backdrop};
-use crate::server::app::App;
-use crate::server::http::plumbing::{call, call_map};
+use crate::server::app::{App, MapId, NoMap};
+use crate::server::auth::Authorized;
+use crate::server::http::plumbing::call;
 use crate::service::{FrameInput, FrameSource, PairOptions, PoseConvention, Prior, ServiceError};
-use crate::settings::Access;
 
 /// What a frame is drawn on: its image, or a blank canvas of its keypoint set's size.
 fn backdrop(f: &FrameInput) -> Backdrop<'_> {
@@ -60,11 +60,11 @@ fn png_with_counts(bytes: Vec<u8>, matches: usize, inliers: usize) -> Response {
     responses((status = 200, description = "The frame's description", body = wire::DescribeResponse), ApiErrors))]
 pub async fn describe(
     State(app): State<Arc<App>>,
-    headers: HeaderMap,
+    Extension(authorized): Extension<Authorized>,
     req: Request,
 ) -> ApiResult<Json<wire::DescribeResponse>> {
     let body = read_body(req, app.settings.server.max_request_bytes, FRAME_BODIES).await?;
-    let out = call(&app, &headers, Access::Read, "Describe", move |a| {
+    let out = call(&app, authorized, NoMap, move |a, ()| {
         let j: wire::DescribeRequest = parse_json(&body.json)?;
         let f = frame_input(j.frame, body.image, &[], "frame")?;
         let d = a.service.describe(f.source)?;
@@ -99,12 +99,12 @@ pub async fn describe(
         ApiErrors))]
 pub async fn match_pair(
     State(app): State<Arc<App>>,
+    Extension(authorized): Extension<Authorized>,
     Render(picture): Render,
-    headers: HeaderMap,
     req: Request,
 ) -> ApiResult<Response> {
     let body = read_body(req, app.settings.server.max_request_bytes, JSON_OR_MULTIPART).await?;
-    call(&app, &headers, Access::Read, "MatchPair", move |a| {
+    call(&app, authorized, NoMap, move |a, ()| {
         let j: wire::MatchRequest = parse_json(&body.json)?;
         let f1 = frame_input(j.frame1, body.image, &[], "frame1")?;
         let f2 = frame_input(j.frame2, body.image2, &[], "frame2")?;
@@ -169,29 +169,17 @@ pub async fn match_pair(
         ApiErrors))]
 pub async fn localize(
     State(app): State<Arc<App>>,
+    Extension(authorized): Extension<Authorized>,
     ApiPath(map_id): ApiPath<String>,
-    q: IntrinsicsQuery,
-    Render(picture): Render,
-    convention: Result<Query<wire::ConventionQuery>, QueryRejection>,
-    headers: HeaderMap,
     req: Request,
 ) -> ApiResult<Response> {
-    let Query(cq) = convention.map_err(|e| invalid("query string", e.body_text()))?;
+    let uri = req.uri().clone();
+    let accept = req.headers().get(header::ACCEPT).and_then(|v| v.to_str().ok()).map(str::to_string);
     let body = read_body(req, app.settings.server.max_request_bytes, FRAME_BODIES).await?;
-    let map = map_id.clone();
-    call_map(&app, &headers, Access::Read, "Localize", &map, move |a| {
-        let j: wire::LocalizeRequest = parse_json(&body.json)?;
-        let convention: PoseConvention = match (j.pose_convention, cq.pose_convention) {
-            (Some(a), Some(b)) if a != b => {
-                return Err(ServiceError::invalid("pose_convention", "the body and the query string disagree"))
-            }
-            (a, b) => a.or(b).map(Into::into).unwrap_or_default(),
-        };
-        let outer = [("intrinsics", j.intrinsics), ("the query string's intrinsics", q.intrinsics()?)];
-        let f = frame_input(j.frame, body.image, &outer, "frame")?;
+    call(&app, authorized, MapId(map_id.clone()), move |a, map| {
+        let LocalizeCall { frame: f, prior, convention, picture } = LocalizeCall::parse(&uri, accept.as_deref(), body)?;
         let kept = keep_for_picture(picture, &f);
-        let prior = j.prior.map(|p| Prior { position: [p.x, p.y, p.z], radius: p.radius });
-        let o = a.service.localize(&map_id, f, prior)?;
+        let o = a.service.localize(&map, f, prior)?;
         a.metrics.stages(&o.times);
         if let Some(f) = kept {
             let inliers = o.pose.as_ref().map_or(0, |p| p.inliers.len());
@@ -220,4 +208,49 @@ pub async fn localize(
         .into_response())
     })
     .await
+}
+
+/// Everything a Localize request says, parsed in one place: the query string (intrinsics for a raw image
+/// body, `render`, `pose_convention`), the `Accept` header and the body (its JSON and image). Runs on the
+/// CPU pool: a JSON body may carry a base64 image.
+struct LocalizeCall {
+    frame: FrameInput,
+    prior: Option<Prior>,
+    convention: PoseConvention,
+    picture: bool,
+}
+
+impl LocalizeCall {
+    fn parse(uri: &Uri, accept: Option<&str>, body: Body) -> Result<Self, ServiceError> {
+        let pairs = query_pairs(uri)?;
+        let picture = wants_picture(&pairs, accept)?;
+        let query_intrinsics = IntrinsicsQuery::parse(&pairs)?.intrinsics()?;
+        let query_convention = query_convention(&pairs)?;
+        let j: wire::LocalizeRequest = parse_json(&body.json)?;
+        let convention: PoseConvention = match (j.pose_convention, query_convention) {
+            (Some(a), Some(b)) if a != b => {
+                return Err(ServiceError::invalid("pose_convention", "the body and the query string disagree"))
+            }
+            (a, b) => a.or(b).map(Into::into).unwrap_or_default(),
+        };
+        let outer = [("intrinsics", j.intrinsics), ("the query string's intrinsics", query_intrinsics)];
+        let frame = frame_input(j.frame, body.image, &outer, "frame")?;
+        let prior = j.prior.map(|p| Prior { position: [p.x, p.y, p.z], radius: p.radius });
+        Ok(Self { frame, prior, convention, picture })
+    }
+}
+
+/// `?pose_convention=`, when the query string gives it.
+fn query_convention(pairs: &[(String, String)]) -> Result<Option<wire::PoseConvention>, ServiceError> {
+    let mut given = pairs.iter().filter(|(k, _)| k == "pose_convention").map(|(_, v)| v);
+    match (given.next(), given.next()) {
+        (Some(_), Some(_)) => Err(ServiceError::invalid("pose_convention", "is given more than once")),
+        (Some(v), None) => serde_json::from_value(serde_json::Value::String(v.clone())).map(Some).map_err(|_| {
+            ServiceError::invalid(
+                "pose_convention",
+                format!("'{v}' is not opencv_camera_to_world, opencv_world_to_camera or opengl_camera_to_world"),
+            )
+        }),
+        (None, _) => Ok(None),
+    }
 }

@@ -6,7 +6,7 @@ use std::sync::Arc;
 use axum::extract::{Query, Request, State};
 use axum::http::{header, HeaderMap, StatusCode};
 use axum::response::{IntoResponse, Response};
-use axum::Json;
+use axum::{Extension, Json};
 
 use super::body::{
     base64, bytes_within, frame_input, json_body, media_type, read_body, too_large, ApiPath, JSON_ONLY,
@@ -14,11 +14,10 @@ use super::body::{
 };
 use super::error::{invalid, ApiError, ApiErrors, ApiResult};
 use super::wire::{self, examples};
-use crate::decode::TUM_DEPTH_SCALE;
-use crate::server::app::App;
-use crate::server::http::plumbing::{authorize, call, call_authorized, call_map};
+use crate::server::app::{App, MapId, NoMap};
+use crate::server::auth::Authorized;
+use crate::server::http::plumbing::call;
 use crate::service::{ExternalObservation, KeyframeRequest, PoseConvention, ServiceError, DEFAULT_CONTENTS_LANDMARKS};
-use crate::settings::Access;
 
 /// A new, empty map (rpc Maps.CreateMap).
 #[utoipa::path(post, path = "/v1/maps", tag = "maps",
@@ -26,6 +25,7 @@ use crate::settings::Access;
     responses((status = 201, description = "The new map", body = wire::MapInfo), ApiErrors))]
 pub async fn create_map(
     State(app): State<Arc<App>>,
+    Extension(authorized): Extension<Authorized>,
     headers: HeaderMap,
     req: Request,
 ) -> ApiResult<(StatusCode, Json<wire::MapInfo>)> {
@@ -33,18 +33,21 @@ pub async fn create_map(
     let limit = app.settings.server.max_request_bytes;
     let body = bytes_within(req, limit, too_large(limit)).await?;
     let j: wire::CreateMapRequest = json_body(&body)?;
-    let s = call(&app, &headers, Access::Write, "CreateMap", move |a| a.service.create_map(&j.map_id)).await?;
+    let s = call(&app, authorized, NoMap, move |a, ()| a.service.create_map(&j.map_id)).await?;
     Ok((StatusCode::CREATED, Json(s.into())))
 }
 
 /// The maps (with object storage every stored one) and those held back, with the reason (rpc Maps.ListMaps).
 #[utoipa::path(get, path = "/v1/maps", tag = "maps",
     responses((status = 200, description = "Every map", body = wire::MapList), ApiErrors))]
-pub async fn list_maps(State(app): State<Arc<App>>, headers: HeaderMap) -> ApiResult<Json<wire::MapList>> {
-    let (maps, held) = call(&app, &headers, Access::Read, "ListMaps", |a| a.service.list_maps()).await?;
+pub async fn list_maps(
+    State(app): State<Arc<App>>,
+    Extension(authorized): Extension<Authorized>,
+) -> ApiResult<Json<wire::MapList>> {
+    let listing = call(&app, authorized, NoMap, |a, ()| a.service.list_maps()).await?;
     Ok(Json(wire::MapList {
-        maps: maps.into_iter().map(Into::into).collect(),
-        held_back: held.into_iter().map(|(map_id, reason)| wire::HeldBack { map_id, reason }).collect(),
+        maps: listing.maps.into_iter().map(Into::into).collect(),
+        held_back: listing.held_back.into_iter().map(|(map_id, reason)| wire::HeldBack { map_id, reason }).collect(),
     }))
 }
 
@@ -54,10 +57,10 @@ pub async fn list_maps(State(app): State<Arc<App>>, headers: HeaderMap) -> ApiRe
     responses((status = 200, description = "The map", body = wire::MapInfo), ApiErrors))]
 pub async fn get_map(
     State(app): State<Arc<App>>,
+    Extension(authorized): Extension<Authorized>,
     ApiPath(id): ApiPath<String>,
-    headers: HeaderMap,
 ) -> ApiResult<Json<wire::MapInfo>> {
-    let s = call_map(&app, &headers, Access::Read, "GetMap", &id.clone(), move |a| a.service.get_map(&id)).await?;
+    let s = call(&app, authorized, MapId(id), |_, map| Ok(map.summary())).await?;
     Ok(Json(s.into()))
 }
 
@@ -67,10 +70,10 @@ pub async fn get_map(
     responses((status = 204, description = "Deleted"), ApiErrors))]
 pub async fn delete_map(
     State(app): State<Arc<App>>,
+    Extension(authorized): Extension<Authorized>,
     ApiPath(id): ApiPath<String>,
-    headers: HeaderMap,
 ) -> ApiResult<StatusCode> {
-    call(&app, &headers, Access::Write, "DeleteMap", move |a| a.service.delete_map(&id)).await?;
+    call(&app, authorized, NoMap, move |a, ()| a.service.delete_map(&id)).await?;
     Ok(StatusCode::NO_CONTENT)
 }
 
@@ -81,15 +84,15 @@ pub async fn delete_map(
     responses((status = 200, description = "Keyframes and landmarks", body = wire::MapContents), ApiErrors))]
 pub async fn map_contents(
     State(app): State<Arc<App>>,
+    Extension(authorized): Extension<Authorized>,
     ApiPath(id): ApiPath<String>,
     query: Result<Query<wire::ContentsQuery>, axum::extract::rejection::QueryRejection>,
-    headers: HeaderMap,
 ) -> ApiResult<Json<wire::MapContents>> {
     let Query(q) = query.map_err(|e| invalid("query string", e.body_text()))?;
     let max = q.max_landmarks.unwrap_or(DEFAULT_CONTENTS_LANDMARKS);
     let convention: PoseConvention = q.pose_convention.map(Into::into).unwrap_or_default();
-    let out = call_map(&app, &headers, Access::Read, "MapContents", &id.clone(), move |a| {
-        let c = a.service.map_contents(&id, max)?;
+    let out = call(&app, authorized, MapId(id.clone()), move |a, map| {
+        let c = a.service.map_contents(&map, max)?;
         Ok(wire::MapContents {
             map_id: id,
             version: c.version,
@@ -133,14 +136,12 @@ pub async fn map_contents(
     responses((status = 200, description = "Durable", body = wire::KeyframeAck), ApiErrors))]
 pub async fn add_keyframe(
     State(app): State<Arc<App>>,
+    Extension(authorized): Extension<Authorized>,
     ApiPath(map_id): ApiPath<String>,
-    headers: HeaderMap,
     req: Request,
 ) -> ApiResult<Json<wire::KeyframeAck>> {
-    // Authenticate before reading a possibly large body.
-    let authorized = authorize(&app, &headers, Access::Write, "AddKeyframe")?;
     let body = read_body(req, app.settings.server.max_request_bytes, JSON_OR_MULTIPART).await?;
-    let out = call_authorized(&app, authorized, "AddKeyframe", Some(&map_id.clone()), move |a| {
+    let out = call(&app, authorized, MapId(map_id), move |a, map| {
         let Some(json) = &body.json else {
             return Err(ServiceError::invalid(
                 "body",
@@ -161,7 +162,7 @@ pub async fn add_keyframe(
             pose: j.pose.domain(),
             convention: j.pose_convention.map(Into::into).unwrap_or_default(),
             depth_png,
-            depth_scale: j.depth_scale.unwrap_or(TUM_DEPTH_SCALE),
+            depth_scale: j.depth_scale,
             external_landmarks: j
                 .external_landmarks
                 .iter()
@@ -173,7 +174,7 @@ pub async fn add_keyframe(
                 })
                 .collect(),
         };
-        let (added, times) = a.service.add_keyframe(&map_id, request)?;
+        let (added, times) = a.service.add_keyframe(&map, request)?;
         a.metrics.stages(&times);
         Ok(wire::KeyframeAck {
             keyframe_id: added.keyframe,
@@ -195,16 +196,13 @@ pub async fn add_keyframe(
     responses((status = 200, description = "The map after the removal", body = wire::MapInfo), ApiErrors))]
 pub async fn remove_keyframe(
     State(app): State<Arc<App>>,
+    Extension(authorized): Extension<Authorized>,
     ApiPath((id, keyframe)): ApiPath<(String, String)>,
-    headers: HeaderMap,
 ) -> ApiResult<Json<wire::MapInfo>> {
     let keyframe: u64 = keyframe
         .parse()
         .map_err(|_| invalid("keyframe_id", format!("'{keyframe}' is not a keyframe id (a whole number)")))?;
-    let s = call_map(&app, &headers, Access::Write, "RemoveKeyframe", &id.clone(), move |a| {
-        a.service.remove_keyframe(&id, keyframe)
-    })
-    .await?;
+    let s = call(&app, authorized, MapId(id), move |a, map| a.service.remove_keyframe(&map, keyframe)).await?;
     Ok(Json(s.into()))
 }
 
@@ -216,6 +214,7 @@ pub async fn remove_keyframe(
     responses((status = 200, description = "What the merge did", body = wire::MergeMapsResponse), ApiErrors))]
 pub async fn merge_maps(
     State(app): State<Arc<App>>,
+    Extension(authorized): Extension<Authorized>,
     ApiPath(id): ApiPath<String>,
     headers: HeaderMap,
     req: Request,
@@ -224,8 +223,8 @@ pub async fn merge_maps(
     let limit = app.settings.server.max_request_bytes;
     let body = bytes_within(req, limit, too_large(limit)).await?;
     let j: wire::MergeMapsRequest = json_body(&body)?;
-    let o = call_map(&app, &headers, Access::Write, "MergeMaps", &id.clone(), move |a| {
-        a.service.merge_maps(&id, &j.source_map_id, j.transform.map(Into::into))
+    let o = call(&app, authorized, MapId(id), move |a, map| {
+        a.service.merge_maps(&map, &j.source_map_id, j.transform.map(Into::into))
     })
     .await?;
     Ok(Json(wire::MergeMapsResponse {
@@ -248,12 +247,11 @@ pub async fn merge_maps(
         ApiErrors))]
 pub async fn export_map(
     State(app): State<Arc<App>>,
+    Extension(authorized): Extension<Authorized>,
     ApiPath(id): ApiPath<String>,
-    headers: HeaderMap,
 ) -> ApiResult<Response> {
     let name = id.clone();
-    let bytes =
-        call_map(&app, &headers, Access::Read, "ExportMap", &id.clone(), move |a| a.service.export_map(&id)).await?;
+    let bytes = call(&app, authorized, MapId(id), |a, map| a.service.export_map(&map)).await?;
     Ok((
         [
             (header::CONTENT_TYPE, "application/octet-stream".to_string()),
@@ -272,15 +270,15 @@ pub async fn export_map(
     responses((status = 201, description = "The imported map", body = wire::MapInfo), ApiErrors))]
 pub async fn import_map(
     State(app): State<Arc<App>>,
+    Extension(authorized): Extension<Authorized>,
     ApiPath(id): ApiPath<String>,
     headers: HeaderMap,
     req: Request,
 ) -> ApiResult<(StatusCode, Json<wire::MapInfo>)> {
-    let authorized = authorize(&app, &headers, Access::Write, "ImportMap")?;
     media_type(&headers, MAP_FILE)?;
     let limit = app.settings.server.max_map_bytes;
     let refusal = ApiError::Service(ServiceError::TooLarge { what: "the map file".into(), limit });
     let bytes = bytes_within(req, limit, refusal).await?;
-    let s = call_authorized(&app, authorized, "ImportMap", None, move |a| a.service.import_map(&id, &bytes)).await?;
+    let s = call(&app, authorized, NoMap, move |a, ()| a.service.import_map(&id, &bytes)).await?;
     Ok((StatusCode::CREATED, Json(s.into())))
 }

@@ -29,6 +29,8 @@ use tower::ServiceExt;
 use super::connections::{DeadlineBody, GuardedBody, Listener};
 use super::metrics::CountedBody;
 use crate::server::app::App;
+use crate::server::auth;
+use crate::server::operation::Operation;
 
 pub mod body;
 pub mod cors;
@@ -62,7 +64,7 @@ async fn admission(State(app): State<Arc<App>>, req: Request, next: Next) -> Res
     }
 }
 
-/// `resp` for a request whose body was not read. HTTP/2 resets the request's stream when its body is
+/// `resp` for a request whose body was not read (a refusal by admission or by the key check). HTTP/2 resets the request's stream when its body is
 /// dropped, which stops the client sending it. HTTP/1.1 cannot stop a body in flight: a remainder of at most
 /// [`DRAIN_LIMIT`] is discarded as it arrives (held to the body deadline like any body), a longer or
 /// unknown one ends the connection after the answer.
@@ -86,6 +88,27 @@ fn refuse_unread(req: Request, mut resp: Response) -> Response {
     resp
 }
 
+/// Checks the request's key for its operation ([`Operation::from_http`]) before anything reads the body: a
+/// refusal is answered in the JSON envelope with the body unread ([`refuse_unread`]); otherwise the proof
+/// ([`crate::server::auth::Authorized`]) goes to the handler as a request extension. Routes that are not API
+/// operations pass.
+async fn authorize(State(app): State<Arc<App>>, mut req: Request, next: Next) -> Response {
+    let route = req.extensions().get::<MatchedPath>().map(|m| m.as_str().to_string()).unwrap_or_default();
+    let Some(operation) = Operation::from_http(req.method().as_str(), &route) else {
+        return next.run(req).await;
+    };
+    match app.authorize(auth::request_key(req.headers()).as_deref(), operation) {
+        Ok(authorized) => {
+            req.extensions_mut().insert(authorized);
+            next.run(req).await
+        }
+        Err(e) => {
+            let refusal = plumbing::failed(&app, operation.name(), e).into_response();
+            refuse_unread(req, refusal)
+        }
+    }
+}
+
 async fn observe(State(app): State<Arc<App>>, req: Request, next: Next) -> Response {
     let route = req.extensions().get::<MatchedPath>().map(|m| m.as_str().to_string()).unwrap_or_default();
     let t = Instant::now();
@@ -94,8 +117,14 @@ async fn observe(State(app): State<Arc<App>>, req: Request, next: Next) -> Respo
     resp
 }
 
-async fn no_route(uri: Uri) -> ApiError {
-    ApiError::NoRoute { path: uri.path().to_string() }
+/// Unknown routes are 404 in the JSON envelope; `/ui/`, the console's address with a trailing slash, is sent
+/// to the console (`/ui`, its query kept).
+async fn no_route(uri: Uri) -> Response {
+    if uri.path() == "/ui/" {
+        let to = uri.query().map_or_else(|| "/ui".to_string(), |q| format!("/ui?{q}"));
+        return axum::response::Redirect::permanent(&to).into_response();
+    }
+    ApiError::NoRoute { path: uri.path().to_string() }.into_response()
 }
 
 async fn method_not_allowed(method: Method, uri: Uri) -> ApiError {
@@ -106,7 +135,9 @@ async fn method_not_allowed(method: Method, uri: Uri) -> ApiError {
 pub fn router(app: Arc<App>, origins: OriginPolicy) -> Router {
     let limit = app.settings.server.max_request_bytes;
     let map_limit = app.settings.server.max_map_bytes;
+    // Layers run outermost last-added: the pool's admission, then the key, then the handler.
     let (router, _) = openapi::pool_routes(map_limit)
+        .route_layer(middleware::from_fn_with_state(Arc::clone(&app), authorize))
         .route_layer(middleware::from_fn_with_state(Arc::clone(&app), admission))
         .merge(openapi::plain_routes())
         .route_layer(middleware::from_fn_with_state(Arc::clone(&app), observe))
@@ -240,6 +271,12 @@ mod tests {
             "POST /v1/match",
         ];
         assert_eq!(operations, expected);
+        // Every route of the API is an operation, so its key is checked before its body is read.
+        for op in &operations {
+            let (method, path) = op.split_once(' ').unwrap();
+            let is_operation = crate::server::operation::Operation::from_http(method, path).is_some();
+            assert_eq!(is_operation, path.starts_with("/v1/"), "{op}");
+        }
         // No route of the HTTP transport bypasses the document: axum's plain `.route(` is not used here.
         for (name, src) in [
             ("mod.rs", include_str!("mod.rs")),

@@ -1,70 +1,28 @@
-//! How an HTTP handler reaches the service: the API key from the headers, then [`App::call`] /
-//! [`App::call_map`], with the error logged and wrapped for the one error-to-status mapping. The gRPC
-//! transport's twins carry the same names ([`crate::server::grpc`]).
+//! How an HTTP handler reaches the service. The router's `authorize` middleware ([`super::router`]) checks
+//! the request's key for its operation before anything reads the body and hands the handler the proof
+//! ([`Authorized`], a request extension); the handler reads its body, then [`call`] finds the request's map
+//! once and runs the work on the CPU pool ([`App::call`]), the error logged and wrapped for the one
+//! error-to-status mapping. The gRPC transport's twin is [`crate::server::grpc`]'s `GrpcApi::call`.
 
 use std::sync::Arc;
 
-use axum::http::HeaderMap;
-
-use crate::server::app::App;
-use crate::server::auth::{self, Authorized};
+use crate::server::app::{App, Subject};
+use crate::server::auth::Authorized;
 use crate::server::http::error::{ApiError, ApiResult};
 use crate::service::ServiceError;
-use crate::settings::Access;
 
-pub fn api_key(headers: &HeaderMap) -> Option<String> {
-    let get = |name: &str| headers.get(name).and_then(|v| v.to_str().ok());
-    auth::key_from_headers(get("x-api-key"), get("authorization")).map(str::to_string)
-}
-
-/// Checks the request's key for `access`, answering the refusal in the JSON envelope.
-pub fn authorize(app: &App, headers: &HeaderMap, access: Access, op: &str) -> ApiResult<Authorized> {
-    app.authorize(api_key(headers).as_deref(), access, op).map_err(|e| failed(app, op, e))
-}
-
-fn failed(app: &App, op: &str, e: ServiceError) -> ApiError {
-    app.log_error(op, &e);
+/// Logs `e` for `operation` and wraps it for the one error-to-status mapping.
+pub fn failed(app: &App, operation: &str, e: ServiceError) -> ApiError {
+    app.log_error(operation, &e);
     ApiError::Service(e)
 }
 
-/// Checks the key, then runs `f` on the CPU pool ([`App::call`]).
-pub async fn call<R, F>(app: &Arc<App>, headers: &HeaderMap, access: Access, op: &str, f: F) -> ApiResult<R>
+/// Runs `f` for a request whose key was checked: with its map when `subject` names one ([`App::call`]).
+pub async fn call<S, R, F>(app: &Arc<App>, authorized: Authorized, subject: S, f: F) -> ApiResult<R>
 where
+    S: Subject,
     R: Send + 'static,
-    F: FnOnce(&App) -> Result<R, ServiceError> + Send + 'static,
+    F: FnOnce(&App, S::Held) -> Result<R, ServiceError> + Send + 'static,
 {
-    let authorized = authorize(app, headers, access, op)?;
-    call_authorized(app, authorized, op, None, f).await
-}
-
-/// Checks the key, then runs `f` for a request on map `map` ([`App::call_map`]).
-pub async fn call_map<R, F>(
-    app: &Arc<App>,
-    headers: &HeaderMap,
-    access: Access,
-    op: &str,
-    map: &str,
-    f: F,
-) -> ApiResult<R>
-where
-    R: Send + 'static,
-    F: FnOnce(&App) -> Result<R, ServiceError> + Send + 'static,
-{
-    let authorized = authorize(app, headers, access, op)?;
-    call_authorized(app, authorized, op, Some(map), f).await
-}
-
-/// [`call`] (or [`call_map`] with `map`) for a handler that checked the key before it read the body.
-pub async fn call_authorized<R, F>(
-    app: &Arc<App>,
-    authorized: Authorized,
-    op: &str,
-    map: Option<&str>,
-    f: F,
-) -> ApiResult<R>
-where
-    R: Send + 'static,
-    F: FnOnce(&App) -> Result<R, ServiceError> + Send + 'static,
-{
-    app.call_on(authorized, op, map, f).await.map_err(|e| failed(app, op, e))
+    app.call(authorized, subject, f).await.map_err(|e| failed(app, authorized.operation().name(), e))
 }

@@ -133,8 +133,17 @@ impl Shared {
         PathBuf::from(format!("{}/{}", self.url, path))
     }
 
+    /// What a failed call on `path` means for a client: the bucket is missing (named), or the storage did
+    /// not complete the call and a retry can succeed. The object and the storage's answer go to the log.
     pub(super) fn io(&self, path: &ObjectPath, e: object_store::Error) -> MapError {
-        MapError::Io { path: self.name(path), source: std::io::Error::other(e) }
+        let detail = format!("{}: {e}", self.name(path).display());
+        // S3 answers a call on a bucket that does not exist with the error code NoSuchBucket, which
+        // object_store keeps in its message.
+        if detail.contains("NoSuchBucket") {
+            let bucket = self.url.split_once("://").map_or(self.url.as_str(), |(_, b)| b).to_string();
+            return MapError::NoBucket { bucket };
+        }
+        MapError::StorageUnavailable { detail }
     }
 
     pub(super) fn corrupt(&self, path: &ObjectPath, reason: impl Into<String>) -> MapError {
@@ -194,6 +203,23 @@ impl Shared {
         match self.get_with(path, GetOptions { if_none_match: Some(known), ..Default::default() }).await {
             Ok(got) => Ok(Some(got)),
             Err(object_store::Error::NotModified { .. }) => Ok(None),
+            Err(e) => Err(e),
+        }
+    }
+
+    /// PUTs `bytes` as a new object at `path`, a name no other write uses (it carries a nonce). An object
+    /// already there is this write's own, from an attempt whose answer was lost and that the client retried:
+    /// the write stands when the stored bytes are `bytes`.
+    pub(super) async fn put_new(&self, path: &ObjectPath, bytes: Vec<u8>) -> Result<(), object_store::Error> {
+        match self.put(path, bytes.clone(), PutMode::Create).await {
+            Ok(_) => Ok(()),
+            Err(e @ object_store::Error::AlreadyExists { .. }) => match self.get(path).await {
+                Ok((stored, _)) if stored == bytes => {
+                    tracing::info!(object = %path, "a PUT whose answer was lost had been applied; kept");
+                    Ok(())
+                }
+                _ => Err(e),
+            },
             Err(e) => Err(e),
         }
     }

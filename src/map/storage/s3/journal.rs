@@ -155,7 +155,7 @@ impl MapJournal for ObjectJournal {
         let s = Arc::clone(&self.shared);
         let name = format!("segments/{seq:020}-{}.rec", nonce());
         let path = s.object(&self.id, &name);
-        s.block_on(s.put(&path, encode_segment(seq, record)?, PutMode::Create)).map_err(|e| s.io(&path, e))?;
+        s.block_on(s.put_new(&path, encode_segment(seq, record)?)).map_err(|e| s.io(&path, e))?;
         let mut next = self.manifest.clone();
         // The manifest names an object of this format from now on (objects carry their own versions).
         next.format_version = FORMAT_VERSION;
@@ -193,7 +193,7 @@ impl MapJournal for ObjectJournal {
         let s = Arc::clone(&self.shared);
         let name = format!("snapshots/{:020}-{}.bin", data.version, nonce());
         let path = s.object(&self.id, &name);
-        s.block_on(s.put(&path, encode_snapshot(data)?, PutMode::Create)).map_err(|e| s.io(&path, e))?;
+        s.block_on(s.put_new(&path, encode_snapshot(data)?)).map_err(|e| s.io(&path, e))?;
         // The dump is an optimisation for other replicas: a failed upload leaves the map without one.
         let index = s.block_on(s.upload_index(&self.id, data.version, &self.cache_dir)).unwrap_or_else(|e| {
             tracing::warn!(map = %self.id, error = %e, "cannot upload the index dump; replicas will rebuild it");

@@ -182,6 +182,10 @@ impl MapBackend for ObjectStorageBackend {
         format!("{}/{}", self.shared.url, self.shared.root)
     }
 
+    fn is_remote(&self) -> bool {
+        true
+    }
+
     /// Maps are the prefixes with a manifest (a prefix without one is a create or delete that did not finish).
     fn list(&self) -> Result<Vec<String>, MapError> {
         let s = &self.shared;

@@ -1,0 +1,195 @@
+//! A frame's way in: its source (an image or a client's keypoints) checked and described, its intrinsics
+//! checked. Describe is this alone; MatchPair, Localize and AddKeyframe start here.
+
+use super::core::Service;
+use super::error::ServiceError;
+use crate::camera::{validate_camera, Camera, Distortion};
+use crate::decode::check_limits;
+use crate::error::PoseError;
+use crate::features::{self, Features, Keypoint};
+use crate::pipeline::StageTimes;
+
+/// Keypoints with FREAK descriptors computed by a client (see the client contract in the proto).
+#[derive(Debug, Clone, Default)]
+pub struct KeypointsInput {
+    pub width: u32,
+    pub height: u32,
+    pub keypoints: Vec<Keypoint>,
+    /// 64 bytes per keypoint.
+    pub descriptors: Vec<u8>,
+    /// The model the client targets, if it says.
+    pub model_id: Option<String>,
+}
+
+/// Where a frame's features come from.
+#[derive(Debug, Clone)]
+pub enum FrameSource {
+    /// PNG or JPEG bytes.
+    Image(Vec<u8>),
+    Keypoints(KeypointsInput),
+}
+
+/// A frame with its intrinsics (required to estimate a pose, except by Localize, which estimates an unknown
+/// focal length) and its lens distortion.
+#[derive(Debug, Clone)]
+pub struct FrameInput {
+    pub source: FrameSource,
+    /// As the client gave it: 0 for what it left out ([`Camera::with_defaults`] fills the defaults).
+    pub camera: Option<Camera>,
+    /// The keypoints are undistorted with it before constellations, triangulation and PnP.
+    pub distortion: Distortion,
+}
+
+/// Keypoints and embeddings of one frame.
+#[derive(Debug, Clone)]
+pub struct Description {
+    pub features: Features,
+    /// `[N, dim]`, row-major, unit norm.
+    pub embeddings: Vec<f32>,
+    pub dim: usize,
+    pub model_id: String,
+    pub times: StageTimes,
+}
+
+impl Service {
+    fn features(&self, source: FrameSource, times: &mut StageTimes) -> Result<Features, ServiceError> {
+        self.check_source(&source)?;
+        match source {
+            FrameSource::Image(bytes) => Ok(self.describer.extract(&bytes, times)?),
+            FrameSource::Keypoints(k) => {
+                if let Some(m) = k.model_id.as_deref().filter(|m| !m.is_empty()) {
+                    if m != self.model_id() {
+                        return Err(ServiceError::ModelMismatch {
+                            client: m.to_string(),
+                            server: self.model_id().to_string(),
+                        });
+                    }
+                }
+                Ok(times.time("validate", || {
+                    features::from_precomputed(k.width, k.height, k.keypoints, &k.descriptors, &self.keypoint_limits)
+                })?)
+            }
+        }
+    }
+
+    /// Features and embeddings of a frame; with a lens (`camera`, `distortion`), the keypoints are undistorted
+    /// first, so that constellations, triangulation and PnP see a pinhole camera's.
+    pub(super) fn describe_source(
+        &self,
+        source: FrameSource,
+        lens: Option<(&Camera, &Distortion)>,
+    ) -> Result<Description, ServiceError> {
+        let mut times = StageTimes::default();
+        let mut features = self.features(source, &mut times)?;
+        if let Some((cam, distortion)) = lens.filter(|(_, d)| !d.is_none()) {
+            times.time("undistort", || -> Result<(), ServiceError> {
+                let moved = distortion.undistort(cam, &features.points())?;
+                // A keypoint whose undistorted position leaves the image (the far corners of a wide lens, or
+                // a point the model does not invert) is dropped: stored keyframes keep the keypoint contract
+                // (inside the image), so re-embedding and client keypoint checks hold for them.
+                let inside = |x: f32, y: f32| {
+                    x.is_finite()
+                        && y.is_finite()
+                        && (0.0..=(cam.width - 1) as f32).contains(&x)
+                        && (0.0..=(cam.height - 1) as f32).contains(&y)
+                };
+                let old = std::mem::take(&mut features.keypoints);
+                let descriptors = std::mem::take(&mut features.descriptors);
+                for ((mut k, d), (x, y)) in old.into_iter().zip(descriptors).zip(moved) {
+                    if inside(x, y) {
+                        (k.x, k.y) = (x, y);
+                        features.keypoints.push(k);
+                        features.descriptors.push(d);
+                    }
+                }
+                Ok(())
+            })?;
+        }
+        let d = self.describer.embed(features, &mut times)?;
+        Ok(Description {
+            features: d.features,
+            embeddings: d.embeddings,
+            dim: self.dim(),
+            model_id: self.model_id().to_string(),
+            times,
+        })
+    }
+
+    /// Keypoints, FREAK descriptors and SConE embeddings of a frame.
+    pub fn describe(&self, source: FrameSource) -> Result<Description, ServiceError> {
+        self.describe_source(source, None)
+    }
+
+    /// The frame's intrinsics with their defaults, checked. Called after [`Service::check_source`], so a
+    /// frame whose image cannot be read is reported as such, not as intrinsics without a size.
+    pub(super) fn camera(frame: &FrameInput, field: &str) -> Result<Camera, ServiceError> {
+        let cam = frame.camera.ok_or_else(|| ServiceError::invalid(field, "intrinsics are required"))?.with_defaults();
+        if cam.focal_unknown() {
+            return Err(ServiceError::invalid(
+                field,
+                "fx and fy are required here (only Localize estimates an unknown focal length)",
+            ));
+        }
+        Self::checked(cam, field)
+    }
+
+    pub(super) fn checked(cam: Camera, field: &str) -> Result<Camera, ServiceError> {
+        validate_camera(&cam).map_err(|e| Self::intrinsics_error(e, field))?;
+        Ok(cam)
+    }
+
+    pub(super) fn intrinsics_error(e: PoseError, field: &str) -> ServiceError {
+        match e {
+            PoseError::Intrinsics { reason } => ServiceError::invalid(field, reason),
+            other => ServiceError::Pose(other),
+        }
+    }
+
+    /// A Localize query's intrinsics: as [`Service::camera`], except that the focal length may be unknown
+    /// (`fx`, `fy` absent, or no intrinsics at all: then the size is the frame's and the principal point its
+    /// centre). An unknown focal length with a distortion model is refused: undistorting needs the focal length.
+    pub(super) fn query_camera(frame: &FrameInput, size: (u32, u32), field: &str) -> Result<Camera, ServiceError> {
+        let given =
+            frame.camera.unwrap_or(Camera { fx: 0.0, fy: 0.0, cx: 0.0, cy: 0.0, width: size.0, height: size.1 });
+        let cam = given.with_defaults();
+        if !cam.focal_unknown() {
+            return Self::checked(cam, field);
+        }
+        if !frame.distortion.is_none() {
+            return Err(ServiceError::invalid(field, "a distortion model needs fx and fy (the focal length)"));
+        }
+        Self::checked(cam.with_focal(1.0), field).map(|_| cam)
+    }
+
+    /// Cheap checks of a frame's source before anything else looks at the frame: an image's size and header
+    /// (format, dimensions; no decoding), a keypoint set's image size against the same image limits.
+    pub(super) fn check_source(&self, source: &FrameSource) -> Result<(), ServiceError> {
+        let limits = &self.describer.limits;
+        match source {
+            FrameSource::Image(bytes) => {
+                check_limits(bytes, limits)?;
+            }
+            FrameSource::Keypoints(k) => {
+                limits.check_dimensions(
+                    k.width,
+                    k.height,
+                    ["keypoint set width", "keypoint set height", "keypoint set pixels"],
+                )?;
+            }
+        }
+        Ok(())
+    }
+
+    pub(super) fn check_frame_size(d: &Description, cam: &Camera, field: &str) -> Result<(), ServiceError> {
+        if d.features.width != cam.width || d.features.height != cam.height {
+            return Err(ServiceError::invalid(
+                field,
+                format!(
+                    "intrinsics are for {}x{} but the frame is {}x{}",
+                    cam.width, cam.height, d.features.width, d.features.height
+                ),
+            ));
+        }
+        Ok(())
+    }
+}
