@@ -235,19 +235,30 @@ impl Pose {
 
     /// Finite values, a translation within [`MAX_COORDINATE`] on each axis, and a quaternion of unit length
     /// (within 1e-3).
-    pub fn validate(&self) -> Result<(), String> {
+    pub fn validate(&self) -> Result<(), PoseProblem> {
         if !self.translation.iter().chain(self.rotation.iter()).all(|v| v.is_finite()) {
-            return Err("pose has a non-finite value".into());
+            return Err(PoseProblem::NonFinite);
         }
         if let Some(t) = self.translation.iter().find(|t| t.abs() > MAX_COORDINATE) {
-            return Err(format!("pose translation {t} is beyond {MAX_COORDINATE} map units"));
+            return Err(PoseProblem::TooFar { coordinate: *t });
         }
         let n = self.rotation.iter().map(|v| v * v).sum::<f64>().sqrt();
         if (n - 1.0).abs() > 1e-3 {
-            return Err(format!("pose quaternion has norm {n:.6}, expected 1"));
+            return Err(PoseProblem::NotUnit { norm: n });
         }
         Ok(())
     }
+}
+
+/// Why a pose (or the rotation and translation of a transform) is refused; the caller names the field.
+#[derive(Debug, Clone, Copy, PartialEq, thiserror::Error)]
+pub enum PoseProblem {
+    #[error("has a non-finite value")]
+    NonFinite,
+    #[error("translation {coordinate} is beyond {MAX_COORDINATE} map units")]
+    TooFar { coordinate: f64 },
+    #[error("quaternion has norm {norm:.6}, expected 1")]
+    NotUnit { norm: f64 },
 }
 
 /// A similarity between two world frames, `X_to = scale * R * X_from + t` (R a unit quaternion x, y, z, w):
@@ -268,7 +279,7 @@ impl Similarity {
     /// As [`Pose::validate`] for the rotation and translation, and a finite scale within [`SCALE_RANGE`].
     pub fn checked(&self) -> Result<nalgebra::Similarity3<f64>, String> {
         let pose = Pose { translation: self.translation, rotation: self.rotation };
-        pose.validate().map_err(|e| e.replace("pose", "transform"))?;
+        pose.validate().map_err(|problem| format!("transform {problem}"))?;
         if !(self.scale.is_finite() && self.scale > SCALE_RANGE.0 && self.scale < SCALE_RANGE.1) {
             return Err(format!(
                 "transform scale must lie in ({}, {}) (got {})",

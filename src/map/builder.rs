@@ -311,7 +311,8 @@ pub fn plan(data: &MapData, input: &KeyframeInput, params: &BuildSettings) -> Re
         return Err(MapError::KeyframeExists { map: data.meta.id.clone(), keyframe: input.id });
     }
     let pose = Pose::from_isometry(&input.pose);
-    pose.validate().map_err(|reason| MapError::InvalidInput { field: "pose".into(), reason })?;
+    pose.validate()
+        .map_err(|problem| MapError::InvalidInput { field: "pose".into(), reason: format!("pose {problem}") })?;
     crate::camera::validate_camera(&input.camera)?;
     let keyframe = || Keyframe {
         id: input.id,

@@ -330,7 +330,7 @@ impl MapData {
                     keyframe.embeddings.len()
                 ));
             }
-            keyframe.pose.validate()?;
+            keyframe.pose.validate().map_err(|problem| format!("keyframe {} pose {problem}", keyframe.id))?;
             sizes.insert(keyframe.id, n);
         }
         let mut fresh_landmarks = std::collections::HashSet::new();

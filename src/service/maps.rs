@@ -72,7 +72,7 @@ impl Service {
         request: KeyframeRequest,
     ) -> Result<(KeyframeAdded, StageTimes), ServiceError> {
         let store = self.store()?;
-        request.pose.validate().map_err(|reason| ServiceError::invalid("pose", reason))?;
+        request.pose.validate().map_err(|problem| ServiceError::invalid("pose", format!("pose {problem}")))?;
         let depth_scale = request.depth_scale.unwrap_or(TUM_DEPTH_SCALE);
         if !(depth_scale.is_finite() && depth_scale > 0.0) {
             return Err(ServiceError::invalid("depth_scale", format!("{depth_scale} must be positive")));

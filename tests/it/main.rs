@@ -19,5 +19,6 @@ mod raw;
 mod replicas;
 mod restarts;
 mod service;
+mod storage_faults;
 #[path = "../../src/test_dir.rs"]
 mod test_dir;

@@ -28,7 +28,8 @@ fn free_port() -> u16 {
     TcpListener::bind("127.0.0.1:0").unwrap().local_addr().unwrap().port()
 }
 
-struct Replica {
+/// A `scone serve` process on object storage (credentials and region for moto).
+pub(crate) struct Replica {
     name: &'static str,
     child: Child,
     http_port: u16,
@@ -37,6 +38,11 @@ struct Replica {
 
 impl Replica {
     fn start(name: &'static str, moto: &Moto, bucket: &str, dir: &Path, freshness_ms: u64) -> Self {
+        Self::start_on(name, &moto.endpoint, bucket, dir, freshness_ms)
+    }
+
+    /// A replica on `bucket` behind the S3 API at `endpoint` (moto, or a proxy in front of it).
+    pub(crate) fn start_on(name: &'static str, endpoint: &str, bucket: &str, dir: &Path, freshness_ms: u64) -> Self {
         let (http_port, grpc_port) = (free_port(), free_port());
         let mut child = Command::new(env!("CARGO_BIN_EXE_scone"))
             .current_dir(env!("CARGO_MANIFEST_DIR"))
@@ -47,7 +53,7 @@ impl Replica {
                 ("SCONE_STORE__BACKEND__KIND", "s3".into()),
                 ("SCONE_STORE__BACKEND__BUCKET", bucket.into()),
                 ("SCONE_STORE__BACKEND__PREFIX", PREFIX.into()),
-                ("SCONE_STORE__BACKEND__ENDPOINT", moto.endpoint.clone()),
+                ("SCONE_STORE__BACKEND__ENDPOINT", endpoint.to_string()),
                 ("SCONE_STORE__BACKEND__ALLOW_HTTP", "true".into()),
                 ("SCONE_STORE__CACHE__FRESHNESS_MS", freshness_ms.to_string()),
                 // About two of this test's maps fit: loading a third evicts one.
@@ -66,7 +72,7 @@ impl Replica {
         Self { name, child, http_port, grpc_port }
     }
 
-    fn http(&self) -> String {
+    pub(crate) fn http(&self) -> String {
         format!("http://127.0.0.1:{}", self.http_port)
     }
 
@@ -147,7 +153,7 @@ fn start_nginx(dir: &Path, replicas: &[&Replica]) -> Nginx {
     Nginx { child, http: format!("http://127.0.0.1:{http_port}"), grpc: format!("http://127.0.0.1:{grpc_port}") }
 }
 
-async fn wait_ready(http: &reqwest::Client, base: &str) {
+pub(crate) async fn wait_ready(http: &reqwest::Client, base: &str) {
     let t = Instant::now();
     while http.get(format!("{base}/readyz")).send().await.map(|r| r.status() != 200).unwrap_or(true) {
         assert!(t.elapsed() < Duration::from_secs(90), "{base} not ready");

@@ -99,6 +99,21 @@ impl std::fmt::Debug for ObjectStorageBackend {
     }
 }
 
+/// The object store's own retries of a failed call: a few, within about 2 s, so that storage that is down
+/// is answered UNAVAILABLE (retry later) within the request deadline (`server.request_timeout_ms`, 10 s by
+/// default) instead of holding a CPU worker for minutes (object_store's default: 10 retries within 3 minutes).
+fn retries() -> object_store::RetryConfig {
+    object_store::RetryConfig {
+        backoff: object_store::BackoffConfig {
+            init_backoff: std::time::Duration::from_millis(100),
+            max_backoff: std::time::Duration::from_secs(1),
+            base: 2.0,
+        },
+        max_retries: 3,
+        retry_timeout: std::time::Duration::from_secs(4),
+    }
+}
+
 fn writer_id() -> String {
     let host = std::env::var("HOSTNAME")
         .ok()
@@ -126,7 +141,8 @@ impl ObjectStorageBackend {
         builder = builder
             .with_bucket_name(&config.bucket)
             .with_conditional_put(S3ConditionalPut::ETagMatch)
-            .with_allow_http(config.allow_http);
+            .with_allow_http(config.allow_http)
+            .with_retry(retries());
         if let Some(r) = &config.region {
             builder = builder.with_region(r);
         }
