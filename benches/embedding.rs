@@ -1,6 +1,6 @@
 //! SConE on a 640x480 photograph with 1,000 keypoints, against FAST + FREAK alone in the same run:
-//! the whole path (extraction + constellations + ONNX Runtime), inference alone at 1 and 2 intra-op
-//! threads, and matching 1,000 x 1,000 SConE embeddings (L2) against FREAK (Hamming), brute force, with the
+//! the whole path (extraction, the model's context: constellations or ring contexts, ONNX Runtime), inference
+//! alone at 1 and 2 intra-op threads (with the constellations it builds, for a constellation model), and matching 1,000 x 1,000 SConE embeddings (L2) against FREAK (Hamming), brute force, with the
 //! plain and the same-corner ratio test, and MatchPair's matchers (freak, rerank, scale-aware) between the
 //! photograph and a mild and a 2x zoomed view of it. Also the relative-pose estimators (plain RANSAC against USAC_ACCURATE)
 //! on 300 synthetic correspondences, 25 % outliers.
@@ -13,11 +13,11 @@ use std::path::PathBuf;
 use criterion::{criterion_group, criterion_main, Criterion};
 
 use scone::camera::Camera;
-use scone::constellation;
 use scone::decode::{decode_grey, ImageLimitSettings};
 use scone::embedding::{default_model_path, Embedder, EmbedderSettings};
 use scone::features::{self, ExtractorSettings};
 use scone::matching::{match_hamming, match_l2, match_scone, RatioTest, SconeFrame, SconeMatcher};
+use scone::pipeline;
 use scone::pose::{relative_pose, EssentialMethod, RansacSettings};
 
 fn bench(c: &mut Criterion) {
@@ -28,7 +28,6 @@ fn bench(c: &mut Criterion) {
     let img = decode_grey(&bytes, &ImageLimitSettings::default()).unwrap();
     let cfg = ExtractorSettings { max_keypoints: 1000, ..ExtractorSettings::default() };
     let f = features::extract(&img, &cfg).unwrap();
-    let cons = constellation::build(&f.keypoints, 20);
     eprintln!("{} keypoints, model {}", f.len(), model.display());
     let mut g = c.benchmark_group("scone_640x480_1000kp");
     g.bench_function("fast_freak", |b| b.iter(|| features::extract(black_box(&img), &cfg).unwrap()));
@@ -36,16 +35,17 @@ fn bench(c: &mut Criterion) {
         let e =
             Embedder::load(&EmbedderSettings { model: model.clone(), intra_threads: threads, ..Default::default() })
                 .unwrap();
-        g.bench_function(format!("inference_{threads}thread"), |b| b.iter(|| e.embed(black_box(&f), &cons).unwrap()));
+        let f = pipeline::extract_for(&img, &cfg, &e).unwrap();
+        g.bench_function(format!("inference_{threads}thread"), |b| b.iter(|| e.embed(black_box(&f)).unwrap()));
+        // The name predates ring-context models: the whole SConE path, whichever context the model reads.
         g.bench_function(format!("fast_freak_constellations_inference_{threads}thread"), |b| {
             b.iter(|| {
-                let f = features::extract(black_box(&img), &cfg).unwrap();
-                let c = constellation::build(&f.keypoints, 20);
-                e.embed(&f, &c).unwrap()
+                let f = pipeline::extract_for(black_box(&img), &cfg, &e).unwrap();
+                e.embed(&f).unwrap()
             })
         });
         if threads == 1 {
-            let emb = e.embed(&f, &cons).unwrap();
+            let emb = e.embed(&f).unwrap();
             g.bench_function("match_scone_l2_1000x1000", |b| {
                 b.iter(|| match_l2(black_box(&emb), &emb, e.dim(), &RatioTest::plain(0.8), &[]).unwrap())
             });
@@ -63,9 +63,8 @@ fn bench(c: &mut Criterion) {
             // MatchPair's matchers on two views of the photograph: a mild change (10 degrees, 1.1x: rerank's
             // path) and a zoom of 2 (scale-aware answers with union there).
             let frame = |img: &scone::decode::GreyImage| {
-                let f = features::extract(img, &cfg).unwrap();
-                let c = constellation::build(&f.keypoints, 20);
-                let emb = e.embed(&f, &c).unwrap();
+                let f = pipeline::extract_for(img, &cfg, &e).unwrap();
+                let emb = e.embed(&f).unwrap();
                 (f, emb)
             };
             let (fa, ea) = frame(&img);

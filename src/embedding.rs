@@ -1,17 +1,19 @@
 //! SConE embeddings with ONNX Runtime: one call per image (or per batch of keypoints) through `ort`.
 //!
-//! The model contract (checked when the model loads; any mismatch fails with a message naming it):
+//! The model contract (checked when the model loads; any mismatch fails with a message naming it). Every
+//! model reads each keypoint's FREAK bytes, `descriptors` uint8 [N, 64], and one of two contexts
+//! ([`ModelInputs`]), told apart by its input names:
 //!
-//! | input | dtype | shape |
-//! |---|---|---|
-//! | `descriptors` | uint8 | [N, 64] FREAK bytes |
-//! | `keypoints` | float32 | [N, 2] central angle (degrees), size (pixels) |
-//! | `neighbours` | int64 | [N, k] |
-//! | `mask` | float32 | [N, k] |
-//! | `relative` | float32 | [N, k, 4] |
+//! | context | input | dtype | shape |
+//! |---|---|---|---|
+//! | constellation (the paper's) | `keypoints` | float32 | [N, 2] central angle (degrees), size (pixels) |
+//! | | `neighbours` | int64 | [N, k] |
+//! | | `mask` | float32 | [N, k] |
+//! | | `relative` | float32 | [N, k, 4] |
+//! | ring ([`crate::context`]) | `context` | uint8 | [N, 113] |
 //!
-//! Output `embeddings`, float32 [N, D] (D = 48 for the shipped model), L2-normalised. All normalisation of the
-//! raw values happens inside the graph.
+//! Output `embeddings`, float32 [N, D] (D = 48 for the shipped models), L2-normalised. All normalisation of
+//! the raw values happens inside the graph.
 //!
 //! Concurrency: `Session::run` needs exclusive access, so the embedder owns a small pool of sessions, one per
 //! CPU worker of the service, each with its own intra-op thread count. Workers take a free session without
@@ -28,7 +30,8 @@ use parking_lot::Mutex;
 use serde::{Deserialize, Serialize};
 use sha2::{Digest, Sha256};
 
-use crate::constellation::{Constellations, GEOMETRY_DIM};
+use crate::constellation::{self, Constellations, GEOMETRY_DIM};
+use crate::context::SAMPLES;
 use crate::error::EmbeddingError;
 use crate::features::{Features, DESCRIPTOR_BYTES};
 
@@ -96,10 +99,19 @@ fn environment(lib: &Path) -> Result<&'static ort::environment::Environment, Emb
         .map_err(|reason| EmbeddingError::Runtime { path: lib.to_path_buf(), reason: reason.clone() })
 }
 
+/// What a model reads besides each keypoint's FREAK bytes.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum ModelInputs {
+    /// The paper's constellation: each keypoint's `k` nearest keypoints with their relative geometry.
+    Constellation { k: usize },
+    /// The ring context: the image around each keypoint at fixed places in its frame ([`crate::context`]).
+    RingContext,
+}
+
 /// Loaded model with a pool of sessions.
 pub struct Embedder {
     sessions: Vec<Mutex<Session>>,
-    k: usize,
+    inputs: ModelInputs,
     dim: usize,
     model_id: String,
     path: PathBuf,
@@ -110,7 +122,7 @@ impl std::fmt::Debug for Embedder {
         f.debug_struct("Embedder")
             .field("path", &self.path)
             .field("model_id", &self.model_id)
-            .field("k", &self.k)
+            .field("inputs", &self.inputs)
             .field("dim", &self.dim)
             .field("sessions", &self.sessions.len())
             .finish()
@@ -127,8 +139,9 @@ fn tensor_spec(path: &Path, name: &str, ty: &ValueType) -> Result<(TensorElement
     }
 }
 
-/// Checks names, element types and static dimensions; returns (k, embedding dimension).
-fn check_contract(path: &Path, session: &Session) -> Result<(usize, usize), EmbeddingError> {
+/// Checks names, element types and static dimensions; returns what the model reads and its embedding
+/// dimension.
+fn check_contract(path: &Path, session: &Session) -> Result<(ModelInputs, usize), EmbeddingError> {
     let err = |reason: String| EmbeddingError::Contract { path: path.into(), reason };
     let inputs: Vec<(String, TensorElementType, Vec<i64>)> = session
         .inputs()
@@ -156,23 +169,33 @@ fn check_contract(path: &Path, session: &Session) -> Result<(usize, usize), Embe
         }
         Ok(())
     };
-    if inputs.len() != 5 {
-        return Err(err(format!("expected 5 inputs, found {}", inputs.len())));
-    }
     let d = expect("descriptors", TensorElementType::Uint8, 2)?;
     fixed("descriptors", &d, 1, DESCRIPTOR_BYTES as i64)?;
-    let kp = expect("keypoints", TensorElementType::Float32, 2)?;
-    fixed("keypoints", &kp, 1, 2)?;
-    let nb = expect("neighbours", TensorElementType::Int64, 2)?;
-    if nb[1] < 1 {
-        return Err(err(format!("input 'neighbours' needs a static k, found {}", nb[1])));
-    }
-    let k = nb[1];
-    let m = expect("mask", TensorElementType::Float32, 2)?;
-    fixed("mask", &m, 1, k)?;
-    let rel = expect("relative", TensorElementType::Float32, 3)?;
-    fixed("relative", &rel, 1, k)?;
-    fixed("relative", &rel, 2, GEOMETRY_DIM as i64)?;
+    let kind = if inputs.iter().any(|i| i.0 == "context") {
+        if inputs.len() != 2 {
+            return Err(err(format!("a ring-context model has 2 inputs, found {}", inputs.len())));
+        }
+        let c = expect("context", TensorElementType::Uint8, 2)?;
+        fixed("context", &c, 1, SAMPLES as i64)?;
+        ModelInputs::RingContext
+    } else {
+        if inputs.len() != 5 {
+            return Err(err(format!("expected 5 inputs, found {}", inputs.len())));
+        }
+        let kp = expect("keypoints", TensorElementType::Float32, 2)?;
+        fixed("keypoints", &kp, 1, 2)?;
+        let nb = expect("neighbours", TensorElementType::Int64, 2)?;
+        if nb[1] < 1 {
+            return Err(err(format!("input 'neighbours' needs a static k, found {}", nb[1])));
+        }
+        let k = nb[1];
+        let m = expect("mask", TensorElementType::Float32, 2)?;
+        fixed("mask", &m, 1, k)?;
+        let rel = expect("relative", TensorElementType::Float32, 3)?;
+        fixed("relative", &rel, 1, k)?;
+        fixed("relative", &rel, 2, GEOMETRY_DIM as i64)?;
+        ModelInputs::Constellation { k: k as usize }
+    };
     let out = session.outputs();
     if out.len() != 1 || out[0].name() != "embeddings" {
         return Err(err(format!(
@@ -184,7 +207,7 @@ fn check_contract(path: &Path, session: &Session) -> Result<(usize, usize), Embe
     if ty != TensorElementType::Float32 || shape.len() != 2 || shape[1] < 1 {
         return Err(err(format!("output 'embeddings' is {ty:?} {shape:?}, expected float32 [N, D]")));
     }
-    Ok((k as usize, shape[1] as usize))
+    Ok((kind, shape[1] as usize))
 }
 
 impl Embedder {
@@ -213,8 +236,8 @@ impl Embedder {
             dims = Some(check_contract(&path, &session)?);
             sessions.push(Mutex::new(session));
         }
-        let (k, dim) = dims.expect("at least one session");
-        let embedder = Self { sessions, k, dim, model_id, path };
+        let (inputs, dim) = dims.expect("at least one session");
+        let embedder = Self { sessions, inputs, dim, model_id, path };
         embedder.warm_up()?;
         Ok(embedder)
     }
@@ -235,18 +258,32 @@ impl Embedder {
                 })
                 .collect(),
             descriptors: (0..n).map(|i| [i as u8; DESCRIPTOR_BYTES]).collect(),
+            context: (0..n).map(|i| [(i * 3) as u8; SAMPLES]).collect(),
         };
-        let c = crate::constellation::build(&features.keypoints, self.k);
+        let context = self.context_of(&features)?;
         for s in &self.sessions {
             let mut session = s.lock();
-            run(&mut session, &features, &c, self.dim)?;
+            run(&mut session, &features, &context, self.dim)?;
         }
         Ok(())
     }
 
-    /// Constellation size the model was exported for.
+    /// What the model reads besides the FREAK bytes.
+    pub fn inputs(&self) -> ModelInputs {
+        self.inputs
+    }
+
+    /// Whether the model reads the ring context ([`crate::context`]), which then must come with the features.
+    pub fn needs_context(&self) -> bool {
+        self.inputs == ModelInputs::RingContext
+    }
+
+    /// Constellation size the model was exported for (0 for a ring-context model).
     pub fn k(&self) -> usize {
-        self.k
+        match self.inputs {
+            ModelInputs::Constellation { k } => k,
+            ModelInputs::RingContext => 0,
+        }
     }
 
     /// Embedding dimension.
@@ -263,31 +300,47 @@ impl Embedder {
         &self.path
     }
 
+    /// The context the model reads, built for `features` (constellations) or taken from them (ring contexts,
+    /// which must be there).
+    fn context_of<'a>(&self, features: &'a Features) -> Result<Context<'a>, EmbeddingError> {
+        match self.inputs {
+            ModelInputs::Constellation { k } => Ok(Context::Constellations(constellation::build(&features.keypoints, k))),
+            ModelInputs::RingContext if features.context.len() == features.len() => {
+                Ok(Context::Rings(features.context.as_flattened()))
+            }
+            ModelInputs::RingContext => Err(EmbeddingError::Input {
+                reason: format!(
+                    "the model reads each keypoint's ring context: {} contexts for {} keypoints",
+                    features.context.len(),
+                    features.len()
+                ),
+            }),
+        }
+    }
+
     /// Embeddings of every keypoint, row-major `[N, dim]`.
-    pub fn embed(&self, features: &Features, constellations: &Constellations) -> Result<Vec<f32>, EmbeddingError> {
-        if constellations.k != self.k {
-            return Err(EmbeddingError::Input {
-                reason: format!("constellations have k = {}, the model expects {}", constellations.k, self.k),
-            });
-        }
-        if constellations.len() != features.len() {
-            return Err(EmbeddingError::Input {
-                reason: format!("{} constellations for {} keypoints", constellations.len(), features.len()),
-            });
-        }
+    pub fn embed(&self, features: &Features) -> Result<Vec<f32>, EmbeddingError> {
+        let context = self.context_of(features)?;
         if features.is_empty() {
             return Ok(Vec::new());
         }
         // Prefer an idle session; otherwise wait for the one this thread hashes to.
         for s in &self.sessions {
             if let Some(mut session) = s.try_lock() {
-                return run(&mut session, features, constellations, self.dim);
+                return run(&mut session, features, &context, self.dim);
             }
         }
         let slot = thread_slot() % self.sessions.len();
         let mut session = self.sessions[slot].lock();
-        run(&mut session, features, constellations, self.dim)
+        run(&mut session, features, &context, self.dim)
     }
+}
+
+/// A model's context input for one frame.
+enum Context<'a> {
+    Constellations(Constellations),
+    /// `SAMPLES` bytes per keypoint.
+    Rings(&'a [u8]),
 }
 
 fn thread_slot() -> usize {
@@ -297,27 +350,37 @@ fn thread_slot() -> usize {
     h.finish() as usize
 }
 
-fn run(session: &mut Session, f: &Features, c: &Constellations, dim: usize) -> Result<Vec<f32>, EmbeddingError> {
+fn run(session: &mut Session, f: &Features, context: &Context, dim: usize) -> Result<Vec<f32>, EmbeddingError> {
     let n = f.len();
-    let k = c.k;
     let inference = |e: ort::Error| EmbeddingError::Inference(e.to_string());
     let descriptors =
         Tensor::from_array(([n, DESCRIPTOR_BYTES], f.descriptors.as_flattened().to_vec())).map_err(inference)?;
-    let keypoints: Vec<f32> = f.keypoints.iter().flat_map(|p| [p.angle, p.size]).collect();
-    let keypoints = Tensor::from_array(([n, 2], keypoints)).map_err(inference)?;
-    let neighbours =
-        Tensor::from_array(([n, k], c.neighbours.iter().map(|&j| j as i64).collect::<Vec<_>>())).map_err(inference)?;
-    let mask = Tensor::from_array(([n, k], c.mask.iter().map(|&m| m as f32).collect::<Vec<_>>())).map_err(inference)?;
-    let relative = Tensor::from_array(([n, k, GEOMETRY_DIM], c.relative.as_flattened().to_vec())).map_err(inference)?;
-    let outputs = session
-        .run(ort::inputs![
-            "descriptors" => descriptors,
-            "keypoints" => keypoints,
-            "neighbours" => neighbours,
-            "mask" => mask,
-            "relative" => relative,
-        ])
-        .map_err(inference)?;
+    let outputs = match context {
+        Context::Rings(rings) => {
+            let context = Tensor::from_array(([n, SAMPLES], rings.to_vec())).map_err(inference)?;
+            session.run(ort::inputs!["descriptors" => descriptors, "context" => context]).map_err(inference)?
+        }
+        Context::Constellations(c) => {
+            let k = c.k;
+            let keypoints: Vec<f32> = f.keypoints.iter().flat_map(|p| [p.angle, p.size]).collect();
+            let keypoints = Tensor::from_array(([n, 2], keypoints)).map_err(inference)?;
+            let neighbours = Tensor::from_array(([n, k], c.neighbours.iter().map(|&j| j as i64).collect::<Vec<_>>()))
+                .map_err(inference)?;
+            let mask =
+                Tensor::from_array(([n, k], c.mask.iter().map(|&m| m as f32).collect::<Vec<_>>())).map_err(inference)?;
+            let relative =
+                Tensor::from_array(([n, k, GEOMETRY_DIM], c.relative.as_flattened().to_vec())).map_err(inference)?;
+            session
+                .run(ort::inputs![
+                    "descriptors" => descriptors,
+                    "keypoints" => keypoints,
+                    "neighbours" => neighbours,
+                    "mask" => mask,
+                    "relative" => relative,
+                ])
+                .map_err(inference)?
+        }
+    };
     let (shape, data) = outputs["embeddings"].try_extract_tensor::<f32>().map_err(inference)?;
     if shape.len() != 2 || shape[0] as usize != n || shape[1] as usize != dim {
         return Err(EmbeddingError::Inference(format!("output shape {shape:?}, expected [{n}, {dim}]")));

@@ -29,6 +29,7 @@ use opencv::prelude::*;
 use opencv::{imgproc, xfeatures2d};
 use serde::{Deserialize, Serialize};
 
+use crate::context::{Context, SAMPLES};
 use crate::decode::GreyImage;
 use crate::error::FeatureError;
 
@@ -123,13 +124,15 @@ impl Keypoint {
     }
 }
 
-/// Keypoints of one image with their FREAK descriptors (row `i` describes keypoint `i`).
+/// Keypoints of one image with their FREAK descriptors (row `i` describes keypoint `i`), and their ring
+/// contexts when the model reads them ([`crate::context`]; empty otherwise).
 #[derive(Debug, Clone, PartialEq)]
 pub struct Features {
     pub width: u32,
     pub height: u32,
     pub keypoints: Vec<Keypoint>,
     pub descriptors: Vec<[u8; DESCRIPTOR_BYTES]>,
+    pub context: Vec<Context>,
 }
 
 impl Features {
@@ -307,7 +310,7 @@ pub fn describe(image: &GreyImage, keypoints: &mut Vector<KeyPoint>) -> Result<F
         descriptors.push(d);
     }
     let keypoints = keypoints.iter().map(|k| Keypoint::from_cv(&k)).collect();
-    Ok(Features { width: image.width(), height: image.height(), keypoints, descriptors })
+    Ok(Features { width: image.width(), height: image.height(), keypoints, descriptors, context: Vec::new() })
 }
 
 /// Validates keypoints and descriptors supplied by a client (computed with the same contract on a device)
@@ -374,7 +377,31 @@ pub fn from_precomputed(
             d
         })
         .collect();
-    Ok(Features { width, height, keypoints: out, descriptors })
+    Ok(Features { width, height, keypoints: out, descriptors, context: Vec::new() })
+}
+
+/// Attaches the ring contexts a client computed ([`crate::context`], `SAMPLES` bytes per keypoint in
+/// keypoint order) to its validated keypoints.
+pub fn with_context(mut features: Features, context: &[u8]) -> Result<Features, FeatureError> {
+    if context.len() != features.len() * SAMPLES {
+        return Err(FeatureError::InvalidContext {
+            reason: format!(
+                "expected {} bytes ({} keypoints x {SAMPLES}), got {}",
+                features.len() * SAMPLES,
+                features.len(),
+                context.len()
+            ),
+        });
+    }
+    features.context = context
+        .chunks_exact(SAMPLES)
+        .map(|c| {
+            let mut out = [0u8; SAMPLES];
+            out.copy_from_slice(c);
+            out
+        })
+        .collect();
+    Ok(features)
 }
 
 /// Re-describes client keypoints on an image (used to check a client's extraction against the server's).

@@ -11,6 +11,7 @@
 //! - [`features`]: FAST on an image pyramid with grid bucketing, FREAK descriptors; validation of keypoints
 //!   supplied by clients (the client contract);
 //! - [`constellation`]: each keypoint's k nearest keypoints with relative geometry in its own frame;
+//! - [`context`]: the ring context, the image around each keypoint sampled at fixed places in its frame;
 //! - [`embedding`]: the SConE network in ONNX Runtime, checked against its contract when loaded;
 //! - [`pipeline`]: the one function chain over the four above ([`pipeline::Describer`]), with stage times.
 //!
@@ -36,12 +37,12 @@
 //!
 //! `POST /v1/maps/office/localize` with a JPEG and intrinsics:
 //!
-//! 1. [`server::http`] refuses it at once if the CPU pool has no free slot, else reads the body (size and
-//!    time limits) and checks the read key ([`server::auth`]);
-//! 2. a closure runs on the [`cpu_pool::CpuPool`] under the request deadline: it turns the form into a
-//!    [`service::FrameInput`] and calls
-//!    [`service::Service::localize`], which checks the map exists, the image header and the intrinsics
-//!    ([`camera::validate_camera`]) before any decoding;
+//! 1. [`server::http`] refuses it at once if the CPU pool has no free slot, and checks the read key from the
+//!    request head ([`server::auth`], [`server::operation`]) before it reads the body (size and time limits);
+//! 2. the map is looked up once ([`server::app::App::call`]; an unknown map is refused here) and a closure
+//!    runs with it on the [`cpu_pool::CpuPool`] under the request deadline: it parses the request into a
+//!    [`service::FrameInput`] and calls [`service::Service::localize`], which checks the image header and the
+//!    intrinsics ([`camera::validate_camera`]) before any decoding;
 //! 3. [`pipeline::Describer`] decodes ([`decode::decode_grey`]), extracts FAST + FREAK
 //!    ([`features::extract`]), builds constellations ([`constellation::build`]) and embeds them
 //!    ([`embedding::Embedder`]), recording each stage's time;
@@ -55,6 +56,7 @@
 
 pub mod camera;
 pub mod constellation;
+pub mod context;
 pub mod cpu_pool;
 pub mod decode;
 pub mod embedding;

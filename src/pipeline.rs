@@ -1,12 +1,12 @@
-//! The path every image and every client keypoint set takes: decode -> FAST + FREAK -> constellations ->
-//! SConE embeddings. The service, the commands and the evaluation call this; nothing else strings the stages
+//! The path every image and every client keypoint set takes: decode -> FAST + FREAK -> context (the ring
+//! context sampled from the image, or constellations built from the keypoints) -> SConE embeddings. The service, the commands and the evaluation call this; nothing else strings the stages
 //! together. Callers that report stage times pass a [`StageTimes`] for the describer to fill.
 
 use std::sync::Arc;
 use std::time::Instant;
 
-use crate::constellation;
-use crate::decode::{decode_grey, ImageLimitSettings};
+use crate::context;
+use crate::decode::{decode_grey, GreyImage, ImageLimitSettings};
 use crate::embedding::Embedder;
 use crate::error::{EmbeddingError, FeatureError};
 use crate::features::{self, ExtractorSettings, Features};
@@ -35,10 +35,20 @@ impl StageTimes {
     }
 }
 
-/// SConE embeddings of a feature set (`[N, embedder.dim()]`, row-major): its constellations, then the model.
+/// SConE embeddings of a feature set (`[N, embedder.dim()]`, row-major): its context (constellations built
+/// here, or the ring contexts it carries), then the model.
 pub fn embed(embedder: &Embedder, features: &Features) -> Result<Vec<f32>, EmbeddingError> {
-    let c = constellation::build(&features.keypoints, embedder.k());
-    embedder.embed(features, &c)
+    embedder.embed(features)
+}
+
+/// FAST + FREAK features of a decoded image, with their ring contexts when `embedder` reads them: what every
+/// caller that embeds an image's features extracts ([`Describer::extract`] times the two steps).
+pub fn extract_for(image: &GreyImage, extractor: &ExtractorSettings, embedder: &Embedder) -> Result<Features, FeatureError> {
+    let mut features = features::extract(image, extractor)?;
+    if embedder.needs_context() {
+        features.context = context::sample(image, &features.keypoints)?;
+    }
+    Ok(features)
 }
 
 /// Errors of the whole path.
@@ -73,10 +83,15 @@ impl Describer {
         Ok(self.embed(features, &mut times)?)
     }
 
-    /// Encoded image -> FAST + FREAK features, timing `decode` and `extract`.
+    /// Encoded image -> FAST + FREAK features, with their ring contexts when the model reads them; timing
+    /// `decode`, `extract` and `context`.
     pub fn extract(&self, bytes: &[u8], times: &mut StageTimes) -> Result<Features, FeatureError> {
         let image = times.time("decode", || decode_grey(bytes, &self.limits))?;
-        times.time("extract", || features::extract(&image, &self.extractor))
+        let mut features = times.time("extract", || features::extract(&image, &self.extractor))?;
+        if self.embedder.needs_context() {
+            features.context = times.time("context", || context::sample(&image, &features.keypoints))?;
+        }
+        Ok(features)
     }
 
     /// Features (extracted here or validated client keypoints) -> embeddings, timing `embed`.

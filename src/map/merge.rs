@@ -75,6 +75,7 @@ fn located(target: &MapData, index: &EmbeddingIndex, kf: &Keyframe, params: &Loc
         height: kf.camera.height,
         keypoints: kf.keypoints.clone(),
         descriptors: Vec::new(),
+        context: Vec::new(),
     };
     let out = localize(target, index, &features, &kf.embeddings, &kf.camera, None, params).ok()?;
     let pose = out.pose?;

@@ -103,6 +103,7 @@ fn query(garbage: std::ops::Range<usize>) -> (Features, Vec<f32>) {
         height: 480,
         keypoints: keypoints((0..N).map(pixel)),
         descriptors: (0..N).map(|i| bits(i, 1)).collect(),
+        context: Vec::new(),
     };
     (features, embeddings)
 }
@@ -230,6 +231,7 @@ impl Scene3 {
             height: 480,
             keypoints: keypoints(pixels.into_iter()),
             descriptors: seen.iter().map(|&i| bits(i, 3)).collect(),
+            context: Vec::new(),
         };
         (pose, features, embeddings, seen)
     }

@@ -370,6 +370,7 @@ mod external {
                 .map(|&(x, y)| Keypoint { x, y, size: 7.0, angle: 0.0, response: 1.0, octave: 0 })
                 .collect(),
             descriptors: vec![[0u8; DESCRIPTOR_BYTES]; points.len()],
+            context: Vec::new(),
         }
     }
 
@@ -561,6 +562,7 @@ fn a_query_keypoint_cap_searches_the_strongest_keypoints_and_still_localises() {
             })
             .collect(),
         descriptors: vec![[0u8; DESCRIPTOR_BYTES]; n],
+        context: Vec::new(),
     };
     let features = query(&response);
     let all =

@@ -10,6 +10,7 @@
 //! | `fNNNN_neighbours` | int32 | (N, k) | constellation member indices, nearest first |
 //! | `fNNNN_mask` | uint8 | (N, k) | 1 = real neighbour, 0 = padding |
 //! | `fNNNN_relative` | float32 | (N, k, 4) | u, v, dθ, ln scale ratio (see `constellation`) |
+//! | `fNNNN_context` | uint8 | (N, 113) | the ring context (see `context`), from version 2 |
 //!
 //! Python: `z = np.load(path); meta = json.loads(bytes(z["meta_json"]))`.
 
@@ -22,13 +23,14 @@ use ndarray_npy::NpzWriter;
 use serde::Serialize;
 
 use crate::constellation::{self, Constellations, GEOMETRY_DIM};
+use crate::context::{self, SAMPLES};
 use crate::decode::{decode_grey, ImageLimitSettings};
 use crate::error::SceneError;
 use crate::features::{extract, ExtractorSettings, Features, DESCRIPTOR_BYTES};
 use crate::offline::scene::Scene;
 
 /// Version of the export layout; bumped on any change of keys, dtypes or meanings.
-pub const EXPORT_FORMAT_VERSION: u32 = 1;
+pub const EXPORT_FORMAT_VERSION: u32 = 2;
 
 #[derive(Debug, Serialize)]
 struct FrameMeta {
@@ -91,6 +93,10 @@ fn write_frame(
     npz.add_array(name("neighbours"), &nb).map_err(|e| npz_err(out, e))?;
     npz.add_array(name("mask"), &mask).map_err(|e| npz_err(out, e))?;
     npz.add_array(name("relative"), &rel).map_err(|e| npz_err(out, e))?;
+    if f.context.len() == n {
+        let ctx = Array2::from_shape_vec((n, SAMPLES), f.context.as_flattened().to_vec()).map_err(|e| npz_err(out, e))?;
+        npz.add_array(name("context"), &ctx).map_err(|e| npz_err(out, e))?;
+    }
     Ok(())
 }
 
@@ -171,7 +177,8 @@ fn write_scene(
         let bytes = std::fs::read(&frame.rgb).map_err(|source| SceneError::Io { path: frame.rgb.clone(), source })?;
         let feature_err = |source| SceneError::Feature { frame: frame.stamp.clone(), source };
         let image = decode_grey(&bytes, limits).map_err(feature_err)?;
-        let features = extract(&image, config).map_err(feature_err)?;
+        let mut features = extract(&image, config).map_err(feature_err)?;
+        features.context = context::sample(&image, &features.keypoints).map_err(feature_err)?;
         let constellations = constellation::build(&features.keypoints, k);
         write_frame(&mut npz, out, index, &features, &constellations)?;
         tracing::info!(frame = %frame.stamp, keypoints = features.len(), "extracted");

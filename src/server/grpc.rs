@@ -103,6 +103,7 @@ fn keypoints_input(k: proto::KeypointSet) -> KeypointsInput {
         keypoints: k.keypoints.iter().map(keypoint).collect(),
         descriptors: k.descriptors,
         model_id: (!k.model_id.is_empty()).then_some(k.model_id),
+        context: k.context,
     }
 }
 
@@ -415,6 +416,7 @@ impl proto::matching_server::Matching for GrpcApi {
                     embeddings: d.embeddings,
                     dim: d.dim as u32,
                     model_id: d.model_id,
+                    context: d.features.context.concat(),
                 })
             })
             .await?;

@@ -72,7 +72,8 @@ fn feature_kind(e: &FeatureError) -> ErrorKind {
         | FeatureError::ImageTooLarge { .. }
         | FeatureError::TooManyKeypoints { .. }
         | FeatureError::InvalidKeypoint { .. }
-        | FeatureError::InvalidDescriptors { .. } => ErrorKind::InvalidArgument,
+        | FeatureError::InvalidDescriptors { .. }
+        | FeatureError::InvalidContext { .. } => ErrorKind::InvalidArgument,
         FeatureError::InvalidConfig { .. } | FeatureError::OpenCv(_) => ErrorKind::Internal,
     }
 }

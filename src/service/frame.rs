@@ -5,7 +5,7 @@ use super::core::Service;
 use super::error::ServiceError;
 use crate::camera::{validate_camera, Camera, Distortion};
 use crate::decode::check_limits;
-use crate::error::PoseError;
+use crate::error::{FeatureError, PoseError};
 use crate::features::{self, Features, Keypoint};
 use crate::pipeline::StageTimes;
 
@@ -19,6 +19,8 @@ pub struct KeypointsInput {
     pub descriptors: Vec<u8>,
     /// The model the client targets, if it says.
     pub model_id: Option<String>,
+    /// The ring context, `context::SAMPLES` bytes per keypoint (empty: not sent).
+    pub context: Vec<u8>,
 }
 
 /// Where a frame's features come from.
@@ -65,8 +67,25 @@ impl Service {
                         });
                     }
                 }
-                Ok(times.time("validate", || {
-                    features::from_precomputed(k.width, k.height, k.keypoints, &k.descriptors, &self.keypoint_limits)
+                let needs_context = self.describer.embedder.needs_context();
+                if needs_context && k.context.is_empty() {
+                    return Err(FeatureError::InvalidContext {
+                        reason: format!(
+                            "model {} reads each keypoint's ring context (client contract revision 3, step 9): \
+                             send the keypoint set's context",
+                            self.model_id()
+                        ),
+                    }
+                    .into());
+                }
+                Ok(times.time("validate", || -> Result<Features, FeatureError> {
+                    let f =
+                        features::from_precomputed(k.width, k.height, k.keypoints, &k.descriptors, &self.keypoint_limits)?;
+                    if needs_context {
+                        features::with_context(f, &k.context)
+                    } else {
+                        Ok(f)
+                    }
                 })?)
             }
         }
@@ -95,11 +114,16 @@ impl Service {
                 };
                 let old = std::mem::take(&mut features.keypoints);
                 let descriptors = std::mem::take(&mut features.descriptors);
+                // Ring contexts stay as sampled: they describe the image around the keypoint where it is.
+                let context = std::mem::take(&mut features.context);
+                let mut context = context.into_iter();
                 for ((mut k, d), (x, y)) in old.into_iter().zip(descriptors).zip(moved) {
+                    let c = context.next();
                     if inside(x, y) {
                         (k.x, k.y) = (x, y);
                         features.keypoints.push(k);
                         features.descriptors.push(d);
+                        features.context.extend(c);
                     }
                 }
                 Ok(())

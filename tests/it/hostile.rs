@@ -437,6 +437,7 @@ async fn regression_keypoint_sets_are_held_to_the_image_limits() {
         width: 100_000,
         height: 100_000,
         model_id: String::new(),
+        context: Vec::new(),
     };
     let frame = |intrinsics| proto::Frame { source: Some(Source::Keypoints(huge.clone())), intrinsics };
     let e = matching.describe(proto::DescribeRequest { frame: Some(frame(None)) }).await.unwrap_err();

@@ -194,6 +194,7 @@ async fn localize_with_a_declared_lens_equals_localize_on_the_undistorted_frame(
                         width: cam.width,
                         height: cam.height,
                         model_id: String::new(),
+                        context: described.context.clone(),
                     })),
                     intrinsics: Some(i),
                 }

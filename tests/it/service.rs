@@ -191,6 +191,7 @@ async fn describe_of_an_image_equals_describe_of_its_keypoints() {
         width: 640,
         height: 480,
         model_id: a.model_id.clone(),
+        context: a.context.clone(),
     };
     let frame = proto::Frame { source: Some(Source::Keypoints(set)), intrinsics: None };
     let b = matching.describe(proto::DescribeRequest { frame: Some(frame) }).await.unwrap().into_inner();
@@ -494,6 +495,7 @@ async fn every_error_path_gets_its_code_and_a_useful_message_and_changes_nothing
         width: 320,
         height: 240,
         model_id: String::new(),
+        context: Vec::new(),
     };
     let e = matching
         .describe(keyed(

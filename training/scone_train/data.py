@@ -127,6 +127,7 @@ class FrameFeatures:
     neighbours: np.ndarray  # [N, k] int32
     mask: np.ndarray  # [N, k] uint8
     relative: np.ndarray  # [N, k, 4] float32
+    context: np.ndarray | None = None  # [N, 113] uint8, the ring context (export format 2)
 
     def __len__(self) -> int:
         return len(self.keypoints)
@@ -152,14 +153,15 @@ def load_features(npz_path: Path) -> tuple[dict, list[FrameFeatures]]:
         p = f"f{f['index']:04d}_"
         frames.append(
             FrameFeatures(
-                z[p + "keypoints"], z[p + "descriptors"], z[p + "neighbours"], z[p + "mask"], z[p + "relative"]
+                z[p + "keypoints"], z[p + "descriptors"], z[p + "neighbours"], z[p + "mask"], z[p + "relative"],
+                z[p + "context"] if p + "context" in z.files else None,
             )
         )
     return meta, frames
 
 
 # The Rust sources whose behaviour decides the exported features: a change to any of them re-exports.
-EXTRACTION_SOURCES = ["src/decode.rs", "src/features.rs", "src/constellation.rs", "src/offline/training_features.rs", "Cargo.lock"]
+EXTRACTION_SOURCES = ["src/decode.rs", "src/features.rs", "src/constellation.rs", "src/context.rs", "src/offline/training_features.rs", "Cargo.lock"]
 
 
 def extraction_key(extra_args: list[str] | None = None) -> str:

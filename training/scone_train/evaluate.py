@@ -31,7 +31,7 @@ def embed_frames(model: SconeNet, frames: list[FrameFeatures]) -> list[np.ndarra
         if len(f) == 0:
             out.append(np.zeros((0, model.head[-1].out_features), np.float32))
             continue
-        e = model(*f.model_inputs(model.k))
+        e = model(*model.frame_inputs(f))
         out.append(e.numpy())
     return out
 

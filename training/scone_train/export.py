@@ -12,33 +12,31 @@ import torch
 
 from .model import SconeNet
 
-INPUT_NAMES = ["descriptors", "keypoints", "neighbours", "mask", "relative"]
+INPUT_NAMES = SconeNet.INPUT_NAMES
 OUTPUT_NAME = "embeddings"
+_DTYPES = {"descriptors": np.uint8, "keypoints": np.float32, "neighbours": np.int64, "mask": np.float32,
+           "relative": np.float32, "context": np.uint8}
 
 
 def example_inputs(n: int = 64, k: int = 20, seed: int = 0):
-    g = torch.Generator().manual_seed(seed)
-    return (
-        torch.randint(0, 256, (n, 64), dtype=torch.uint8, generator=g),
-        torch.cat([torch.rand(n, 1, generator=g) * 360, 7 * 1.2 ** torch.randint(0, 6, (n, 1), generator=g)], 1),
-        torch.randint(0, n, (n, k), generator=g),
-        torch.ones(n, k),
-        torch.randn(n, k, 4, generator=g),
-    )
+    """Random inputs of the constellation network (`SconeNet.example_inputs`)."""
+    return SconeNet.example_inputs(n, k, seed)
 
 
-def export_onnx(model: SconeNet, path: Path, opset: int = 18) -> Path:
+def export_onnx(model: torch.nn.Module, path: Path, opset: int = 18) -> Path:
+    """Either network (`SconeNet`, `RingNet`) as ONNX, its inputs named by its `INPUT_NAMES`."""
     model = model.eval()
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     n = torch.export.Dim("n", min=1, max=100_000)
-    shapes = {name: {0: n} for name in INPUT_NAMES}
+    names = model.INPUT_NAMES
+    shapes = {name: {0: n} for name in names}
     with torch.no_grad():
         torch.onnx.export(
             model,
-            example_inputs(k=model.k),
+            model.example_inputs(k=model.k),
             str(path),
-            input_names=INPUT_NAMES,
+            input_names=names,
             output_names=[OUTPUT_NAME],
             dynamic_shapes=shapes,
             opset_version=opset,
@@ -56,20 +54,16 @@ def session(path: Path, threads: int = 2) -> ort.InferenceSession:
     return ort.InferenceSession(str(path), so, providers=["CPUExecutionProvider"])
 
 
-def run_onnx(sess: ort.InferenceSession, descriptors, keypoints, neighbours, mask, relative) -> np.ndarray:
-    feeds = {
-        "descriptors": np.ascontiguousarray(descriptors, dtype=np.uint8),
-        "keypoints": np.ascontiguousarray(keypoints, dtype=np.float32),
-        "neighbours": np.ascontiguousarray(neighbours, dtype=np.int64),
-        "mask": np.ascontiguousarray(mask, dtype=np.float32),
-        "relative": np.ascontiguousarray(relative, dtype=np.float32),
-    }
+def run_onnx(sess: ort.InferenceSession, *inputs) -> np.ndarray:
+    """The graph's output for its inputs, in the order of its input names."""
+    names = [i.name for i in sess.get_inputs()]
+    feeds = {name: np.ascontiguousarray(x, dtype=_DTYPES[name]) for name, x in zip(names, inputs)}
     return sess.run([OUTPUT_NAME], feeds)[0]
 
 
-def check_parity(model: SconeNet, path: Path, n: int = 300, tol: float = 1e-4) -> float:
+def check_parity(model: torch.nn.Module, path: Path, n: int = 300, tol: float = 1e-4) -> float:
     """Max abs difference between PyTorch and onnxruntime on random inputs of a size unlike the export's."""
-    x = example_inputs(n=n, k=model.k, seed=1)
+    x = model.example_inputs(n=n, k=model.k, seed=1)
     with torch.no_grad():
         ref = model.eval()(*x).numpy()
     got = run_onnx(session(path), *[t.numpy() for t in x])

@@ -115,6 +115,10 @@ class SetEncoder(nn.Module):
 
 
 class SconeNet(nn.Module):
+    """The constellation network (the paper's context: detected neighbours)."""
+
+    INPUT_NAMES = ["descriptors", "keypoints", "neighbours", "mask", "relative"]
+
     def __init__(
         self,
         k: int = 20,
@@ -157,6 +161,22 @@ class SconeNet(nn.Module):
         # orientation the embedding cannot change with in-plane rotation of the whole image.
         self.central_orientation = central_orientation
         self.head = mlp([32 + desc_dim + bits_skip + (3 if central_orientation else 1), head_hidden, head_hidden, embed_dim], last_activation=False, activation=activation)
+
+    def frame_inputs(self, f) -> tuple:
+        """The network's inputs for one exported frame (`data.FrameFeatures`)."""
+        return f.model_inputs(self.k)
+
+    @staticmethod
+    def example_inputs(n: int = 64, k: int = 20, seed: int = 0) -> tuple:
+        """Random inputs of `n` keypoints, for export and parity checks."""
+        g = torch.Generator().manual_seed(seed)
+        return (
+            torch.randint(0, 256, (n, 64), dtype=torch.uint8, generator=g),
+            torch.cat([torch.rand(n, 1, generator=g) * 360, 7 * 1.2 ** torch.randint(0, 6, (n, 1), generator=g)], 1),
+            torch.randint(0, n, (n, k), generator=g),
+            torch.ones(n, k),
+            torch.randn(n, k, 4, generator=g),
+        )
 
     def embed_descriptors(self, descriptors: torch.Tensor) -> torch.Tensor:
         """Per keypoint: the descriptor MLP's output, followed by the linear skip path when there is one."""
@@ -209,3 +229,60 @@ class SconeNet(nn.Module):
             neigh = torch.zeros(central.shape[0], 32, dtype=central.dtype, device=central.device)
         out = self.head(torch.cat([neigh, central, central_geo], dim=-1))
         return F.normalize(out, dim=-1)
+
+
+def relu_mlp(sizes: list[int], last_activation: bool) -> nn.Sequential:
+    """Fully connected layers with ReLU (He initialisation); onnxruntime fuses each with its Gemm."""
+    layers: list[nn.Module] = []
+    for i, (a, b) in enumerate(zip(sizes[:-1], sizes[1:])):
+        lin = nn.Linear(a, b)
+        nn.init.kaiming_normal_(lin.weight, nonlinearity="relu")
+        nn.init.zeros_(lin.bias)
+        layers.append(lin)
+        if i < len(sizes) - 2 or last_activation:
+            layers.append(nn.ReLU())
+    return nn.Sequential(*layers)
+
+
+class RingNet(nn.Module):
+    """A keypoint's FREAK bits and its ring context (`context.py`: the image around it at fixed places in its
+    own frame) -> a unit-length embedding.
+
+    Two branches, each run once per keypoint: the bits (as ±1) through an MLP, the ring's 113 grey levels,
+    normalised for gain and offset (minus their mean, over their standard deviation plus 4 grey levels, so a
+    flat patch stays near zero), through another; their outputs joined by a head. ReLU everywhere, so every
+    layer is one fused Gemm in onnxruntime. No absolute orientation or scale goes in: the embedding does not
+    change when the whole image turns or zooms, as far as the keypoint's own angle and size follow.
+    """
+
+    INPUT_NAMES = ["descriptors", "context"]
+
+    def __init__(self, embed_dim: int = 48, bits_hidden: tuple = (256,), bits_dim: int = 128, ring_hidden: tuple = (256,),
+                 ring_dim: int = 128, head_hidden: tuple = (128,), samples: int = 113):
+        super().__init__()
+        self.k = 0
+        self.samples = samples
+        self.bits = relu_mlp([512, *bits_hidden, bits_dim], last_activation=True)
+        self.ring = relu_mlp([samples, *ring_hidden, ring_dim], last_activation=True)
+        self.head = relu_mlp([bits_dim + ring_dim, *head_hidden, embed_dim], last_activation=False)
+
+    def frame_inputs(self, f) -> tuple:
+        if f.context is None:
+            raise ValueError("a ring-context model needs the frames' ring contexts (export format 2)")
+        return torch.from_numpy(f.descriptors), torch.from_numpy(f.context)
+
+    @staticmethod
+    def example_inputs(n: int = 64, k: int = 0, seed: int = 0) -> tuple:
+        g = torch.Generator().manual_seed(seed)
+        return (
+            torch.randint(0, 256, (n, 64), dtype=torch.uint8, generator=g),
+            torch.randint(0, 256, (n, 113), dtype=torch.uint8, generator=g),
+        )
+
+    def forward(self, descriptors: torch.Tensor, context: torch.Tensor) -> torch.Tensor:
+        c = context.to(torch.float32)
+        mean = c.mean(1, keepdim=True)
+        std = ((c - mean) ** 2).mean(1, keepdim=True).sqrt()
+        c = (c - mean) / (std + 4.0)
+        x = torch.cat([self.bits(unpack_bits(descriptors)), self.ring(c)], dim=1)
+        return F.normalize(self.head(x), dim=-1)

@@ -25,7 +25,7 @@ from . import correspondences as C
 from . import evaluate as E
 from .data import FrameFeatures, shared_data
 from .dataset import GroupSampler, PairSampler, Unit, build_unit, shared_anchors
-from .model import SconeNet
+from .model import RingNet, SconeNet
 
 
 def prefix() -> Path:
@@ -104,21 +104,28 @@ def load_units(cfg: dict, rendered_root: Path | None = None) -> tuple[list[Unit]
 
 
 class TensorCache:
-    """Torch views of a frame's arrays, made once; constellations cut to the model's k (nearest first)."""
+    """Torch views of a frame's arrays as the model reads them (`frame_inputs`), made once."""
 
-    def __init__(self, k: int):
-        self.k = k
+    def __init__(self, model):
+        self.model = model
         self.cache: dict[int, tuple] = {}
 
     def get(self, f: FrameFeatures):
         key = id(f)
         if key not in self.cache:
-            self.cache[key] = f.model_inputs(self.k)
+            self.cache[key] = self.model.frame_inputs(f)
         return self.cache[key]
 
 
-def build_model(m: dict) -> SconeNet:
-    """k = 0 is the ablation without neighbours (central descriptor only)."""
+def build_model(m: dict):
+    """`context: ring` is the ring-context network (`RingNet`); otherwise the constellation network, where k = 0
+    is the ablation without neighbours (central descriptor only)."""
+    if m.get("context") == "ring":
+        return RingNet(
+            embed_dim=m["embed_dim"], bits_hidden=tuple(m.get("bits_hidden", [256])), bits_dim=m.get("bits_dim", 128),
+            ring_hidden=tuple(m.get("ring_hidden", [256])), ring_dim=m.get("ring_dim", 128),
+            head_hidden=tuple(m.get("head_hidden_layers", [128])),
+        )
     return SconeNet(
         k=max(m["k"], 1), embed_dim=m["embed_dim"], desc_dim=m["desc_dim"], lstm_hidden=m["lstm_hidden"],
         use_neighbours=m["k"] > 0, encoder=m.get("encoder", "lstm"), desc_hidden=tuple(m.get("desc_hidden", [512, 256])),
@@ -370,7 +377,7 @@ def train(cfg: dict, run_dir: Path, steps: int | None = None, units=None) -> Pat
         gen.set_state(ck["gen"])
         start, best, log = ck["step"], ck["best"], ck["log"]
         print(f"resuming {run_dir} at step {start}")
-    tensors = TensorCache(max(model.k, 1))
+    tensors = TensorCache(model)
     acc = {"loss": 0.0, "pos": 0.0, "neg": 0.0, "n": 0}
     t0 = time.time()
     bar = tqdm(range(start, steps), initial=start, total=steps, desc=cfg["name"], mininterval=1 if sys.stderr.isatty() else 60)

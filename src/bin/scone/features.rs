@@ -43,7 +43,8 @@ pub fn extract(args: ExtractArgs) -> anyhow::Result<()> {
     let bytes = std::fs::read(&image).with_context(|| format!("reading {}", image.display()))?;
     let t0 = std::time::Instant::now();
     let grey = decode_grey(&bytes, &ImageLimitSettings::default())?;
-    let f = features::extract(&grey, &cfg)?;
+    let mut f = features::extract(&grey, &cfg)?;
+    f.context = scone::context::sample(&grey, &f.keypoints)?;
     let c = constellation::build(&f.keypoints, extractor.k);
     let ms = t0.elapsed().as_secs_f64() * 1e3;
     let per_level =

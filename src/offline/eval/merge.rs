@@ -16,7 +16,7 @@ use rand::{Rng, SeedableRng};
 
 use crate::decode::{decode_grey, ImageLimitSettings};
 use crate::embedding::Embedder;
-use crate::features::{self, ExtractorSettings, Features};
+use crate::features::{ExtractorSettings, Features};
 use crate::map::builder::{plan_keyframe, BuildSettings, KeyframeInput};
 use crate::map::index::{EmbeddingIndex, IndexSettings};
 use crate::map::localize::{localize, LocalizeSettings};
@@ -96,7 +96,7 @@ pub fn evaluate(scene: &Scene, split: Split, seed: u64, embedder: &Embedder) -> 
     let mut described = std::collections::HashMap::new();
     for &i in &posed {
         let bytes = std::fs::read(&scene.frames[i].rgb)?;
-        let f = features::extract(&decode_grey(&bytes, &limits)?, &extractor)?;
+        let f = crate::pipeline::extract_for(&decode_grey(&bytes, &limits)?, &extractor, embedder)?;
         let e = crate::pipeline::embed(embedder, &f)?;
         described.insert(i, (f, e));
     }

@@ -93,7 +93,7 @@ pub fn describe(
         }
         Method::Scone | Method::SconePlain => {
             let embedder = embedder.ok_or("SConE needs a model (--model)")?;
-            let f = features::extract(image, extractor)?;
+            let f = crate::pipeline::extract_for(image, extractor, embedder)?;
             let e = crate::pipeline::embed(embedder, &f)?;
             freak = Some(f.descriptor_mat()?);
             (f.keypoints, embedding_mat(&e, embedder.dim())?, NORM_L2)

@@ -272,7 +272,7 @@ fn features_of(d: &Described) -> Result<Features, BoxError> {
             descriptors.push(row.try_into().map_err(|_| format!("FREAK row of {} bytes", row.len()))?);
         }
     }
-    Ok(Features { width: d.width, height: d.height, keypoints: d.keypoints.clone(), descriptors })
+    Ok(Features { width: d.width, height: d.height, keypoints: d.keypoints.clone(), descriptors, context: Vec::new() })
 }
 
 /// Vectors a method's descriptors are compared as, row-major, with their dimension.

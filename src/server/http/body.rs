@@ -306,6 +306,10 @@ pub fn frame_input(
         }
         (None, None, Some(k)) => {
             let descriptors = base64(&format!("{field}.keypoints.descriptors_base64"), &k.descriptors_base64)?;
+            let context = match &k.context_base64 {
+                Some(c) => base64(&format!("{field}.keypoints.context_base64"), c)?,
+                None => Vec::new(),
+            };
             let keypoints = k.keypoints.iter().map(Into::into).collect();
             let size = Some((k.width, k.height));
             (
@@ -315,6 +319,7 @@ pub fn frame_input(
                     keypoints,
                     descriptors,
                     model_id: k.model_id,
+                    context,
                 }),
                 size,
             )
@@ -507,6 +512,7 @@ mod tests {
                     .collect(),
                 descriptors_base64: base64::engine::general_purpose::STANDARD.encode(vec![0x5a; descriptor_bytes]),
                 model_id: None,
+                context_base64: None,
             }),
             ..Default::default()
         }

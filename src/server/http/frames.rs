@@ -77,6 +77,7 @@ pub async fn describe(
             embeddings: d.embeddings,
             dim: d.dim,
             model_id: d.model_id,
+            context_base64: base64::engine::general_purpose::STANDARD.encode(d.features.context.concat()),
         })
     })
     .await?;

@@ -116,6 +116,10 @@ pub struct KeypointSet {
     /// The model the client's contract targets; when given, it must be the server's.
     #[serde(default)]
     pub model_id: Option<String>,
+    /// The ring context, 113 bytes per keypoint in keypoint order, base64 (the client contract's step 9):
+    /// required when the server's model reads it.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub context_base64: Option<String>,
 }
 
 /// One frame: exactly one of `image_base64` or `keypoints` (or, in multipart requests, a binary image part).
@@ -344,6 +348,8 @@ pub struct DescribeResponse {
     pub embeddings: Vec<f32>,
     pub dim: usize,
     pub model_id: String,
+    /// The ring context, 113 bytes per keypoint, base64; empty when the model does not read it.
+    pub context_base64: String,
 }
 
 /// One putative match: keypoint `index1` of frame 1 and `index2` of frame 2.

@@ -1,0 +1,161 @@
+//! The ring context: each keypoint described together with the image around it, sampled at fixed places in
+//! the keypoint's own frame (its position, size and FREAK orientation). Unlike a constellation of detected
+//! neighbours, every sample exists in the other view by construction; its error comes only from the
+//! keypoint's scale and angle.
+//!
+//! For a keypoint at (x, y) with size s and orientation theta (degrees, image axes), the samples are the
+//! centre and [`RINGS`] rings of [`ANGLES`] points, ring i at radius `RADII[i] * s`, point j at angle
+//! theta + 360 j / ANGLES. theta is quantised to [`ANGLE_BINS`] bins (`round(theta / 360 * ANGLE_BINS)`), so
+//! the positions come from one table of offsets in units of s, computed once in f64. Each sample is the mean
+//! of a square box of the grey image centred on the sample's pixel (`floor(x + s * dx + 0.5)`, clamped into
+//! the image) with half-width `floor(BOX * r * s + 0.5)` pixels (r the ring's radius factor; 0 at the centre,
+//! one pixel), cut to the image, read from OpenCV's integral image and rounded half up to 0..255: from the
+//! positions on it is integer arithmetic, so `training/scone_train/context.py` (the reference the network was
+//! trained on) and a client computing it from the same image agree byte for byte.
+
+use std::sync::LazyLock;
+
+use opencv::core::{Mat, CV_64F};
+use opencv::imgproc;
+use opencv::prelude::*;
+
+use crate::decode::GreyImage;
+use crate::error::FeatureError;
+use crate::features::Keypoint;
+
+/// Ring radii in units of the keypoint's size.
+pub const RADII: [f64; 7] = [0.5, 1.0, 1.5, 2.25, 3.25, 4.5, 6.0];
+pub const RINGS: usize = RADII.len();
+/// Points per ring.
+pub const ANGLES: usize = 16;
+/// Orientation bins of the offset table.
+pub const ANGLE_BINS: usize = 256;
+/// A sample's box half-width as a share of its ring's radius.
+pub const BOX: f64 = 0.2;
+/// Bytes of one keypoint's context: the centre and every ring point.
+pub const SAMPLES: usize = 1 + RINGS * ANGLES;
+
+/// One keypoint's context.
+pub type Context = [u8; SAMPLES];
+
+/// Sample offsets (in units of the keypoint size) per orientation bin, and each sample's box half-width
+/// factor.
+struct Table {
+    dx: Vec<[f64; SAMPLES]>,
+    dy: Vec<[f64; SAMPLES]>,
+    half: [f64; SAMPLES],
+}
+
+static TABLE: LazyLock<Table> = LazyLock::new(|| {
+    let mut dx = vec![[0.0; SAMPLES]; ANGLE_BINS];
+    let mut dy = vec![[0.0; SAMPLES]; ANGLE_BINS];
+    let mut half = [0.0; SAMPLES];
+    let step = ANGLE_BINS / ANGLES;
+    for a in 0..ANGLE_BINS {
+        for (i, r) in RADII.iter().enumerate() {
+            for j in 0..ANGLES {
+                let m = (a + j * step) % ANGLE_BINS;
+                let t = 2.0 * std::f64::consts::PI * m as f64 / ANGLE_BINS as f64;
+                dx[a][1 + i * ANGLES + j] = r * t.cos();
+                dy[a][1 + i * ANGLES + j] = r * t.sin();
+            }
+        }
+    }
+    for (i, r) in RADII.iter().enumerate() {
+        half[1 + i * ANGLES..1 + (i + 1) * ANGLES].fill(BOX * r);
+    }
+    Table { dx, dy, half }
+});
+
+/// The offset table's bin of an orientation in degrees (any range).
+pub fn angle_bin(angle_deg: f32) -> usize {
+    let a = (f64::from(angle_deg) * (ANGLE_BINS as f64 / 360.0) + 0.5).floor() as i64;
+    a.rem_euclid(ANGLE_BINS as i64) as usize
+}
+
+/// The ring context of every keypoint, on the image the keypoints were detected on.
+pub fn sample(image: &GreyImage, keypoints: &[Keypoint]) -> Result<Vec<Context>, FeatureError> {
+    if keypoints.is_empty() {
+        return Ok(Vec::new());
+    }
+    let mut integral = Mat::default();
+    // f64 sums are exact far beyond the largest image (255 x 12 Mpx < 2^53).
+    imgproc::integral(image.mat(), &mut integral, CV_64F)?;
+    let stride = integral.cols() as usize;
+    let sums = integral.data_typed::<f64>()?;
+    let (w, h) = (image.width() as i64, image.height() as i64);
+    let box_sum = |x0: i64, y0: i64, x1: i64, y1: i64| {
+        let at = |x: i64, y: i64| sums[y as usize * stride + x as usize];
+        at(x1, y1) - at(x1, y0) - at(x0, y1) + at(x0, y0)
+    };
+    let table = &*TABLE;
+    Ok(keypoints
+        .iter()
+        .map(|k| {
+            let a = angle_bin(k.angle);
+            let (x, y, s) = (f64::from(k.x), f64::from(k.y), f64::from(k.size));
+            let mut out = [0u8; SAMPLES];
+            for (n, v) in out.iter_mut().enumerate() {
+                let cx = ((x + s * table.dx[a][n] + 0.5).floor() as i64).clamp(0, w - 1);
+                let cy = ((y + s * table.dy[a][n] + 0.5).floor() as i64).clamp(0, h - 1);
+                let hw = ((table.half[n] * s + 0.5).floor() as i64).max(0);
+                let (x0, x1) = ((cx - hw).max(0), (cx + hw + 1).min(w));
+                let (y0, y1) = ((cy - hw).max(0), (cy + hw + 1).min(h));
+                let total = box_sum(x0, y0, x1, y1) as i64;
+                let area = (x1 - x0) * (y1 - y0);
+                *v = ((total + area / 2) / area) as u8;
+            }
+            out
+        })
+        .collect())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn keypoint(x: f32, y: f32, size: f32, angle: f32) -> Keypoint {
+        Keypoint { x, y, size, angle, response: 1.0, octave: 0 }
+    }
+
+    fn image(w: i32, h: i32, f: impl Fn(i32, i32) -> u8) -> GreyImage {
+        let mut m = Mat::new_rows_cols_with_default(h, w, opencv::core::CV_8UC1, 0.into()).unwrap();
+        for y in 0..h {
+            for x in 0..w {
+                *m.at_2d_mut::<u8>(y, x).unwrap() = f(x, y);
+            }
+        }
+        GreyImage::from_mat(m).unwrap()
+    }
+
+    #[test]
+    fn a_flat_image_gives_its_grey_everywhere_even_past_the_border() {
+        let img = image(64, 48, |_, _| 77);
+        let c = sample(&img, &[keypoint(2.0, 3.0, 12.0, 31.0), keypoint(40.0, 20.0, 7.0, 300.0)]).unwrap();
+        assert!(c.iter().all(|k| k.iter().all(|&v| v == 77)));
+    }
+
+    #[test]
+    fn samples_follow_the_orientation_and_boxes_average_with_half_up_rounding() {
+        // Left half 0, right half 200: at angle 0 the first ring point (j = 0) lies to the right, at 180 to
+        // the left; the centre box of a keypoint on the edge averages both halves.
+        let img = image(200, 100, |x, _| if x >= 100 { 200 } else { 0 });
+        let c = sample(&img, &[keypoint(100.0, 50.0, 10.0, 0.0), keypoint(100.0, 50.0, 10.0, 180.0)]).unwrap();
+        let ring = |i: usize, j: usize| 1 + i * ANGLES + j;
+        assert_eq!((c[0][ring(3, 0)], c[1][ring(3, 0)]), (200, 0));
+        assert_eq!((c[0][ring(3, ANGLES / 2)], c[1][ring(3, ANGLES / 2)]), (0, 200));
+        // The centre is one pixel: (100, 50), on the bright side.
+        assert_eq!(c[0][0], 200);
+        // Ring 0 (radius 5 px, half-width 1): the box at angle 90 (x = 100) spans x 99..=101, 2 of 3 bright.
+        assert_eq!(c[0][ring(0, ANGLES / 4)], ((2 * 200 * 3 + 4) / 9) as u8);
+    }
+
+    #[test]
+    fn angle_bins_wrap_and_round_half_up() {
+        assert_eq!(angle_bin(0.0), 0);
+        assert_eq!(angle_bin(359.9), 0);
+        assert_eq!(angle_bin(-1.40625), 255);
+        assert_eq!(angle_bin(0.703125), 1);
+        assert_eq!(angle_bin(90.0), 64);
+    }
+}
