@@ -32,10 +32,20 @@ def prefix() -> Path:
     return Path(os.environ.get("SCONE_PREFIX", Path.home() / ".cache" / "scone"))
 
 
+def extractor_args(settings: dict | None) -> list[str]:
+    """`scone features` flags for the config's `data.extractor` settings (none: the extractor's defaults)."""
+    out: list[str] = []
+    for key, value in sorted((settings or {}).items()):
+        out += [f"--{key.replace('_', '-')}", str(value)]
+    return out
+
+
 def load_units(cfg: dict, rendered_root: Path | None = None) -> tuple[list[Unit], list[Unit]]:
-    """(train units, selection units) as the config says; renders what is missing."""
+    """(train units, selection units) as the config says; renders what is missing. Features come from the
+    extraction `data.extractor` sets (a cache of its own per setting)."""
     d = cfg["data"]
-    cache = prefix() / "data" / "cache"
+    args = extractor_args(d.get("extractor"))
+    cache = prefix() / "data" / ("cache" if not args else "cache-" + "".join(a.strip("-") for a in args))
     rendered_root = rendered_root or prefix() / "data" / f"rendered-{d['rendered_seed']}"
     seqs = []
     if d["rendered_sequences"] > 0:
@@ -45,7 +55,7 @@ def load_units(cfg: dict, rendered_root: Path | None = None) -> tuple[list[Unit]
     n_sel = d["selection_sequences"]
     train, select = [], []
     for k, s in enumerate(tqdm(seqs, desc="features + landmarks", leave=False)):
-        unit = build_unit(s, cache / rendered_root.name)
+        unit = build_unit(s, cache / rendered_root.name, extractor_args=args)
         (select if k >= len(seqs) - n_sel else train).append(unit)
     # Wide-orbit sequences (training only, so the selection split stays as it was): the default paths sweep
     # 20-60 degrees of azimuth, and 99 % of their frame pairs are within 43 degrees of each other.
@@ -57,7 +67,7 @@ def load_units(cfg: dict, rendered_root: Path | None = None) -> tuple[list[Unit]
         wide_root = prefix() / "data" / f"rendered-orbit{lo:g}-{hi:g}-{seed}"
         wide = render_dataset(wide_root, d["wide_sequences"], d["rendered_frames"], seed, orbit_deg=(lo, hi))
         for s in tqdm(wide, desc="wide features + landmarks", leave=False):
-            train.append(build_unit(s, cache / wide_root.name, name=f"wide-{s.name}"))
+            train.append(build_unit(s, cache / wide_root.name, name=f"wide-{s.name}", extractor_args=args))
     if d.get("real_split"):
         # The real training scenes, split by scone_train.splits (written down before training on them).
         from .splits import SPLIT, part, scene_dir
@@ -67,10 +77,10 @@ def load_units(cfg: dict, rendered_root: Path | None = None) -> tuple[list[Unit]
                 continue
             geo = C.GeometryParams(**spec.get("geometry", {}))
             src, keep = part(name, "train")
-            u = build_unit(src, cache / "real", keep, geo, f"{name}-train")
+            u = build_unit(src, cache / "real", keep, geo, f"{name}-train", args)
             u.real = True
             train.append(u)
-            select.append(build_unit(src, cache / "real", part(name, "select")[1], geo, f"{name}-sel"))
+            select.append(build_unit(src, cache / "real", part(name, "select")[1], geo, f"{name}-sel", args))
     if d.get("warps"):
         # Exact-warp sequences (scone_train.warps): training from the training frames and scikit-image's
         # photographs, and a few selection sequences beside the real selection units.
@@ -87,7 +97,7 @@ def load_units(cfg: dict, rendered_root: Path | None = None) -> tuple[list[Unit]
                 generate(role, root, seed, per_scene, tuple(kinds))
             seqs = sorted(p.parent for p in root.glob("*/H_1_2"))
             for s in tqdm(seqs, desc=f"{role} warps", leave=False):
-                into.append(build_warp_unit(s, cache / root.name))
+                into.append(build_warp_unit(s, cache / root.name, extractor_args=args))
     if d.get("castle") and not d.get("real_split"):
         castle = shared_data() / "scenes" / d["castle"]
         if castle.is_dir():
@@ -97,9 +107,9 @@ def load_units(cfg: dict, rendered_root: Path | None = None) -> tuple[list[Unit]
             # training frames (0), chance third-view hits make nearly every link ambiguous: 23 observations
             # per frame and 12 usable pairs, against 188 and 166 with a window of 3.
             geo = C.GeometryParams(window=d.get("castle_window", 0))
-            train.append(build_unit(castle, cache / "real", list(range(cut)), geo, "castle-train"))
+            train.append(build_unit(castle, cache / "real", list(range(cut)), geo, "castle-train", args))
             train[-1].real = True
-            select.append(build_unit(castle, cache / "real", list(range(cut, total)), C.GeometryParams(), "castle-sel"))
+            select.append(build_unit(castle, cache / "real", list(range(cut, total)), C.GeometryParams(), "castle-sel", args))
     return train, select
 
 

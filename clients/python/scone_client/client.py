@@ -11,7 +11,7 @@ import numpy as np
 
 from scone_client._proto.scone.v1 import scone_pb2 as pb
 from scone_client._proto.scone.v1 import scone_pb2_grpc as pb_grpc
-from scone_client.contract import DESCRIPTOR_BYTES, Features
+from scone_client.contract import DESCRIPTOR_BYTES, RING_SAMPLES, Features
 
 __all__ = [
     "Camera",
@@ -65,7 +65,8 @@ def covariance(response: pb.LocalizeResponse) -> np.ndarray | None:
 
 
 def keypoint_set(features: Features, model_id: str = "") -> pb.KeypointSet:
-    """A KeypointSet message from extracted features (descriptors as 64 bytes per keypoint, in order)."""
+    """A KeypointSet message from extracted features (descriptors as 64 bytes per keypoint, in order; the ring
+    contexts, 113 bytes per keypoint, when the features carry them)."""
     desc = np.ascontiguousarray(features.descriptors, np.uint8)
     if desc.shape != (len(features), DESCRIPTOR_BYTES):
         raise ValueError(f"descriptors are {desc.shape}, expected ({len(features)}, {DESCRIPTOR_BYTES})")
@@ -75,12 +76,19 @@ def keypoint_set(features: Features, model_id: str = "") -> pb.KeypointSet:
             features.xy, features.size, features.angle, features.response, features.octave, strict=True
         )
     ]
+    context = b""
+    if features.context is not None:
+        ctx = np.ascontiguousarray(features.context, np.uint8)
+        if ctx.shape != (len(features), RING_SAMPLES):
+            raise ValueError(f"ring contexts are {ctx.shape}, expected ({len(features)}, {RING_SAMPLES})")
+        context = ctx.tobytes()
     return pb.KeypointSet(
         keypoints=keypoints,
         descriptors=desc.tobytes(),
         width=features.width,
         height=features.height,
         model_id=model_id,
+        context=context,
     )
 
 
@@ -190,7 +198,8 @@ class SconeClient:
 
 
 def features_from_describe(response: pb.DescribeResponse, width: int, height: int) -> Features:
-    """The keypoints and FREAK descriptors of a Describe response as Features (to compare with a client's)."""
+    """The keypoints, FREAK descriptors and (when the model reads them) ring contexts of a Describe response as
+    Features (to compare with a client's)."""
     kps = response.keypoints
     n = len(kps)
     return Features(
@@ -202,4 +211,5 @@ def features_from_describe(response: pb.DescribeResponse, width: int, height: in
         response=np.array([k.response for k in kps], np.float32),
         octave=np.array([k.octave for k in kps], np.int32),
         descriptors=np.frombuffer(response.descriptors, np.uint8).reshape(n, DESCRIPTOR_BYTES).copy(),
+        context=np.frombuffer(response.context, np.uint8).reshape(n, RING_SAMPLES).copy() if response.context else None,
     )

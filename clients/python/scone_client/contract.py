@@ -54,6 +54,8 @@ class Features:
     octave: np.ndarray
     #: uint8 [N, 64]: FREAK descriptors, bit i in byte i // 8 at bit i % 8 (least significant first).
     descriptors: np.ndarray
+    #: uint8 [N, 113]: the ring context (step 9), for a server whose model reads it; None when not computed.
+    context: np.ndarray | None = None
 
     def __len__(self) -> int:
         return int(self.xy.shape[0])
@@ -282,11 +284,74 @@ def describe(grey: np.ndarray, keypoints: list[cv2.KeyPoint]) -> Features:
     )
 
 
-def extract(grey: np.ndarray, config: ExtractorConfig = ExtractorConfig()) -> Features:
-    """The whole contract on an 8-bit grey image: what the server does with an image it receives."""
-    return describe(grey, detect(grey, config))
+# -- Ring context (step 9) ----------------------------------------------------------------------------------
+
+#: Ring radii in units of the keypoint size, points per ring, orientation bins and box half-width factor.
+RING_RADII = (0.5, 1.0, 1.5, 2.25, 3.25, 4.5, 6.0)
+RING_ANGLES = 16
+RING_ANGLE_BINS = 256
+RING_BOX = 0.2
+#: Bytes of one keypoint's ring context: the centre, then ring 0's points, ring 1's, ...
+RING_SAMPLES = 1 + len(RING_RADII) * RING_ANGLES
 
 
-def extract_encoded(data: bytes, config: ExtractorConfig = ExtractorConfig()) -> Features:
+def ring_offsets() -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(dx, dy) [RING_ANGLE_BINS, RING_SAMPLES] in units of the keypoint size, in double, and each sample's box
+    half-width factor [RING_SAMPLES]: bin a, ring i, point j is at angle 2 pi ((a + 16 j) mod 256) / 256 (the
+    expression evaluated as ``2.0 * pi * m / 256``) and radius RING_RADII[i]; the centre is (0, 0), factor 0."""
+    dx = np.zeros((RING_ANGLE_BINS, RING_SAMPLES), np.float64)
+    dy = np.zeros((RING_ANGLE_BINS, RING_SAMPLES), np.float64)
+    half = np.zeros(RING_SAMPLES, np.float64)
+    step = RING_ANGLE_BINS // RING_ANGLES
+    for a in range(RING_ANGLE_BINS):
+        for i, r in enumerate(RING_RADII):
+            for j in range(RING_ANGLES):
+                t = 2.0 * math.pi * ((a + j * step) % RING_ANGLE_BINS) / RING_ANGLE_BINS
+                dx[a, 1 + i * RING_ANGLES + j] = r * math.cos(t)
+                dy[a, 1 + i * RING_ANGLES + j] = r * math.sin(t)
+    for i, r in enumerate(RING_RADII):
+        half[1 + i * RING_ANGLES : 1 + (i + 1) * RING_ANGLES] = RING_BOX * r
+    return dx, dy, half
+
+
+def ring_context(grey: np.ndarray, features: Features) -> np.ndarray:
+    """uint8 [N, RING_SAMPLES]: each keypoint's ring context on the full-resolution grey image.
+
+    The keypoint's angle picks bin a = floor(angle * 256 / 360 + 0.5) mod 256 (double); sample n is centred
+    on the pixel (cx, cy) = (floor(x + size * dx[a, n] + 0.5), floor(y + size * dy[a, n] + 0.5)) in double,
+    each clamped into the image, and is the mean of the box of half-width hw = floor(half[n] * size + 0.5)
+    around it, cut to the image: floor((sum + area // 2) / area) over the integer sums of the grey levels.
+    """
+    h, w = grey.shape
+    n = len(features)
+    if n == 0:
+        return np.zeros((0, RING_SAMPLES), np.uint8)
+    integral = cv2.integral(grey, sdepth=cv2.CV_64F)
+    dx, dy, half = ring_offsets()
+    x = features.xy[:, 0:1].astype(np.float64)
+    y = features.xy[:, 1:2].astype(np.float64)
+    s = features.size[:, None].astype(np.float64)
+    a = np.mod(np.floor(features.angle.astype(np.float64) * (RING_ANGLE_BINS / 360.0) + 0.5), RING_ANGLE_BINS)
+    a = a.astype(np.int64)
+    cx = np.clip(np.floor(x + s * dx[a] + 0.5), 0, w - 1).astype(np.int64)
+    cy = np.clip(np.floor(y + s * dy[a] + 0.5), 0, h - 1).astype(np.int64)
+    hw = np.maximum(np.floor(half[None, :] * s + 0.5), 0).astype(np.int64)
+    x0, x1 = np.maximum(cx - hw, 0), np.minimum(cx + hw + 1, w)
+    y0, y1 = np.maximum(cy - hw, 0), np.minimum(cy + hw + 1, h)
+    total = (integral[y1, x1] - integral[y0, x1] - integral[y1, x0] + integral[y0, x0]).astype(np.int64)
+    area = (x1 - x0) * (y1 - y0)
+    return ((total + area // 2) // area).astype(np.uint8)
+
+
+def extract(grey: np.ndarray, config: ExtractorConfig = ExtractorConfig(), context: bool = False) -> Features:
+    """The whole contract on an 8-bit grey image: what the server does with an image it receives (with the
+    ring context, step 9, when ``context``: a server whose model reads it needs it)."""
+    features = describe(grey, detect(grey, config))
+    if context:
+        features.context = ring_context(grey, features)
+    return features
+
+
+def extract_encoded(data: bytes, config: ExtractorConfig = ExtractorConfig(), context: bool = False) -> Features:
     """``extract(decode_grey(data))``: the server's result for an encoded PNG or JPEG."""
-    return extract(decode_grey(data), config)
+    return extract(decode_grey(data), config, context)

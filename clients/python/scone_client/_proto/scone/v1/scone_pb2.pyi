@@ -101,18 +101,20 @@ class Keypoint(_message.Message):
     def __init__(self, x: _Optional[float] = ..., y: _Optional[float] = ..., size: _Optional[float] = ..., angle: _Optional[float] = ..., response: _Optional[float] = ..., octave: _Optional[int] = ...) -> None: ...
 
 class KeypointSet(_message.Message):
-    __slots__ = ("keypoints", "descriptors", "width", "height", "model_id")
+    __slots__ = ("keypoints", "descriptors", "width", "height", "model_id", "context")
     KEYPOINTS_FIELD_NUMBER: _ClassVar[int]
     DESCRIPTORS_FIELD_NUMBER: _ClassVar[int]
     WIDTH_FIELD_NUMBER: _ClassVar[int]
     HEIGHT_FIELD_NUMBER: _ClassVar[int]
     MODEL_ID_FIELD_NUMBER: _ClassVar[int]
+    CONTEXT_FIELD_NUMBER: _ClassVar[int]
     keypoints: _containers.RepeatedCompositeFieldContainer[Keypoint]
     descriptors: bytes
     width: int
     height: int
     model_id: str
-    def __init__(self, keypoints: _Optional[_Iterable[_Union[Keypoint, _Mapping]]] = ..., descriptors: _Optional[bytes] = ..., width: _Optional[int] = ..., height: _Optional[int] = ..., model_id: _Optional[str] = ...) -> None: ...
+    context: bytes
+    def __init__(self, keypoints: _Optional[_Iterable[_Union[Keypoint, _Mapping]]] = ..., descriptors: _Optional[bytes] = ..., width: _Optional[int] = ..., height: _Optional[int] = ..., model_id: _Optional[str] = ..., context: _Optional[bytes] = ...) -> None: ...
 
 class Frame(_message.Message):
     __slots__ = ("image", "keypoints", "intrinsics")
@@ -329,18 +331,20 @@ class DescribeRequest(_message.Message):
     def __init__(self, frame: _Optional[_Union[Frame, _Mapping]] = ...) -> None: ...
 
 class DescribeResponse(_message.Message):
-    __slots__ = ("keypoints", "descriptors", "embeddings", "dim", "model_id")
+    __slots__ = ("keypoints", "descriptors", "embeddings", "dim", "model_id", "context")
     KEYPOINTS_FIELD_NUMBER: _ClassVar[int]
     DESCRIPTORS_FIELD_NUMBER: _ClassVar[int]
     EMBEDDINGS_FIELD_NUMBER: _ClassVar[int]
     DIM_FIELD_NUMBER: _ClassVar[int]
     MODEL_ID_FIELD_NUMBER: _ClassVar[int]
+    CONTEXT_FIELD_NUMBER: _ClassVar[int]
     keypoints: _containers.RepeatedCompositeFieldContainer[Keypoint]
     descriptors: bytes
     embeddings: _containers.RepeatedScalarFieldContainer[float]
     dim: int
     model_id: str
-    def __init__(self, keypoints: _Optional[_Iterable[_Union[Keypoint, _Mapping]]] = ..., descriptors: _Optional[bytes] = ..., embeddings: _Optional[_Iterable[float]] = ..., dim: _Optional[int] = ..., model_id: _Optional[str] = ...) -> None: ...
+    context: bytes
+    def __init__(self, keypoints: _Optional[_Iterable[_Union[Keypoint, _Mapping]]] = ..., descriptors: _Optional[bytes] = ..., embeddings: _Optional[_Iterable[float]] = ..., dim: _Optional[int] = ..., model_id: _Optional[str] = ..., context: _Optional[bytes] = ...) -> None: ...
 
 class Match(_message.Message):
     __slots__ = ("index1", "index2", "distance", "inlier")
