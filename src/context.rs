@@ -73,6 +73,15 @@ pub fn angle_bin(angle_deg: f32) -> usize {
     a.rem_euclid(ANGLE_BINS as i64) as usize
 }
 
+/// Where a keypoint's samples lie, in pixels (before rounding and clamping): the centre, then ring 0's points
+/// in order, ring 1's, ... For `scone eval homography`'s share of samples that land on their counterparts.
+pub fn sample_positions(k: &Keypoint) -> [(f64, f64); SAMPLES] {
+    let table = &*TABLE;
+    let a = angle_bin(k.angle);
+    let (x, y, s) = (f64::from(k.x), f64::from(k.y), f64::from(k.size));
+    std::array::from_fn(|n| (x + s * table.dx[a][n], y + s * table.dy[a][n]))
+}
+
 /// The ring context of every keypoint, on the image the keypoints were detected on.
 pub fn sample(image: &GreyImage, keypoints: &[Keypoint]) -> Result<Vec<Context>, FeatureError> {
     if keypoints.is_empty() {

@@ -1,8 +1,11 @@
-"""Where onnxruntime spends SConE's inference time (issue 29): the activation kernels alone, and graphs side by side.
+"""Where onnxruntime spends SConE's inference time (issues 29 and 40): the activation kernels alone, and graphs
+side by side.
 
 `python -m scone_train.ort_bench [--threads 1] [GRAPH ...]` (from `training/`):
-1. each activation node alone (Selu, Elu, Relu, Exp) on a [1500, 20, 64] float tensor, the shape of the set
-   encoder's per-member activations for 1,500 keypoints: median of 50 runs;
+1. each candidate activation (`ACTIVATIONS`: Relu, Gelu, Silu, Tanh, Sigmoid, Selu for reference, Elu, Exp)
+   alone and after a fully connected layer (Gemm 256 -> 256, which onnxruntime fuses with Relu), on 2,000
+   keypoints (the ring network's widest layer), and alone on [1500, 20, 64], the shape of the constellation
+   set encoder's per-member activations: median of 50 runs, one process, interleaved by repetition;
 2. the shipped graph against the same graph with its Selu nodes replaced by Relu (wrong values: a bound on what a
    vectorised Selu kernel could save, for timing only) and against every GRAPH given, interleaved in one process
    over real training frames (`speed_figure.inference_ratios`).
@@ -21,18 +24,44 @@ from .speed_figure import inference_ratios
 from .speed_gate import SHIPPED
 
 SELU_ALPHA = 1.6732632423543772
+#: The activations issue 40 asks about, as ONNX nodes (Silu has no node of its own: x * Sigmoid(x)).
+ACTIVATIONS = ("Relu", "Gelu", "Silu", "Tanh", "Sigmoid", "Selu", "Elu", "Exp")
 
 
-def one_node(op: str, threads: int, shape=(1500, 20, 64), runs: int = 50) -> float:
-    """Median milliseconds of a graph holding the single node `op` on a float tensor of `shape`."""
-    import onnxruntime as ort
-    from onnx import TensorProto, helper
+def activation_nodes(op: str, x: str, y: str) -> list:
+    """The ONNX nodes of activation `op` from tensor `x` to `y`."""
+    from onnx import helper
 
+    if op == "Silu":
+        return [helper.make_node("Sigmoid", [x], [y + "_s"]), helper.make_node("Mul", [x, y + "_s"], [y])]
     attrs = {"alpha": SELU_ALPHA} if op == "Elu" else {}
-    graph = helper.make_graph([helper.make_node(op, ["x"], ["y"], **attrs)], op,
-                              [helper.make_tensor_value_info("x", TensorProto.FLOAT, list(shape))],
-                              [helper.make_tensor_value_info("y", TensorProto.FLOAT, list(shape))])
-    model = helper.make_model(graph, opset_imports=[helper.make_opsetid("", 17)], ir_version=9)
+    return [helper.make_node(op, [x], [y], **attrs)]
+
+
+def activation_graph(op: str, shape, gemm: int = 0):
+    """A graph of activation `op` on a float tensor of `shape` ([n, width] with `gemm`: after a Gemm width ->
+    `gemm`, as a fully connected layer)."""
+    from onnx import TensorProto, helper, numpy_helper
+
+    nodes, inits, src = [], [], "x"
+    out_shape = list(shape)
+    if gemm:
+        rng = np.random.default_rng(1)
+        w = (rng.standard_normal((shape[1], gemm)) / np.sqrt(shape[1])).astype(np.float32)
+        inits = [numpy_helper.from_array(w, "w"), numpy_helper.from_array(np.zeros(gemm, np.float32), "b")]
+        nodes.append(helper.make_node("Gemm", ["x", "w", "b"], ["h"]))
+        src, out_shape = "h", [shape[0], gemm]
+    nodes += activation_nodes(op, src, "y")
+    graph = helper.make_graph(nodes, op, [helper.make_tensor_value_info("x", TensorProto.FLOAT, list(shape))],
+                              [helper.make_tensor_value_info("y", TensorProto.FLOAT, out_shape)], initializer=inits)
+    return helper.make_model(graph, opset_imports=[helper.make_opsetid("", 20)], ir_version=9)
+
+
+def one_node(op: str, threads: int, shape=(1500, 20, 64), runs: int = 50, gemm: int = 0) -> float:
+    """Median milliseconds of activation `op` on a float tensor of `shape` (after a Gemm with `gemm`)."""
+    import onnxruntime as ort
+
+    model = activation_graph(op, shape, gemm)
     opts = ort.SessionOptions()
     opts.intra_op_num_threads = threads
     opts.add_session_config_entry("session.intra_op.allow_spinning", "0")
@@ -69,9 +98,12 @@ def main() -> None:
     ap.add_argument("--frames", type=int, default=2, help="per training scene")
     ap.add_argument("--reps", type=int, default=7)
     a = ap.parse_args()
-    print("| node on [1500, 20, 64] | ms |\n|---|---|")
-    for op in ("Selu", "Elu", "Relu", "Exp"):
-        print(f"| {op} | {one_node(op, a.threads):.2f} |")
+    cases = [("[2000, 256]", (2000, 256), 0), ("Gemm 256 -> 256 on 2000, then it", (2000, 256), 256),
+             ("[1500, 20, 64]", (1500, 20, 64), 0)]
+    print(f"| activation ({a.threads} thread), ms | " + " | ".join(c[0] for c in cases) + " |")
+    print("|---|" + "---|" * len(cases))
+    for op in ACTIVATIONS:
+        print(f"| {op} | " + " | ".join(f"{one_node(op, a.threads, shape, gemm=g):.3f}" for _, shape, g in cases) + " |")
     shipped = SHIPPED.with_suffix(".onnx")
     with tempfile.TemporaryDirectory() as tmp:
         bound = Path(tmp) / "selu-as-relu.onnx"

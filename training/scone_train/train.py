@@ -85,14 +85,14 @@ def load_units(cfg: dict, rendered_root: Path | None = None) -> tuple[list[Unit]
         # Exact-warp sequences (scone_train.warps): training from the training frames and scikit-image's
         # photographs, and a few selection sequences beside the real selection units.
         from .dataset import build_warp_unit
-        from .warps import generate
+        from .warps import GENERATOR, generate
 
         w = d["warps"]
         for role, seed, per_scene, kinds, into in (
             ("training", w.get("seed", 1), w.get("per_scene", 12), w.get("kinds", ["zoom", "viewpoint", "photometric"]), train),
             ("selection", 1, w.get("selection_per_scene", 1), w.get("selection_kinds", ["zoom", "viewpoint"]), select),
         ):
-            root = prefix() / "data" / f"warps-{role}-{seed}-{per_scene}-{'+'.join(kinds)}"
+            root = prefix() / "data" / f"warps-g{GENERATOR}-{role}-{seed}-{per_scene}-{'+'.join(kinds)}"
             if not (root / "manifest.json").exists():
                 generate(role, root, seed, per_scene, tuple(kinds))
             seqs = sorted(p.parent for p in root.glob("*/H_1_2"))

@@ -2,10 +2,13 @@
 
 Each source photograph gives one sequence of each kind:
 
-- `zoom`: zooms of about 1.2, 1.5, 1.9, 2.3 and 2.8 (each jittered by up to 5 %), each with an in-plane
-  rotation drawn uniformly from -180..180 degrees and a slight tilt (up to 10 degrees);
+- `zoom`: zooms of about 1.2, 1.5, 1.9, 2.3 and 2.8 (each jittered by up to 5 %), with at most 5 degrees of
+  in-plane rotation and of tilt (generator 1 drew the rotation from -180..180 here: generator 2 separates the
+  effects, so each bin of `scone eval homography` holds one);
+- `rotation`: in-plane rotations of about 30, 60, 90, 135 and 180 degrees (either sense, jittered by up to 5),
+  with a zoom of 1-1.1 and at most 5 degrees of tilt;
 - `viewpoint`: the photograph seen as a plane tilted by about 15, 25, 35, 45 and 55 degrees about a random
-  in-plane axis (up to about 60), with a zoom of 1-1.2 and up to 15 degrees of rotation;
+  in-plane axis (up to about 60), with a zoom of 1-1.1 and up to 5 degrees of rotation;
 - `photometric`: small geometric changes (zoom up to 1.1, 10 degrees, 8 degrees of tilt) under changes of
   light (gamma and gain), Gaussian blur and JPEG quality, one after the other and stronger with k.
 
@@ -45,7 +48,10 @@ VALIDATION_SCENES = {
     "tum-fr3-long-office": 4,
     "middlebury-dino48": 4,
 }
-KINDS = ("zoom", "viewpoint", "photometric")
+KINDS = ("zoom", "rotation", "viewpoint", "photometric")
+#: The generator's version: part of the directories the training and the rules read, so that warps made by
+#: another generator are never taken for these.
+GENERATOR = 2
 CROP = 0.75
 STEPS = 5
 
@@ -80,10 +86,14 @@ def pair_parameters(kind: str, step: int, rng: np.random.Generator) -> dict:
     """Parameters of pair (1, step + 2) of a sequence of `kind`."""
     if kind == "zoom":
         zoom = (1.2, 1.5, 1.9, 2.3, 2.8)[step] * rng.uniform(0.95, 1.05)
-        return {"zoom": zoom, "rotation": rng.uniform(-180, 180), "tilt": rng.uniform(0, 10),
+        return {"zoom": zoom, "rotation": rng.uniform(-5, 5), "tilt": rng.uniform(0, 5),
                 "axis": rng.uniform(0, 180), "photometric": None}
+    if kind == "rotation":
+        turn = (30, 60, 90, 135, 180)[step] + rng.uniform(-5, 5)
+        return {"zoom": rng.uniform(1.0, 1.1), "rotation": float(rng.choice([-1, 1])) * turn,
+                "tilt": rng.uniform(0, 5), "axis": rng.uniform(0, 180), "photometric": None}
     if kind == "viewpoint":
-        return {"zoom": rng.uniform(1.0, 1.2), "rotation": rng.uniform(-15, 15),
+        return {"zoom": rng.uniform(1.0, 1.1), "rotation": rng.uniform(-5, 5),
                 "tilt": (15, 25, 35, 45, 55)[step] + rng.uniform(-5, 5), "axis": rng.uniform(0, 180),
                 "photometric": None}
     if kind == "photometric":
@@ -210,7 +220,7 @@ def skimage_photographs() -> list[tuple[str, Path]]:
 
 def generate(role: str, out: Path, seed: int, per_scene: int | None = None, kinds: tuple[str, ...] = KINDS) -> dict:
     rng = np.random.default_rng(seed)
-    manifest = {"role": role, "seed": seed, "crop": CROP, "sequences": []}
+    manifest = {"role": role, "seed": seed, "crop": CROP, "generator": GENERATOR, "sequences": []}
     for name, path in sources(role, per_scene):
         photo = cv2.imread(str(path), cv2.IMREAD_COLOR)
         if photo is None:
