@@ -64,6 +64,8 @@ mod geometry;
 mod input;
 mod landmarks;
 mod settings;
+#[cfg(test)]
+mod tests;
 
 pub use external::{ExternalCounts, MAX_EXTERNAL_OBSERVATIONS};
 pub use input::{Depth, ExternalObservation, KeyframeInput};
