@@ -84,16 +84,4 @@ impl Describer {
         let embeddings = times.time("embed", || embed(&self.embedder, &features))?;
         Ok(Described { features, embeddings })
     }
-
-    /// Embeddings of a stored keyframe (its keypoints and FREAK descriptors) with this model.
-    pub fn embed_keyframe(&self, keyframe: &crate::map::model::Keyframe) -> Result<Vec<f32>, DescribeError> {
-        let features = features::from_precomputed(
-            keyframe.camera.width,
-            keyframe.camera.height,
-            keyframe.keypoints.clone(),
-            &keyframe.descriptors,
-            &features::KeypointLimitSettings { max_keypoints: usize::MAX, ..Default::default() },
-        )?;
-        Ok(embed(&self.embedder, &features)?)
-    }
 }
