@@ -26,6 +26,7 @@ use crate::decode::{decode_grey, ImageLimitSettings};
 use crate::error::SceneError;
 use crate::features::{extract, ExtractorSettings, Features, DESCRIPTOR_BYTES};
 use crate::offline::scene::Scene;
+use crate::progress::Progress;
 
 /// Version of the export layout; bumped on any change of keys, dtypes or meanings.
 pub const EXPORT_FORMAT_VERSION: u32 = 1;
@@ -167,14 +168,16 @@ fn write_scene(
     let file = File::create(tmp).map_err(|source| SceneError::Io { path: tmp.into(), source })?;
     let mut npz = NpzWriter::new(BufWriter::new(file));
     let mut frames = Vec::with_capacity(scene.frames.len());
+    let mut progress = Progress::new(format!("features {}", scene.name), scene.frames.len());
     for (index, frame) in scene.frames.iter().enumerate() {
+        progress.step();
         let bytes = std::fs::read(&frame.rgb).map_err(|source| SceneError::Io { path: frame.rgb.clone(), source })?;
         let feature_err = |source| SceneError::Feature { frame: frame.stamp.clone(), source };
         let image = decode_grey(&bytes, limits).map_err(feature_err)?;
         let features = extract(&image, config).map_err(feature_err)?;
         let constellations = constellation::build(&features.keypoints, k);
         write_frame(&mut npz, out, index, &features, &constellations)?;
-        tracing::info!(frame = %frame.stamp, keypoints = features.len(), "extracted");
+        tracing::debug!(frame = %frame.stamp, keypoints = features.len(), "extracted");
         frames.push(FrameMeta {
             index,
             stamp: frame.stamp.clone(),
