@@ -160,7 +160,7 @@ def main() -> None:
         sched.step()
         step += 1
         bar.update(1)
-        bar.set_postfix(loss=f"{float(total):.4f}", refresh=False)
+        bar.set_postfix(loss=f"{total.item():.4f}", refresh=False)
         if step % a.eval_every == 0 or step == a.steps:
             student.eval()
             cos, agree = nn_agreement(student, select)
