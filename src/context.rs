@@ -21,7 +21,6 @@ use opencv::prelude::*;
 
 use crate::decode::GreyImage;
 use crate::error::FeatureError;
-use crate::features::Keypoint;
 
 /// Ring radii in units of the keypoint's size.
 pub const RADII: [f64; 7] = [0.5, 1.0, 1.5, 2.25, 3.25, 4.5, 6.0];
@@ -37,6 +36,16 @@ pub const SAMPLES: usize = 1 + RINGS * ANGLES;
 
 /// One keypoint's context.
 pub type Context = [u8; SAMPLES];
+
+/// A keypoint's own frame, where its ring is drawn: position (pixels), size (pixels) and orientation (degrees,
+/// image axes), as `features::Keypoint` holds them.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct KeypointFrame {
+    pub x: f32,
+    pub y: f32,
+    pub size: f32,
+    pub angle: f32,
+}
 
 /// Sample offsets (in units of the keypoint size) per orientation bin, and each sample's box half-width
 /// factor.
@@ -75,15 +84,16 @@ pub fn angle_bin(angle_deg: f32) -> usize {
 
 /// Where a keypoint's samples lie, in pixels (before rounding and clamping): the centre, then ring 0's points
 /// in order, ring 1's, ... For `scone eval homography`'s share of samples that land on their counterparts.
-pub fn sample_positions(k: &Keypoint) -> [(f64, f64); SAMPLES] {
+pub fn sample_positions(k: &KeypointFrame) -> [(f64, f64); SAMPLES] {
     let table = &*TABLE;
     let a = angle_bin(k.angle);
     let (x, y, s) = (f64::from(k.x), f64::from(k.y), f64::from(k.size));
     std::array::from_fn(|n| (x + s * table.dx[a][n], y + s * table.dy[a][n]))
 }
 
-/// The ring context of every keypoint, on the image the keypoints were detected on.
-pub fn sample(image: &GreyImage, keypoints: &[Keypoint]) -> Result<Vec<Context>, FeatureError> {
+/// The ring context of every keypoint, on the image the keypoints were detected on
+/// (`features::Features::sample_context` for a frame's keypoints).
+pub fn sample(image: &GreyImage, keypoints: &[KeypointFrame]) -> Result<Vec<Context>, FeatureError> {
     if keypoints.is_empty() {
         return Ok(Vec::new());
     }
@@ -123,8 +133,8 @@ pub fn sample(image: &GreyImage, keypoints: &[Keypoint]) -> Result<Vec<Context>,
 mod tests {
     use super::*;
 
-    fn keypoint(x: f32, y: f32, size: f32, angle: f32) -> Keypoint {
-        Keypoint { x, y, size, angle, response: 1.0, octave: 0 }
+    fn keypoint(x: f32, y: f32, size: f32, angle: f32) -> KeypointFrame {
+        KeypointFrame { x, y, size, angle }
     }
 
     fn image(w: i32, h: i32, f: impl Fn(i32, i32) -> u8) -> GreyImage {

@@ -304,7 +304,9 @@ impl Embedder {
     /// which must be there).
     fn context_of<'a>(&self, features: &'a Features) -> Result<Context<'a>, EmbeddingError> {
         match self.inputs {
-            ModelInputs::Constellation { k } => Ok(Context::Constellations(constellation::build(&features.keypoints, k))),
+            ModelInputs::Constellation { k } => {
+                Ok(Context::Constellations(constellation::build(&features.keypoints, k)))
+            }
             ModelInputs::RingContext if features.context.len() == features.len() => {
                 Ok(Context::Rings(features.context.as_flattened()))
             }
@@ -366,8 +368,8 @@ fn run(session: &mut Session, f: &Features, context: &Context, dim: usize) -> Re
             let keypoints = Tensor::from_array(([n, 2], keypoints)).map_err(inference)?;
             let neighbours = Tensor::from_array(([n, k], c.neighbours.iter().map(|&j| j as i64).collect::<Vec<_>>()))
                 .map_err(inference)?;
-            let mask =
-                Tensor::from_array(([n, k], c.mask.iter().map(|&m| m as f32).collect::<Vec<_>>())).map_err(inference)?;
+            let mask = Tensor::from_array(([n, k], c.mask.iter().map(|&m| m as f32).collect::<Vec<_>>()))
+                .map_err(inference)?;
             let relative =
                 Tensor::from_array(([n, k, GEOMETRY_DIM], c.relative.as_flattened().to_vec())).map_err(inference)?;
             session

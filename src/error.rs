@@ -78,7 +78,7 @@ pub enum MapError {
     UnknownKeyframe { map: String, keyframe: u64 },
     #[error("map '{map}' already has keyframe {keyframe}")]
     KeyframeExists { map: String, keyframe: u64 },
-    #[error("map '{map}' was embedded by model {map_model}, this service runs {model}: re-embed it first")]
+    #[error("map '{map}' was embedded by model {map_model}, this service runs {model}: re-embed it first (scone map reembed)")]
     ModelMismatch { map: String, map_model: String, model: String },
     #[error("map '{map}' is unavailable: {reason}")]
     Unavailable { map: String, reason: String },

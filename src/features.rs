@@ -29,7 +29,7 @@ use opencv::prelude::*;
 use opencv::{imgproc, xfeatures2d};
 use serde::{Deserialize, Serialize};
 
-use crate::context::{Context, SAMPLES};
+use crate::context::{self, Context, KeypointFrame, SAMPLES};
 use crate::decode::GreyImage;
 use crate::error::FeatureError;
 
@@ -147,6 +147,14 @@ impl Features {
     /// Keypoint positions `(x, y)` in pixels, in keypoint order.
     pub fn points(&self) -> Vec<(f32, f32)> {
         self.keypoints.iter().map(|k| (k.x, k.y)).collect()
+    }
+
+    /// Samples each keypoint's ring context ([`crate::context`]) on `image`, the image they were detected on.
+    pub fn sample_context(&mut self, image: &GreyImage) -> Result<(), FeatureError> {
+        let frames: Vec<KeypointFrame> =
+            self.keypoints.iter().map(|k| KeypointFrame { x: k.x, y: k.y, size: k.size, angle: k.angle }).collect();
+        self.context = context::sample(image, &frames)?;
+        Ok(())
     }
 
     /// Descriptors as an OpenCV matrix [N, 64] of u8, for OpenCV's matchers.

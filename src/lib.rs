@@ -3,8 +3,9 @@
 //!
 //! # Modules
 //!
-//! The core never imports a transport; only [`server`] knows tonic and axum, and only [`offline`] holds what
-//! the service never calls.
+//! The core never imports a transport: no module outside [`server`] imports it or names tonic, axum, hyper,
+//! http, tower or prost, and none outside [`offline`] (what the service never calls) imports it.
+//! `tools/check_imports.py` checks both, with the layering of the README's module table.
 //!
 //! The description path, in the order an image takes it:
 //! - [`decode`]: encoded image bytes -> grey image, with size limits checked before decoding; depth PNGs;

@@ -5,7 +5,6 @@
 use std::sync::Arc;
 use std::time::Instant;
 
-use crate::context;
 use crate::decode::{decode_grey, GreyImage, ImageLimitSettings};
 use crate::embedding::Embedder;
 use crate::error::{EmbeddingError, FeatureError};
@@ -43,10 +42,14 @@ pub fn embed(embedder: &Embedder, features: &Features) -> Result<Vec<f32>, Embed
 
 /// FAST + FREAK features of a decoded image, with their ring contexts when `embedder` reads them: what every
 /// caller that embeds an image's features extracts ([`Describer::extract`] times the two steps).
-pub fn extract_for(image: &GreyImage, extractor: &ExtractorSettings, embedder: &Embedder) -> Result<Features, FeatureError> {
+pub fn extract_for(
+    image: &GreyImage,
+    extractor: &ExtractorSettings,
+    embedder: &Embedder,
+) -> Result<Features, FeatureError> {
     let mut features = features::extract(image, extractor)?;
     if embedder.needs_context() {
-        features.context = context::sample(image, &features.keypoints)?;
+        features.sample_context(image)?;
     }
     Ok(features)
 }
@@ -89,7 +92,7 @@ impl Describer {
         let image = times.time("decode", || decode_grey(bytes, &self.limits))?;
         let mut features = times.time("extract", || features::extract(&image, &self.extractor))?;
         if self.embedder.needs_context() {
-            features.context = times.time("context", || context::sample(&image, &features.keypoints))?;
+            times.time("context", || features.sample_context(&image))?;
         }
         Ok(features)
     }
@@ -98,17 +101,5 @@ impl Describer {
     pub fn embed(&self, features: Features, times: &mut StageTimes) -> Result<Described, EmbeddingError> {
         let embeddings = times.time("embed", || embed(&self.embedder, &features))?;
         Ok(Described { features, embeddings })
-    }
-
-    /// Embeddings of a stored keyframe (its keypoints and FREAK descriptors) with this model.
-    pub fn embed_keyframe(&self, keyframe: &crate::map::model::Keyframe) -> Result<Vec<f32>, DescribeError> {
-        let features = features::from_precomputed(
-            keyframe.camera.width,
-            keyframe.camera.height,
-            keyframe.keypoints.clone(),
-            &keyframe.descriptors,
-            &features::KeypointLimitSettings { max_keypoints: usize::MAX, ..Default::default() },
-        )?;
-        Ok(embed(&self.embedder, &features)?)
     }
 }

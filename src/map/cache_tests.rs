@@ -52,8 +52,13 @@ fn frame(cols: usize, rows: usize, first_landmark: u64, seed: u64) -> Frame {
     }
     let n = keypoints.len();
     let embeddings = vectors(n, DIM, seed);
-    let features =
-        Features { width: 640, height: 480, keypoints, descriptors: vec![[0u8; DESCRIPTOR_BYTES]; n], context: Vec::new() };
+    let features = Features {
+        width: 640,
+        height: 480,
+        keypoints,
+        descriptors: vec![[0u8; DESCRIPTOR_BYTES]; n],
+        context: Vec::new(),
+    };
     Frame { features, embeddings, external }
 }
 

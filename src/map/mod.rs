@@ -1,10 +1,11 @@
 //! Maps: keyframes, landmarks and their SConE observations, stored durably with a nearest-neighbour index per
 //! map.
 //!
-//! Who imports whom, top to bottom (nothing imports back up): [`store`] (the registry commands and the service
-//! go through) -> [`cache`] (which maps are in memory, and how fresh) -> [`storage`] (where maps are kept:
-//! the backends, their traits and their bytes) -> [`model`]; beside them [`index`] (which reads and writes its
-//! dumps through [`storage::format`]), [`localize`], [`merge`] and [`builder`], which the store calls.
+//! Who imports whom, top to bottom (each module imports only from those after it; `tools/check_imports.py`
+//! checks it): [`store`] (the registry commands and the service go through) -> [`cache`] (which maps are in
+//! memory, and how fresh) / [`merge`] / [`builder`] -> [`localize`] -> [`index`] (which reads and writes its
+//! dumps through [`storage::format`]) -> [`storage`] (where maps are kept: the backends, their traits and their
+//! bytes) -> [`model`].
 //!
 //! - [`store`]: create, list, delete, write keyframes, localise, export and import;
 //! - [`cache`]: the loaded maps: eager or lazy loading, eviction within a memory budget, freshness checks;

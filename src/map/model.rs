@@ -13,8 +13,8 @@ use std::collections::{BTreeMap, HashMap};
 use serde::{Deserialize, Serialize};
 
 use crate::camera::{Camera, Pose};
-use crate::error::MapError;
-use crate::features::{Keypoint, DESCRIPTOR_BYTES};
+use crate::error::{FeatureError, MapError};
+use crate::features::{from_precomputed, Features, Keypoint, KeypointLimitSettings, DESCRIPTOR_BYTES};
 
 /// Map ids: 1-64 characters from `[A-Za-z0-9_-]`.
 pub fn validate_map_id(id: &str) -> Result<(), MapError> {
@@ -74,6 +74,14 @@ impl Keyframe {
 
     pub fn embedding(&self, i: usize, dim: usize) -> &[f32] {
         &self.embeddings[i * dim..(i + 1) * dim]
+    }
+
+    /// The keypoints and FREAK descriptors the keyframe stores, as features a model embeds again (a map
+    /// re-embedded after a model upgrade). They passed the keypoint checks when the keyframe was written; its
+    /// keypoint count is not limited again.
+    pub fn features(&self) -> Result<Features, FeatureError> {
+        let limits = KeypointLimitSettings { max_keypoints: usize::MAX, ..Default::default() };
+        from_precomputed(self.camera.width, self.camera.height, self.keypoints.clone(), &self.descriptors, &limits)
     }
 }
 

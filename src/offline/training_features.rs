@@ -23,11 +23,12 @@ use ndarray_npy::NpzWriter;
 use serde::Serialize;
 
 use crate::constellation::{self, Constellations, GEOMETRY_DIM};
-use crate::context::{self, SAMPLES};
+use crate::context::SAMPLES;
 use crate::decode::{decode_grey, ImageLimitSettings};
 use crate::error::SceneError;
 use crate::features::{extract, ExtractorSettings, Features, DESCRIPTOR_BYTES};
 use crate::offline::scene::Scene;
+use crate::progress::Progress;
 
 /// Version of the export layout; bumped on any change of keys, dtypes or meanings.
 pub const EXPORT_FORMAT_VERSION: u32 = 2;
@@ -94,7 +95,8 @@ fn write_frame(
     npz.add_array(name("mask"), &mask).map_err(|e| npz_err(out, e))?;
     npz.add_array(name("relative"), &rel).map_err(|e| npz_err(out, e))?;
     if f.context.len() == n {
-        let ctx = Array2::from_shape_vec((n, SAMPLES), f.context.as_flattened().to_vec()).map_err(|e| npz_err(out, e))?;
+        let ctx =
+            Array2::from_shape_vec((n, SAMPLES), f.context.as_flattened().to_vec()).map_err(|e| npz_err(out, e))?;
         npz.add_array(name("context"), &ctx).map_err(|e| npz_err(out, e))?;
     }
     Ok(())
@@ -173,15 +175,17 @@ fn write_scene(
     let file = File::create(tmp).map_err(|source| SceneError::Io { path: tmp.into(), source })?;
     let mut npz = NpzWriter::new(BufWriter::new(file));
     let mut frames = Vec::with_capacity(scene.frames.len());
+    let mut progress = Progress::new(format!("features {}", scene.name), scene.frames.len());
     for (index, frame) in scene.frames.iter().enumerate() {
+        progress.step();
         let bytes = std::fs::read(&frame.rgb).map_err(|source| SceneError::Io { path: frame.rgb.clone(), source })?;
         let feature_err = |source| SceneError::Feature { frame: frame.stamp.clone(), source };
         let image = decode_grey(&bytes, limits).map_err(feature_err)?;
         let mut features = extract(&image, config).map_err(feature_err)?;
-        features.context = context::sample(&image, &features.keypoints).map_err(feature_err)?;
+        features.sample_context(&image).map_err(feature_err)?;
         let constellations = constellation::build(&features.keypoints, k);
         write_frame(&mut npz, out, index, &features, &constellations)?;
-        tracing::info!(frame = %frame.stamp, keypoints = features.len(), "extracted");
+        tracing::debug!(frame = %frame.stamp, keypoints = features.len(), "extracted");
         frames.push(FrameMeta {
             index,
             stamp: frame.stamp.clone(),

@@ -79,8 +79,13 @@ impl Service {
                     .into());
                 }
                 Ok(times.time("validate", || -> Result<Features, FeatureError> {
-                    let f =
-                        features::from_precomputed(k.width, k.height, k.keypoints, &k.descriptors, &self.keypoint_limits)?;
+                    let f = features::from_precomputed(
+                        k.width,
+                        k.height,
+                        k.keypoints,
+                        &k.descriptors,
+                        &self.keypoint_limits,
+                    )?;
                     if needs_context {
                         features::with_context(f, &k.context)
                     } else {

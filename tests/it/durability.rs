@@ -192,8 +192,8 @@ fn reads_of_one_map_go_on_while_another_is_written() {
     assert_eq!(store.summary("b").unwrap().keyframes, 2 * scene.frames.len());
 }
 
-/// A map recorded by another model is refused for queries with a clear error, and re-embedding it from the
-/// stored keypoints and FREAK descriptors makes it answer again.
+/// A map recorded by another model is refused for queries with a clear error, and `scone map reembed`
+/// (re-embedding from the stored keypoints and FREAK descriptors) makes it answer again.
 #[test]
 fn a_map_from_another_model_is_refused_until_re_embedded() {
     let dir = temp_dir("reembed");
@@ -230,15 +230,28 @@ fn a_map_from_another_model_is_refused_until_re_embedded() {
         .localize(&store.get("m").unwrap(), &q.features, &q.embeddings, &scene.camera, None)
         .unwrap_err()
         .to_string();
-    assert!(err.contains("sha256:older-model") && err.contains("re-embed"), "{err}");
-    let summary = store
-        .reembed("m", &|kf| {
-            describer
-                .embed_keyframe(kf)
-                .map_err(|e| scone::MapError::InvalidInput { field: "keyframe".into(), reason: e.to_string() })
-        })
-        .unwrap();
-    assert_eq!(summary.model_id, describer.embedder.model_id());
+    assert!(err.contains("sha256:older-model") && err.contains("scone map reembed"), "{err}");
+    drop(store);
+
+    let reembed = |map: &str| {
+        Command::new(env!("CARGO_BIN_EXE_scone"))
+            .args(["map", "reembed", "--map", map])
+            .arg("--data-dir")
+            .arg(&dir)
+            .stderr(Stdio::piped())
+            .output()
+            .unwrap()
+    };
+    let out = reembed("nowhere");
+    assert!(!out.status.success());
+    assert!(String::from_utf8_lossy(&out.stderr).contains("nowhere"), "{}", String::from_utf8_lossy(&out.stderr));
+    let out = reembed("m");
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    let summary: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+    assert_eq!(summary["model_id"], describer.embedder.model_id());
+    assert_eq!(summary["keyframes"], scene.frames.len().div_ceil(2));
+
+    let (store, _) = open(&dir);
     let loc = store.localize(&store.get("m").unwrap(), &q.features, &q.embeddings, &scene.camera, None).unwrap();
     let pose = loc.pose.expect("not localised after re-embedding");
     let gt = scene.frames[3].pose.unwrap();

@@ -15,7 +15,8 @@ The loss per step takes two frames of one scene:
 Where a student's parameter has the teacher's shape it starts from the teacher's values. Every `eval_every`
 steps the student is scored on the selection frames of the same scenes: the mean cosine to the teacher and the
 share of queries whose nearest neighbour in another frame is the teacher's (`nn_agreement`); `best.pt` keeps the
-highest `nn_agreement`. The run lives in `<prefix>/runs/distill-NAME` and resumes from `last.pt`. `best.onnx`
+highest `nn_agreement`. A tqdm bar on stderr counts the steps; each score is a JSON line on stdout and in
+`log.jsonl`. The run lives in `<prefix>/runs/distill-NAME` and resumes from `last.pt`. `best.onnx`
 is exported (with the parity check) at the end; whether it may ship is decided by issue 29's accuracy gate
 (`scone_train.speed_gate`, `scripts/speed`), not here.
 """
@@ -24,12 +25,14 @@ from __future__ import annotations
 
 import argparse
 import json
+import sys
 import time
 from pathlib import Path
 
 import numpy as np
 import torch
 import torch.nn.functional as F
+from tqdm import tqdm
 
 from .data import prefix_dir
 from .export import check_parity, export_onnx
@@ -140,6 +143,7 @@ def main() -> None:
     scenes = sorted(train)
     log = open(run / "log.jsonl", "a")
     t0 = time.time()
+    bar = tqdm(total=a.steps, initial=step, desc=config["name"], mininterval=1 if sys.stderr.isatty() else 60)
     while step < a.steps:
         student.train()
         frames = train[scenes[rng.integers(len(scenes))]]
@@ -155,12 +159,15 @@ def main() -> None:
         opt.step()
         sched.step()
         step += 1
+        bar.update(1)
+        bar.set_postfix(loss=f"{total.item():.4f}", refresh=False)
         if step % a.eval_every == 0 or step == a.steps:
             student.eval()
             cos, agree = nn_agreement(student, select)
             row = {"step": step, "loss": float(loss), "relational": float(rel), "select_cosine": cos,
                    "nn_agreement": agree, "lr": sched.get_last_lr()[0], "seconds": time.time() - t0}
-            print(json.dumps(row), flush=True)
+            tqdm.write(json.dumps(row), file=sys.stdout)
+            sys.stdout.flush()
             log.write(json.dumps(row) + "\n")
             log.flush()
             if agree > best:
@@ -169,6 +176,7 @@ def main() -> None:
                             "select_cosine": cos}, run / "best.pt")
             torch.save({"model": student.state_dict(), "optimizer": opt.state_dict(), "scheduler": sched.state_dict(),
                         "step": step, "best": best, "model_config": m, "steps": a.steps}, run / "last.pt")
+    bar.close()
     best_model = load_checkpoint(run / "best.pt")
     export_onnx(best_model, run / "best.onnx")
     print(json.dumps({"onnx": str(run / "best.onnx"), "parity": check_parity(best_model, run / "best.onnx"),

@@ -44,7 +44,7 @@ pub fn extract(args: ExtractArgs) -> anyhow::Result<()> {
     let t0 = std::time::Instant::now();
     let grey = decode_grey(&bytes, &ImageLimitSettings::default())?;
     let mut f = features::extract(&grey, &cfg)?;
-    f.context = scone::context::sample(&grey, &f.keypoints)?;
+    f.sample_context(&grey)?;
     let c = constellation::build(&f.keypoints, extractor.k);
     let ms = t0.elapsed().as_secs_f64() * 1e3;
     let per_level =

@@ -1,5 +1,6 @@
 //! `scone map ...`: maps on disk, through the same store the service uses.
 
+use std::cell::RefCell;
 use std::path::PathBuf;
 
 use clap::Subcommand;
@@ -10,7 +11,7 @@ use scone::features::ExtractorSettings;
 use scone::map::builder::{BuildSettings, Depth, KeyframeInput};
 use scone::map::store::{MapStore, ModelInfo, StoreSettings};
 use scone::offline::scene::Scene;
-use scone::pipeline::Describer;
+use scone::pipeline::{embed, Describer};
 use scone::progress::Progress;
 
 use crate::args::{load_embedder, ReportArgs};
@@ -65,6 +66,17 @@ pub enum MapCommand {
         target: String,
         #[arg(long)]
         source: String,
+        #[arg(long)]
+        model: Option<PathBuf>,
+    },
+    /// Re-embed every keyframe of map MAP with the current model, from the keypoints and FREAK descriptors it
+    /// stores: after a model upgrade, a map made by the earlier model answers queries again. Prints the map's
+    /// summary as JSON once the re-embedding is durable.
+    Reembed {
+        #[arg(long)]
+        data_dir: PathBuf,
+        #[arg(long)]
+        map: String,
         #[arg(long)]
         model: Option<PathBuf>,
     },
@@ -177,6 +189,17 @@ pub fn run(cmd: MapCommand) -> anyhow::Result<()> {
                 "{} of {} source keyframes localised, {} agree; {} landmarks fused, {} added",
                 plan.localised, plan.source_keyframes, plan.inliers, plan.landmarks_fused, plan.landmarks_added
             );
+            flush(&store)?;
+        }
+        MapCommand::Reembed { data_dir, map, model } => {
+            let (store, describer) = open_store(data_dir, model)?;
+            let progress = RefCell::new(Progress::new(format!("reembed {map}"), store.summary(&map)?.keyframes));
+            let summary = store.reembed(&map, &|keyframe| {
+                progress.borrow_mut().step();
+                Ok(embed(&describer.embedder, &keyframe.features()?)?)
+            })?;
+            drop(progress);
+            println!("{}", serde_json::to_string_pretty(&summary)?);
             flush(&store)?;
         }
         MapCommand::Info { data_dir, model } => {

@@ -4,9 +4,9 @@
 //! bucket), the bytes both write ([`format`](mod@format)), and the choice between them (`[store.backend]`,
 //! [`BackendSettings`], [`open_backend`]).
 //!
-//! Who imports whom (nothing imports back up): this file -> [`local`] / [`s3`] -> [`backend`] and
-//! [`format`](mod@format) (siblings) -> [`crate::map::model`]; [`s3`] also moves index dumps through
-//! [`crate::map::index`].
+//! Who imports whom, top to bottom (each module imports only from those after it; `tools/check_imports.py`
+//! checks it): this file -> [`local`] / [`s3`] -> [`backend`] / [`format`](mod@format). Outside this
+//! directory, storage imports only [`crate::map::model`] of the map (the order in [`crate::map`]).
 
 pub mod backend;
 pub mod format;

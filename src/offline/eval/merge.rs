@@ -9,6 +9,8 @@
 //! second run's cameras), the merged keyframes' pose error against the ground truth in the first run's frame,
 //! and the held-out queries localised within (5 % of the path extent, 2°) against each run and the merged map.
 
+use std::cell::RefCell;
+
 use serde::{Deserialize, Serialize};
 
 use nalgebra::{Isometry3, Point3, Similarity3, Translation3, UnitQuaternion, Vector3};
@@ -24,6 +26,7 @@ use crate::map::merge::plan_merge;
 use crate::map::model::{MapData, MapMeta};
 use crate::offline::eval::stats::{markdown_table, median};
 use crate::offline::scene::Scene;
+use crate::progress::Progress;
 
 type BoxError = Box<dyn std::error::Error + Send + Sync>;
 
@@ -93,8 +96,13 @@ pub fn evaluate(scene: &Scene, split: Split, seed: u64, embedder: &Embedder) -> 
     let mut rng = rand::rngs::StdRng::seed_from_u64(seed);
     let (frame_a, frame_b) = (world_frame(&mut rng), world_frame(&mut rng));
 
+    // Each posed frame described, each run's keyframes planned, the queries localised against both runs and the
+    // merged map, and the merge.
+    let steps = posed.len() + run_a.len() + run_b.len() + 3 * queries.len() + 1;
+    let progress = RefCell::new(Progress::new(format!("eval merge {} {split:?} seed {seed}", scene.name), steps));
     let mut described = std::collections::HashMap::new();
     for &i in &posed {
+        progress.borrow_mut().step();
         let bytes = std::fs::read(&scene.frames[i].rgb)?;
         let f = crate::pipeline::extract_for(&decode_grey(&bytes, &limits)?, &extractor, embedder)?;
         let e = crate::pipeline::embed(embedder, &f)?;
@@ -110,6 +118,7 @@ pub fn evaluate(scene: &Scene, split: Split, seed: u64, embedder: &Embedder) -> 
     let build = |frames: &[usize], s: &Similarity3<f64>, id: &str| -> Result<MapData, BoxError> {
         let mut data = MapData::new(meta(id));
         for &i in frames {
+            progress.borrow_mut().step();
             let (f, e) = &described[&i];
             let input = KeyframeInput {
                 id: i as u64,
@@ -137,6 +146,7 @@ pub fn evaluate(scene: &Scene, split: Split, seed: u64, embedder: &Embedder) -> 
     let success = |data: &MapData, index: &EmbeddingIndex, s: &Similarity3<f64>| -> Result<usize, BoxError> {
         let mut ok = 0;
         for &q in &queries {
+            progress.borrow_mut().step();
             let (f, e) = &described[&q];
             let features = Features { descriptors: vec![], ..f.clone() };
             let out = localize(data, index, &features, e, &scene.camera, None, &params)?;
@@ -171,6 +181,7 @@ pub fn evaluate(scene: &Scene, split: Split, seed: u64, embedder: &Embedder) -> 
         merge_seconds: 0.0,
         error: None,
     };
+    progress.borrow_mut().step();
     let t = std::time::Instant::now();
     let plan = match plan_merge(&a, &index_a, &b, None, &params) {
         Ok(p) => p,

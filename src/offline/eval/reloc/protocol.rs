@@ -1,0 +1,168 @@
+//! The protocol of a relocalisation evaluation: its settings (which methods, how the map and the queries are
+//! chosen, distractors, foreign scenes, the stages of issue 27 turned on) and the split of the scene's posed
+//! frames into the map and the queries.
+
+use serde::{Deserialize, Serialize};
+
+use crate::features::ExtractorSettings;
+use crate::map::builder::BuildSettings;
+use crate::map::index::{IndexPoints, IndexSettings};
+use crate::map::localize::LocalizeSettings;
+use crate::offline::eval::methods::Method;
+
+type BoxError = Box<dyn std::error::Error + Send + Sync>;
+
+#[derive(Debug, Clone, Serialize, Deserialize)]
+pub struct RelocConfig {
+    pub methods: Vec<Method>,
+    pub stride: usize,
+    pub extractor: ExtractorSettings,
+    pub build: BuildSettings,
+    pub localize: LocalizeSettings,
+    pub precision_px: f64,
+    /// Map from a contiguous block `[a, b)` of the posed frames (fractions) instead of every `stride`-th.
+    #[serde(default)]
+    pub map_block: Option<(f64, f64)>,
+    /// Other scenes whose keyframes are added to the map as distractors.
+    #[serde(default)]
+    pub distractors: Vec<std::path::PathBuf>,
+    /// Distractor observations to add (0: none). Distractor scenes are walked frame by frame (every
+    /// `distractor_stride`-th) until the count is reached.
+    #[serde(default)]
+    pub distractor_observations: usize,
+    #[serde(default = "one")]
+    pub distractor_stride: usize,
+    /// Multiplies the success thresholds (1 for scenes in metres).
+    #[serde(default = "one_f")]
+    pub unit_scale: f64,
+    /// Localise the queries without their focal length (estimated with the pose).
+    #[serde(default)]
+    pub unknown_focal: bool,
+    /// With `unknown_focal`: the principal point is the image centre too (a client that knows nothing of its
+    /// camera), not the scene's.
+    #[serde(default)]
+    pub centre_principal_point: bool,
+    /// Frames of other scenes localised against the map: every one localised is a false pose.
+    #[serde(default)]
+    pub foreign: Vec<std::path::PathBuf>,
+    /// Every N-th frame of the foreign scenes.
+    #[serde(default = "five")]
+    pub foreign_stride: usize,
+    /// What the index's graph holds once distractors make the map large: the service's default (reports
+    /// written before the setting read as one point per observation, which they ran with).
+    #[serde(default)]
+    pub index_points: IndexPoints,
+}
+
+/// The parts of issue 27 an evaluation can turn on one by one (`--stages`); the rest stay as today's pipeline.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, clap::ValueEnum)]
+#[serde(rename_all = "kebab-case")]
+pub enum Stage {
+    /// Stage 2: matching against the covisibility vote's candidate keyframes.
+    Candidates,
+    /// Stage 2 with FREAK's matches joined to the embedding's.
+    Freak,
+    /// Stage 3: guided search by projection and the pose estimated again.
+    Guided,
+    /// Map building with the known poses (epipolar window, covisible candidates, tracks, FREAK matches).
+    Build,
+}
+
+/// Settings with exactly `stages` of issue 27 on, over today's pipeline.
+pub fn with_stages(
+    build: BuildSettings,
+    localize: LocalizeSettings,
+    stages: &[Stage],
+) -> (BuildSettings, LocalizeSettings) {
+    let on = |s: Stage| stages.contains(&s);
+    let build = if on(Stage::Build) { build.with_known_poses() } else { build.unguided() };
+    let localize = LocalizeSettings {
+        candidate_matching: on(Stage::Candidates) || on(Stage::Freak),
+        candidate_freak: on(Stage::Freak),
+        guided_search: on(Stage::Guided),
+        ..localize
+    };
+    (build, localize)
+}
+
+fn one() -> usize {
+    1
+}
+
+fn five() -> usize {
+    5
+}
+
+fn one_f() -> f64 {
+    1.0
+}
+
+impl Default for RelocConfig {
+    fn default() -> Self {
+        Self {
+            methods: vec![Method::Scone, Method::Freak, Method::Sift],
+            stride: 3,
+            extractor: ExtractorSettings::default(),
+            build: BuildSettings::default(),
+            localize: LocalizeSettings::default(),
+            precision_px: 5.0,
+            map_block: None,
+            distractors: Vec::new(),
+            distractor_observations: 0,
+            distractor_stride: 1,
+            unit_scale: 1.0,
+            unknown_focal: false,
+            centre_principal_point: false,
+            foreign: Vec::new(),
+            foreign_stride: 5,
+            index_points: IndexSettings::default().points,
+        }
+    }
+}
+
+impl RelocConfig {
+    /// The map-building and localisation settings of `method`: every ratio test on distances, with FREAK's ±1
+    /// vectors taking the square root (a ratio on Hamming distances).
+    pub fn settings_for(&self, method: Method) -> (BuildSettings, LocalizeSettings) {
+        let ratio_scale = |r: f32| if method == Method::Freak { r.sqrt() } else { r };
+        let build = BuildSettings { ratio: ratio_scale(self.build.ratio), ..self.build };
+        let localize = LocalizeSettings {
+            ratio: ratio_scale(self.localize.ratio),
+            candidate_ratio: ratio_scale(self.localize.candidate_ratio),
+            guided_ratio: ratio_scale(self.localize.guided_ratio),
+            ..self.localize
+        };
+        (build, localize)
+    }
+}
+
+/// Checks a map block `a:b` (fractions of the posed frames): `0 <= a < b <= 1`.
+pub fn check_block(a: f64, b: f64) -> Result<(), String> {
+    if (0.0..1.0).contains(&a) && a < b && b <= 1.0 {
+        Ok(())
+    } else {
+        Err(format!("map block {a}:{b}: needs 0 <= a < b <= 1"))
+    }
+}
+
+/// The map's frames and the queries: every `stride`-th posed frame and the rest, or a contiguous block and the
+/// rest.
+pub(super) fn split_frames(posed: &[usize], cfg: &RelocConfig) -> Result<(Vec<usize>, Vec<usize>), BoxError> {
+    let (map, queries): (Vec<usize>, Vec<usize>) = match cfg.map_block {
+        Some((a, b)) => {
+            check_block(a, b)?;
+            let n = posed.len() as f64;
+            let (lo, hi) = ((a * n).floor() as usize, ((b * n).ceil() as usize).min(posed.len()));
+            let map = posed[lo..hi].to_vec();
+            (map.clone(), posed.iter().copied().filter(|i| !map.contains(i)).collect())
+        }
+        None => {
+            let stride = cfg.stride.max(2);
+            posed.iter().copied().partition(|i| i % stride == 0)
+        }
+    };
+    if map.is_empty() || queries.is_empty() {
+        return Err(format!("{} map frames and {} queries: both must be non-empty", map.len(), queries.len()).into());
+    }
+    Ok((map, queries))
+}

@@ -1,0 +1,346 @@
+//! The stages of one method's evaluation: the scene described, the map built from its map frames (and the
+//! distractor scenes' keyframes) with the service's map-building code and index, the queries localised and
+//! measured against their ground truth, and the foreign scenes' frames localised against the map.
+
+use std::time::Instant;
+
+use opencv::prelude::*;
+
+use crate::camera::{Camera, PoseConvention};
+use crate::decode::{decode_depth_png, decode_grey, GreyImage, ImageLimitSettings};
+use crate::embedding::Embedder;
+use crate::features::Features;
+use crate::map::builder::{plan_keyframe, BuildSettings, Depth, KeyframeInput};
+use crate::map::index::{EmbeddingIndex, IndexSettings};
+use crate::map::localize::{localize, within_confidence_tolerance, LocalizeSettings};
+use crate::map::model::{MapData, MapMeta};
+use crate::offline::eval::methods::{describe, Described, Method};
+use crate::offline::eval::reloc::protocol::RelocConfig;
+use crate::offline::eval::reloc::report::{MapFigures, QueryRecord};
+use crate::offline::scene::Scene;
+use crate::pose::{pose_covariance, pose_difference, rotation_error_deg};
+use crate::progress::Progress;
+
+type BoxError = Box<dyn std::error::Error + Send + Sync>;
+
+/// Where distractor keyframes are put: this far from the evaluated scene (scene units), one offset per
+/// distractor scene, so their landmarks never fall where the scene's are.
+const DISTRACTOR_OFFSET: f64 = 1.0e4;
+
+/// The features the service would hold for `d`: its keypoints and, for SConE, their FREAK bits (a keyframe's
+/// payload keeps them, and the stages that join FREAK's matches read them).
+fn features_of(d: &Described) -> Result<Features, BoxError> {
+    let mut descriptors = Vec::new();
+    if let Some(bits) = &d.freak {
+        for r in 0..bits.rows() {
+            let row = bits.at_row::<u8>(r)?;
+            descriptors.push(row.try_into().map_err(|_| format!("FREAK row of {} bytes", row.len()))?);
+        }
+    }
+    Ok(Features { width: d.width, height: d.height, keypoints: d.keypoints.clone(), descriptors, context: Vec::new() })
+}
+
+/// Vectors a method's descriptors are compared as, row-major, with their dimension.
+fn vectors(method: Method, d: &Described) -> Result<(Vec<f32>, usize), BoxError> {
+    let rows = d.descriptors.rows() as usize;
+    if rows == 0 {
+        return Ok((Vec::new(), if method == Method::Freak { 512 } else { d.descriptors.cols().max(1) as usize }));
+    }
+    match method {
+        Method::Freak => {
+            let mut out = Vec::with_capacity(rows * 512);
+            for r in 0..rows as i32 {
+                for byte in d.descriptors.at_row::<u8>(r)? {
+                    for bit in 0..8 {
+                        out.push(if byte >> bit & 1 == 1 { 1.0 } else { -1.0 });
+                    }
+                }
+            }
+            Ok((out, 512))
+        }
+        _ => {
+            let cols = d.descriptors.cols() as usize;
+            let mut out = Vec::with_capacity(rows * cols);
+            for r in 0..rows as i32 {
+                out.extend_from_slice(d.descriptors.at_row::<f32>(r)?);
+            }
+            Ok((out, cols))
+        }
+    }
+}
+
+/// The scene as one method sees it: every frame described, with its descriptors as the vectors a map holds.
+pub(super) struct MethodView<'a> {
+    scene: &'a Scene,
+    method: Method,
+    described: Vec<Described>,
+    vectors: Vec<(Vec<f32>, usize)>,
+}
+
+/// A method's map of the scene (and of the distractors), with its index.
+pub(super) struct BuiltMap {
+    pub data: MapData,
+    pub index: EmbeddingIndex,
+    pub distractor_observations: usize,
+    /// Building the map and its index.
+    pub build_seconds: f64,
+}
+
+impl BuiltMap {
+    pub fn figures(&self) -> MapFigures {
+        MapFigures {
+            keyframes: self.data.keyframes.len(),
+            landmarks: self.data.landmarks.len(),
+            observations: self.data.observations.len(),
+            distractor_observations: self.distractor_observations,
+            build_seconds: self.build_seconds,
+        }
+    }
+}
+
+impl<'a> MethodView<'a> {
+    /// Describes every image of `scene` (decoded in `images`) with `method`, one step of `progress` each.
+    pub fn describe(
+        scene: &'a Scene,
+        images: &[GreyImage],
+        method: Method,
+        cfg: &RelocConfig,
+        embedder: Option<&Embedder>,
+        progress: &mut Progress,
+    ) -> Result<Self, BoxError> {
+        let described: Vec<Described> = images
+            .iter()
+            .map(|im| describe(method, im, &cfg.extractor, embedder))
+            .inspect(|_| progress.step())
+            .collect::<Result<_, _>>()?;
+        let vectors: Vec<(Vec<f32>, usize)> = described.iter().map(|d| vectors(method, d)).collect::<Result<_, _>>()?;
+        Ok(Self { scene, method, described, vectors })
+    }
+
+    /// The map of `map_frames` (their ground-truth poses, depth where the scene has it), then the distractor
+    /// scenes' keyframes up to `cfg.distractor_observations`, and its index: one step of `progress` per map
+    /// frame.
+    pub fn build_map(
+        &self,
+        map_frames: &[usize],
+        cfg: &RelocConfig,
+        build: &BuildSettings,
+        embedder: Option<&Embedder>,
+        progress: &mut Progress,
+    ) -> Result<BuiltMap, BoxError> {
+        let (scene, limits) = (self.scene, ImageLimitSettings::default());
+        let dim = self.vectors.iter().map(|v| v.1).max().unwrap_or(1);
+        let mut data = MapData::new(MapMeta {
+            id: format!("eval-{}", self.method.name()),
+            model_id: embedder.map(|e| e.model_id().to_string()).unwrap_or_default(),
+            k: 20,
+            dim,
+            created_unix_ms: 0,
+        });
+        let t0 = Instant::now();
+        for &i in map_frames {
+            progress.step();
+            let d = &self.described[i];
+            let features = features_of(d)?;
+            let depth_mat = match &scene.frames[i].depth {
+                Some(p) => Some(decode_depth_png(&std::fs::read(p)?, &limits)?),
+                None => None,
+            };
+            let input = KeyframeInput {
+                id: i as u64,
+                pose: scene.frames[i].pose.unwrap(),
+                camera: scene.camera,
+                features: &features,
+                embeddings: &self.vectors[i].0,
+                depth: depth_mat.as_ref().map(|m| Depth { image: m, scale: crate::decode::TUM_DEPTH_SCALE }),
+                external: None,
+            };
+            let record = plan_keyframe(&data, &input, build)?;
+            data.check(&record).map_err(|e| format!("frame {i}: {e}"))?;
+            data.apply(&record);
+        }
+        let scene_observations = data.observations.len();
+        for (si, dir) in cfg.distractors.iter().enumerate() {
+            if data.observations.len() - scene_observations >= cfg.distractor_observations {
+                break;
+            }
+            add_distractors(&mut data, dir, si, scene_observations, self.method, cfg, build, embedder)?;
+        }
+        let distractor_observations = data.observations.len() - scene_observations;
+        // Exact search on the scene alone (the descriptors compared, not the index); the service's index
+        // (HNSW above `exact_below`) once distractors make the map large, as a deployment's is.
+        let params = if distractor_observations > 0 {
+            IndexSettings { points: cfg.index_points, ..IndexSettings::default() }
+        } else {
+            IndexSettings { exact_below: usize::MAX, ..IndexSettings::default() }
+        };
+        let mut index = EmbeddingIndex::new(params);
+        index.sync(&data);
+        Ok(BuiltMap { data, index, distractor_observations, build_seconds: t0.elapsed().as_secs_f64() })
+    }
+
+    /// Every query frame localised against `map` (with or without its focal length, as `cfg` says) and measured
+    /// against its ground truth: one step of `progress` each.
+    pub fn localise_queries(
+        &self,
+        query_frames: &[usize],
+        map_frames: &[usize],
+        map: &BuiltMap,
+        cfg: &RelocConfig,
+        loc: &LocalizeSettings,
+        progress: &mut Progress,
+    ) -> Result<Vec<QueryRecord>, BoxError> {
+        let (scene, data) = (self.scene, &map.data);
+        let query_camera = match (cfg.unknown_focal, cfg.centre_principal_point) {
+            (false, _) => scene.camera,
+            (true, false) => Camera { fx: 0.0, fy: 0.0, ..scene.camera },
+            (true, true) => Camera { fx: 0.0, fy: 0.0, cx: 0.0, cy: 0.0, ..scene.camera }.with_defaults(),
+        };
+        let mut recs = Vec::new();
+        for &i in query_frames {
+            progress.step();
+            let d = &self.described[i];
+            let features = features_of(d)?;
+            let t = Instant::now();
+            let out = localize(data, &map.index, &features, &self.vectors[i].0, &query_camera, None, loc)?;
+            let seconds = t.elapsed().as_secs_f64() + d.seconds;
+            let gt = scene.frames[i].pose.unwrap();
+            let gt_cw = gt.inverse();
+            let (baseline_to_map, angle_to_map_deg) = distance_to_map(scene, map_frames, &gt);
+            let correct = out
+                .matches
+                .iter()
+                .filter(|m| {
+                    let p = nalgebra::Point3::from(data.landmarks[&m.landmark].point);
+                    let k = &features.keypoints[m.keypoint];
+                    scene
+                        .camera
+                        .project(&(gt_cw * p))
+                        .is_some_and(|(u, v)| (u - k.x as f64).hypot(v - k.y as f64) <= cfg.precision_px)
+                })
+                .count();
+            let (localised, te, re, inliers) = match &out.pose {
+                Some(p) => (
+                    true,
+                    (p.camera_to_world.translation.vector - gt.translation.vector).norm(),
+                    rotation_error_deg(
+                        &p.camera_to_world.rotation.to_rotation_matrix(),
+                        &gt.rotation.to_rotation_matrix(),
+                    ),
+                    p.inliers.len(),
+                ),
+                None => (false, f64::INFINITY, 180.0, 0),
+            };
+            let within_confidence_tolerance =
+                out.pose.as_ref().map(|p| within_confidence_tolerance(p, &out.points, &gt));
+            let mahalanobis2 = out.pose.as_ref().and_then(|p| {
+                let sigma = pose_covariance(PoseConvention::default(), &p.camera_to_world, p.covariance_w2c.as_ref()?);
+                let e = pose_difference(&gt, &p.camera_to_world);
+                sigma.try_inverse().map(|inv| (e.transpose() * inv * e)[0])
+            });
+            recs.push(QueryRecord {
+                frame: scene.frames[i].stamp.clone(),
+                localised,
+                translation_error: te,
+                rotation_error_deg: re,
+                matches: out.matches.len(),
+                correct_matches: correct,
+                inliers,
+                confidence: out.confidence,
+                seconds,
+                baseline_to_map,
+                angle_to_map_deg,
+                focal: out.pose.as_ref().map(|p| p.focal),
+                mahalanobis2,
+                within_confidence_tolerance,
+            });
+        }
+        Ok(recs)
+    }
+}
+
+/// Baseline to the nearest map camera centre, and viewing angle to the most similarly oriented map keyframe.
+fn distance_to_map(scene: &Scene, map_frames: &[usize], pose: &nalgebra::Isometry3<f64>) -> (f64, f64) {
+    let mut baseline = f64::INFINITY;
+    let mut angle = f64::INFINITY;
+    for &k in map_frames {
+        let kp = scene.frames[k].pose.expect("map frames are posed");
+        baseline = baseline.min((kp.translation.vector - pose.translation.vector).norm());
+        angle = angle.min(kp.rotation.angle_to(&pose.rotation).to_degrees());
+    }
+    (baseline, angle)
+}
+
+/// Every `foreign_stride`-th frame of the foreign scenes localised against the map: (frames, localised).
+pub(super) fn foreign_poses(
+    data: &MapData,
+    index: &EmbeddingIndex,
+    method: Method,
+    cfg: &RelocConfig,
+    loc: &LocalizeSettings,
+    embedder: Option<&Embedder>,
+) -> Result<(usize, usize), BoxError> {
+    let limits = ImageLimitSettings::default();
+    let (mut frames, mut localised) = (0, 0);
+    for dir in &cfg.foreign {
+        let other = Scene::load(dir)?;
+        for f in other.frames.iter().step_by(cfg.foreign_stride.max(1)) {
+            let bytes = std::fs::read(&f.rgb).map_err(|e| format!("{}: {e}", f.rgb.display()))?;
+            let d = describe(method, &decode_grey(&bytes, &limits)?, &cfg.extractor, embedder)?;
+            let (v, _) = vectors(method, &d)?;
+            let out = localize(data, index, &features_of(&d)?, &v, &other.camera, None, loc)?;
+            frames += 1;
+            localised += usize::from(out.pose.is_some());
+        }
+    }
+    Ok((frames, localised))
+}
+
+/// Adds keyframes of the scene in `dir` to `data`, moved [`DISTRACTOR_OFFSET`] away per scene, until the map
+/// holds `cfg.distractor_observations` observations beyond the evaluated scene's `base`.
+#[allow(clippy::too_many_arguments)]
+fn add_distractors(
+    data: &mut MapData,
+    dir: &std::path::Path,
+    scene_index: usize,
+    base: usize,
+    method: Method,
+    cfg: &RelocConfig,
+    build: &BuildSettings,
+    embedder: Option<&Embedder>,
+) -> Result<(), BoxError> {
+    let limits = ImageLimitSettings::default();
+    let other = Scene::load(dir)?;
+    let offset = nalgebra::Vector3::new(DISTRACTOR_OFFSET * (scene_index + 1) as f64, 0.0, 0.0);
+    for (fi, f) in other.frames.iter().enumerate().step_by(cfg.distractor_stride.max(1)) {
+        if data.observations.len() - base >= cfg.distractor_observations {
+            break;
+        }
+        let Some(pose) = f.pose else { continue };
+        let bytes = std::fs::read(&f.rgb).map_err(|e| format!("{}: {e}", f.rgb.display()))?;
+        let d = describe(method, &decode_grey(&bytes, &limits)?, &cfg.extractor, embedder)?;
+        let (v, dim) = vectors(method, &d)?;
+        if dim != data.meta.dim && !v.is_empty() {
+            return Err(format!("distractor {}: dimension {dim}, the map's is {}", other.name, data.meta.dim).into());
+        }
+        let features = features_of(&d)?;
+        let depth = match &f.depth {
+            Some(p) => Some(decode_depth_png(&std::fs::read(p)?, &limits)?),
+            None => None,
+        };
+        let moved = nalgebra::Isometry3::from_parts((pose.translation.vector + offset).into(), pose.rotation);
+        let input = KeyframeInput {
+            id: 1_000_000 * (scene_index as u64 + 1) + fi as u64,
+            pose: moved,
+            camera: other.camera,
+            features: &features,
+            embeddings: &v,
+            depth: depth.as_ref().map(|m| Depth { image: m, scale: crate::decode::TUM_DEPTH_SCALE }),
+            external: None,
+        };
+        let record = plan_keyframe(data, &input, build)?;
+        data.check(&record).map_err(|e| format!("distractor frame {fi}: {e}"))?;
+        data.apply(&record);
+    }
+    Ok(())
+}
