@@ -1,4 +1,4 @@
-//! What a homography does to an image: where it sends a pixel, its zoom and in-plane rotation at a point, how
+//! What a homography does to an image: where it sends a pixel, its zoom, rotation and tilt at a point, how
 //! far a fitted homography sends the image's corners from the true one's, and the fit itself (MAGSAC++).
 
 use nalgebra::{Matrix3, Vector3};
@@ -13,18 +13,33 @@ pub fn apply(h: &Matrix3<f64>, x: f64, y: f64) -> Option<(f64, f64)> {
     (p.z > 1e-12).then(|| (p.x / p.z, p.y / p.z))
 }
 
-/// Zoom (`max(s, 1/s)`) and in-plane rotation (degrees, 0..=180) of `h` at `(x, y)`.
-pub fn local_zoom_rotation(h: &Matrix3<f64>, x: f64, y: f64) -> (f64, f64) {
+/// What `h` does around one point: zoom, in-plane rotation and tilt.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct LocalGeometry {
+    /// `max(s, 1/s)` with `s` the larger singular value of the Jacobian: the scale along the axis the tilt
+    /// leaves alone, so that a tilt alone is no zoom (the area scale, `sqrt(det)`, would make a 55 degree tilt
+    /// a zoom of 1.3).
+    pub zoom: f64,
+    /// Angle of the Jacobian's nearest similarity, degrees, 0..=180.
+    pub rotation_deg: f64,
+    /// Out-of-plane angle, `acos(s2 / s1)` of the Jacobian's singular values, degrees, 0..90.
+    pub tilt_deg: f64,
+}
+
+/// The zoom, in-plane rotation and tilt of `h` at `(x, y)` ([`LocalGeometry`]).
+pub fn local_geometry(h: &Matrix3<f64>, x: f64, y: f64) -> LocalGeometry {
     let d = 0.5;
     let (Some(c), Some(px), Some(py)) = (apply(h, x, y), apply(h, x + d, y), apply(h, x, y + d)) else {
-        return (f64::INFINITY, 0.0);
+        return LocalGeometry { zoom: f64::INFINITY, rotation_deg: 0.0, tilt_deg: 90.0 };
     };
     let (a, cc) = ((px.0 - c.0) / d, (px.1 - c.1) / d);
     let (b, dd) = ((py.0 - c.0) / d, (py.1 - c.1) / d);
-    let s = (a * dd - b * cc).abs().sqrt();
-    let zoom = if s > 0.0 { s.max(1.0 / s) } else { f64::INFINITY };
-    let rotation = (cc - b).atan2(a + dd).to_degrees().abs();
-    (zoom, rotation)
+    let sv = nalgebra::Matrix2::new(a, b, cc, dd).singular_values();
+    let (s1, s2) = (sv[0].max(sv[1]), sv[0].min(sv[1]));
+    let zoom = if s1 > 0.0 { s1.max(1.0 / s1) } else { f64::INFINITY };
+    let rotation_deg = (cc - b).atan2(a + dd).to_degrees().abs();
+    let tilt_deg = if s1 > 0.0 { (s2 / s1).clamp(0.0, 1.0).acos().to_degrees() } else { 90.0 };
+    LocalGeometry { zoom, rotation_deg, tilt_deg }
 }
 
 /// Mean distance between where `est` and `truth` send the corners of a `w` x `h` image.

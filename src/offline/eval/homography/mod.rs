@@ -12,19 +12,23 @@
 //!   mean distance between where the fitted and the true H send image 1's four corners (infinite when no H is
 //!   found), and the report gives the share of pairs within 3 / 5 / 10 px.
 //!
-//! Pairs are binned by the zoom and the in-plane rotation of the true H at image 1's centre: the zoom is
-//! `max(s, 1/s)` with `s` the square root of the Jacobian's determinant, the rotation the angle of the
-//! Jacobian's nearest similarity.
+//! Pairs are binned by the zoom, the in-plane rotation and the tilt of the true H at image 1's centre, from its
+//! Jacobian there: the zoom is `max(s1, 1/s1)` with `s1` the larger singular value (a tilt alone is no zoom),
+//! the rotation the angle of the nearest similarity, the tilt `acos(s2 / s1)`.
 //!
 //! **Neighbour share**: for the project's keypoints (SConE's and FREAK's), the number of a keypoint's
 //! constellation members whose image under the true H lies within `correct_px` of a member of the
 //! constellation of its corresponding keypoint (the keypoint of image k nearest to its own image, when within
 //! `correct_px`), per slot of the constellation (k). It measures how much of a constellation survives the
 //! change, before any network sees it; with `neighbour_rules` it is measured for each candidate rule of
-//! `constellation::NeighbourRule` as well.
+//! `constellation::NeighbourRule` as well. **Ring share**: the same for the ring context
+//! ([`crate::context`]): of a keypoint's 112 ring samples, those whose image under the true H lies within
+//! `correct_px` of the same sample of its corresponding keypoint. Both come with their **chance level**, the
+//! same count with the warped members or samples turned 90 degrees about the keypoint; the summaries give the
+//! share above chance.
 //!
 //! Rooms: `protocol.rs` (the settings), `sequence.rs` (the HPatches layout), `geometry.rs` (what a homography
-//! does to an image, and its fit), `neighbours.rs` (the neighbour share), `report.rs` (records, summaries and
+//! does to an image, and its fit), `neighbours.rs` (the neighbour and ring shares), `report.rs` (records, summaries and
 //! bins), `tables.rs` (the markdown); here, the run over the sequences.
 
 use std::path::PathBuf;
@@ -44,8 +48,8 @@ mod tables;
 #[cfg(test)]
 mod tests;
 
-pub use geometry::{apply, corner_error, fit_homography, local_zoom_rotation};
-pub use neighbours::neighbour_share;
+pub use geometry::{apply, corner_error, fit_homography, local_geometry, LocalGeometry};
+pub use neighbours::{neighbour_share, ring_share, Share};
 pub use protocol::HomographyConfig;
 pub use report::{
     rotation_bin, zoom_bin, HomographyBin, HomographyPair, HomographyReport, HomographySummary, RuleShare, CORNER_PX,
@@ -54,7 +58,7 @@ pub use report::{
 pub use sequence::{find_sequences, read_homography, Sequence};
 pub use tables::markdown;
 
-use neighbours::sequence_shares;
+use neighbours::{sequence_shares, PairShares};
 use report::{binned, summarise};
 use sequence::load_image;
 
@@ -78,15 +82,15 @@ pub fn evaluate(
     let test = RatioTest { ratio: cfg.ratio, mutual: false, same_corner_px: cfg.same_corner_px };
     for seq in &sequences {
         let images: Vec<GreyImage> = seq.images.iter().map(|p| load_image(p)).collect::<Result<_, _>>()?;
-        let geometry: Vec<(f64, f64)> = seq
+        let geometry: Vec<LocalGeometry> = seq
             .homographies
             .iter()
-            .map(|h| local_zoom_rotation(h, images[0].width() as f64 / 2.0, images[0].height() as f64 / 2.0))
+            .map(|h| local_geometry(h, images[0].width() as f64 / 2.0, images[0].height() as f64 / 2.0))
             .collect();
         // The project's keypoints (SConE and FREAK share them): the neighbour share of every pair.
         let uses_project_keypoints =
             |m: Method| matches!(m, Method::Scone | Method::SconePlain | Method::Freak | Method::FreakGms);
-        let mut shares: Vec<Option<f64>> = vec![None; seq.homographies.len()];
+        let mut shares = vec![PairShares::default(); seq.homographies.len()];
         if cfg.methods.iter().any(|&m| uses_project_keypoints(m)) || !cfg.neighbour_rules.is_empty() {
             let (nearest, by_rule) = sequence_shares(seq, &images, &geometry, cfg)?;
             shares = nearest;
@@ -100,6 +104,7 @@ pub fn evaluate(
             }
             describe_seconds.entry(method).or_default().extend(described.iter().map(|d| d.seconds));
             let a = &described[0];
+            let own = uses_project_keypoints(method);
             for (i, h) in seq.homographies.iter().enumerate() {
                 let b = &described[i + 1];
                 let t0 = std::time::Instant::now();
@@ -125,12 +130,16 @@ pub fn evaluate(
                     method,
                     sequence: seq.name.clone(),
                     image: i + 2,
-                    zoom: geometry[i].0,
-                    rotation_deg: geometry[i].1,
+                    zoom: geometry[i].zoom,
+                    rotation_deg: geometry[i].rotation_deg,
+                    tilt_deg: geometry[i].tilt_deg,
                     matches: matches.len(),
                     correct,
                     corner_error_px,
-                    neighbour_share: if uses_project_keypoints(method) { shares[i] } else { None },
+                    neighbour_share: own.then_some(shares[i].neighbours).flatten().map(|s| s.share),
+                    neighbour_chance: own.then_some(shares[i].neighbours).flatten().map(|s| s.chance),
+                    ring_share: own.then_some(shares[i].ring).flatten().map(|s| s.share),
+                    ring_chance: own.then_some(shares[i].ring).flatten().map(|s| s.chance),
                     match_seconds,
                 });
             }

@@ -1,5 +1,5 @@
 //! What a homography evaluation reports: one record per pair and method, each method's figures over all pairs
-//! and per bin of zoom and of rotation, and the neighbour share per rule.
+//! and per bin of zoom, of rotation and of tilt, and the neighbour share per rule.
 
 use serde::{Deserialize, Serialize};
 
@@ -12,6 +12,8 @@ use crate::offline::eval::stats::median;
 pub const ZOOM_EDGES: [f64; 5] = [1.25, 1.6, 2.0, 2.5, 3.0];
 /// Upper edges of the rotation bins, degrees.
 pub const ROTATION_EDGES: [f64; 5] = [15.0, 45.0, 90.0, 135.0, 180.0];
+/// Upper edges of the tilt (out-of-plane angle) bins, degrees.
+pub const TILT_EDGES: [f64; 5] = [15.0, 30.0, 45.0, 60.0, 90.0];
 /// Corner-error thresholds the report gives the share of pairs within.
 pub const CORNER_PX: [f64; 3] = [3.0, 5.0, 10.0];
 
@@ -24,6 +26,9 @@ pub struct HomographyPair {
     pub image: usize,
     pub zoom: f64,
     pub rotation_deg: f64,
+    /// Out-of-plane angle of the true H at image 1's centre, degrees (reports before issue 39: 0).
+    #[serde(default)]
+    pub tilt_deg: f64,
     pub matches: usize,
     pub correct: usize,
     /// Mean corner error of the fitted homography, pixels (infinite when none was found; JSON null).
@@ -32,6 +37,16 @@ pub struct HomographyPair {
     /// Neighbour share of the project's keypoints for this pair (the same for every method that uses them),
     /// None for other methods or when no keypoint corresponds.
     pub neighbour_share: Option<f64>,
+    /// The same share with the warped members turned 90 degrees about their keypoint: what chance alone keeps.
+    #[serde(default)]
+    pub neighbour_chance: Option<f64>,
+    /// Ring share: of each corresponding keypoint's ring samples (centre left out), those whose image under
+    /// the true H lands within `correct_px` of the same sample of its correspondent; and the same with the
+    /// correspondent's ring turned 90 degrees (chance).
+    #[serde(default)]
+    pub ring_share: Option<f64>,
+    #[serde(default)]
+    pub ring_chance: Option<f64>,
     pub match_seconds: f64,
 }
 
@@ -43,6 +58,8 @@ pub struct RuleShare {
     pub image: usize,
     pub zoom: f64,
     pub rotation_deg: f64,
+    #[serde(default)]
+    pub tilt_deg: f64,
     pub share: Option<f64>,
 }
 
@@ -76,6 +93,11 @@ pub struct HomographySummary {
     /// Median corner error (failures count as infinite), pixels.
     pub median_corner_error_px: Option<f64>,
     pub mean_neighbour_share: Option<f64>,
+    /// Means over pairs of the neighbour share and the ring share above chance (share minus chance).
+    #[serde(default)]
+    pub mean_neighbour_above_chance: Option<f64>,
+    #[serde(default)]
+    pub mean_ring_above_chance: Option<f64>,
     pub describe_ms: f64,
 }
 
@@ -108,6 +130,17 @@ pub(super) fn summarise(method: Method, pairs: &[&HomographyPair], describe_ms: 
     }
     let errors: Vec<f64> = recs.iter().map(|p| p.corner_error_px).collect();
     let shares: Vec<f64> = recs.iter().filter_map(|p| p.neighbour_share).collect();
+    let mean = |v: Vec<f64>| (!v.is_empty()).then(|| v.iter().sum::<f64>() / v.len() as f64);
+    let above = |share: fn(&HomographyPair) -> (Option<f64>, Option<f64>)| {
+        mean(
+            recs.iter()
+                .filter_map(|p| match share(p) {
+                    (Some(s), Some(c)) => Some(s - c),
+                    _ => None,
+                })
+                .collect(),
+        )
+    };
     HomographySummary {
         method,
         pairs: n,
@@ -116,23 +149,31 @@ pub(super) fn summarise(method: Method, pairs: &[&HomographyPair], describe_ms: 
         mean_correct: recs.iter().map(|p| p.correct as f64).sum::<f64>() / nf,
         mean_matches: recs.iter().map(|p| p.matches as f64).sum::<f64>() / nf,
         median_corner_error_px: (n > 0).then(|| median(&errors)).filter(|e| e.is_finite()),
-        mean_neighbour_share: (!shares.is_empty()).then(|| shares.iter().sum::<f64>() / shares.len() as f64),
+        mean_neighbour_share: mean(shares),
+        mean_neighbour_above_chance: above(|p| (p.neighbour_share, p.neighbour_chance)),
+        mean_ring_above_chance: above(|p| (p.ring_share, p.ring_chance)),
         describe_ms,
     }
 }
 
-/// Each method's figures per bin of zoom and of rotation, for the bins `records` fall in; `describe_ms` is a
-/// method's mean describe time.
+/// Each method's figures per bin of zoom, of rotation and of tilt, for the bins `records` fall in;
+/// `describe_ms` is a method's mean describe time.
 pub(super) fn binned(
     records: &[HomographyPair],
     methods: &[Method],
     describe_ms: impl Fn(Method) -> f64,
 ) -> Vec<HomographyBin> {
     let mut bins = Vec::new();
-    for (axis, key, lower, edges) in
-        [("zoom", zoom_bin as fn(f64) -> String, 1.0, &ZOOM_EDGES), ("rotation", rotation_bin, 0.0, &ROTATION_EDGES)]
-    {
-        let value = |p: &HomographyPair| if axis == "zoom" { p.zoom } else { p.rotation_deg };
+    for (axis, key, lower, edges) in [
+        ("zoom", zoom_bin as fn(f64) -> String, 1.0, &ZOOM_EDGES),
+        ("rotation", rotation_bin, 0.0, &ROTATION_EDGES),
+        ("tilt", tilt_bin, 0.0, &TILT_EDGES),
+    ] {
+        let value = |p: &HomographyPair| match axis {
+            "zoom" => p.zoom,
+            "rotation" => p.rotation_deg,
+            _ => p.tilt_deg,
+        };
         let labels = bin_labels(records.iter().map(value), key, lower, edges);
         for label in labels {
             let inside: Vec<&HomographyPair> = records.iter().filter(|p| key(value(p)) == label).collect();
@@ -164,6 +205,10 @@ pub fn zoom_bin(z: f64) -> String {
 
 pub fn rotation_bin(r: f64) -> String {
     bin_label(r, &ROTATION_EDGES, 0.0, "deg")
+}
+
+pub fn tilt_bin(t: f64) -> String {
+    bin_label(t, &TILT_EDGES, 0.0, "deg")
 }
 
 /// The labels of the bins (lower end `lower`, upper edges `edges`) that `values` fall in, in the bins' order.

@@ -1,5 +1,5 @@
-//! A homography report as markdown: each method's figures, the figures per bin of zoom and of rotation, and the
-//! neighbour share per rule.
+//! A homography report as markdown: each method's figures, the figures per bin of zoom, of rotation and of tilt,
+//! and the neighbour share per rule.
 
 use crate::offline::eval::homography::report::{
     bin_labels, rotation_bin, zoom_bin, HomographyReport, RuleShare, ROTATION_EDGES, ZOOM_EDGES,
@@ -33,6 +33,8 @@ pub fn markdown(report: &HomographyReport) -> String {
         "matches",
         "median corner error px",
         "neighbour share",
+        "neighbours above chance",
+        "ring above chance",
         "describe ms",
     ];
     s.push_str(&markdown_table(
@@ -48,21 +50,27 @@ pub fn markdown(report: &HomographyReport) -> String {
                 format!("{:.1}", m.mean_matches),
                 opt(m.median_corner_error_px, 2),
                 opt(m.mean_neighbour_share, 3),
+                opt(m.mean_neighbour_above_chance, 3),
+                opt(m.mean_ring_above_chance, 3),
                 format!("{:.1}", m.describe_ms),
             ]
         }),
     ));
-    for axis in ["zoom", "rotation"] {
-        s.push_str(&format!("\nBy {axis} (within 5 px / correct matches / MMA@3; pairs per bin):\n\n"));
-        let mut headers: Vec<String> = vec![axis.to_string(), "pairs".into(), "neighbour share".into()];
+    for axis in ["zoom", "rotation", "tilt"] {
+        s.push_str(&format!(
+            "\nBy {axis} (within 5 px / correct matches / MMA@3; pairs per bin; the shares above chance):\n\n"
+        ));
+        let mut headers: Vec<String> =
+            vec![axis.to_string(), "pairs".into(), "neighbours above chance".into(), "ring above chance".into()];
         headers.extend(report.summaries.iter().map(|m| m.method.name().to_string()));
         let hs: Vec<&str> = headers.iter().map(String::as_str).collect();
         s.push_str(&markdown_table(
             &hs,
             report.bins.iter().filter(|b| b.axis == axis).map(|b| {
-                let share = b.summaries.iter().find_map(|m| m.mean_neighbour_share);
-                let mut row =
-                    vec![b.label.clone(), b.summaries.first().map(|m| m.pairs).unwrap_or(0).to_string(), opt(share, 3)];
+                let neighbours = b.summaries.iter().find_map(|m| m.mean_neighbour_above_chance);
+                let ring = b.summaries.iter().find_map(|m| m.mean_ring_above_chance);
+                let pairs = b.summaries.first().map(|m| m.pairs).unwrap_or(0).to_string();
+                let mut row = vec![b.label.clone(), pairs, opt(neighbours, 3), opt(ring, 3)];
                 row.extend(
                     b.summaries.iter().map(|m| format!("{:.2} / {:.0} / {:.2}", m.within[1], m.mean_correct, m.mma)),
                 );

@@ -3,9 +3,9 @@
 
 use nalgebra::Matrix3;
 
-use super::geometry::{apply, corner_error, fit_homography, local_zoom_rotation};
-use super::neighbours::neighbour_share;
-use super::report::{rotation_bin, zoom_bin};
+use super::geometry::{apply, corner_error, fit_homography, local_geometry};
+use super::neighbours::{neighbour_share, ring_share};
+use super::report::{rotation_bin, tilt_bin, zoom_bin};
 use super::sequence::Sequence;
 use crate::constellation;
 use crate::features::Keypoint;
@@ -16,12 +16,28 @@ fn similarity(zoom: f64, deg: f64, tx: f64, ty: f64) -> Matrix3<f64> {
 }
 
 #[test]
-fn zoom_and_rotation_of_a_similarity() {
+fn zoom_and_rotation_of_a_similarity_and_no_tilt() {
     for (z, r) in [(1.0, 0.0), (2.0, 30.0), (0.5, -120.0), (2.7, 179.0)] {
-        let (zoom, rot) = local_zoom_rotation(&similarity(z, r, 10.0, -5.0), 100.0, 50.0);
-        assert!((zoom - z.max(1.0 / z)).abs() < 1e-6, "{z}: {zoom}");
-        assert!((rot - r.abs()).abs() < 1e-6, "{r}: {rot}");
+        let g = local_geometry(&similarity(z, r, 10.0, -5.0), 100.0, 50.0);
+        assert!((g.zoom - z.max(1.0 / z)).abs() < 1e-6, "{z}: {}", g.zoom);
+        assert!((g.rotation_deg - r.abs()).abs() < 1e-6, "{r}: {}", g.rotation_deg);
+        assert!(g.tilt_deg < 1e-4, "{}", g.tilt_deg);
     }
+}
+
+/// A plane turned by t about the y axis, seen head-on before: x shrinks by cos t, y stays. That is a tilt of t
+/// and no zoom; a zoom of 2 on top is a zoom of 2.
+#[test]
+fn a_tilt_is_a_tilt_and_not_a_zoom() {
+    for t in [20.0f64, 45.0, 60.0] {
+        let c = t.to_radians().cos();
+        let g = local_geometry(&Matrix3::new(c, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0), 100.0, 50.0);
+        assert!((g.tilt_deg - t).abs() < 1e-6 && (g.zoom - 1.0).abs() < 1e-9, "{t}: {g:?}");
+        let g = local_geometry(&Matrix3::new(2.0 * c, 0.0, 0.0, 0.0, 2.0, 0.0, 0.0, 0.0, 1.0), 100.0, 50.0);
+        assert!((g.tilt_deg - t).abs() < 1e-6 && (g.zoom - 2.0).abs() < 1e-9, "{t}: {g:?}");
+    }
+    assert_eq!(tilt_bin(10.0), "0-15deg");
+    assert_eq!(tilt_bin(50.0), "45-60deg");
 }
 
 #[test]
@@ -81,9 +97,11 @@ fn neighbour_share_follows_what_moves() {
         })
         .collect();
     let (ca, cb) = (constellation::build(&a, 8), constellation::build(&b, 8));
-    let (share, n) = neighbour_share(&a, &ca, &b, &cb, &h, 3.0).unwrap();
-    assert_eq!(n, 100);
-    assert!((share - 1.0).abs() < 1e-9, "{share}");
+    let s = neighbour_share(&a, &ca, &b, &cb, &h, 3.0).unwrap();
+    assert_eq!(s.keypoints, 100);
+    assert!((s.share - 1.0).abs() < 1e-9, "{s:?}");
+    // Turned 90 degrees, a member lands on another member only by chance on this grid.
+    assert!(s.chance < 0.5, "{s:?}");
     let mut moved = b.clone();
     for (i, k) in moved.iter_mut().enumerate() {
         if i % 2 == 1 {
@@ -91,8 +109,29 @@ fn neighbour_share_follows_what_moves() {
         }
     }
     let cm = constellation::build(&moved, 8);
-    let (share, _) = neighbour_share(&a, &ca, &moved, &cm, &h, 3.0).unwrap();
-    assert!(share < 0.8, "{share}");
+    let s = neighbour_share(&a, &ca, &moved, &cm, &h, 3.0).unwrap();
+    assert!(s.share < 0.8, "{s:?}");
+}
+
+/// Rings follow their keypoints' size and angle: under a similarity with sizes and angles that follow it, every
+/// sample lands on its counterpart, turned 90 degrees almost none does; sizes that do not follow the zoom lose
+/// the outer rings.
+#[test]
+fn ring_share_follows_size_and_angle() {
+    let a: Vec<Keypoint> =
+        (0..20).map(|i| Keypoint { angle: (i * 37 % 360) as f32, ..kp(100.0 + i as f32 * 30.0, 200.0) }).collect();
+    let h = similarity(1.5, 30.0, 50.0, -20.0);
+    let follow = |k: &Keypoint, zoom: f32| {
+        let (x, y) = apply(&h, k.x as f64, k.y as f64).unwrap();
+        Keypoint { x: x as f32, y: y as f32, size: k.size * zoom, angle: (k.angle + 30.0) % 360.0, ..*k }
+    };
+    let b: Vec<Keypoint> = a.iter().map(|k| follow(k, 1.5)).collect();
+    let s = ring_share(&a, &b, &h, 3.0).unwrap();
+    assert_eq!(s.keypoints, 20);
+    assert!(s.share > 0.95 && s.chance < 0.1, "{s:?}");
+    let same_size: Vec<Keypoint> = a.iter().map(|k| follow(k, 1.0)).collect();
+    let t = ring_share(&a, &same_size, &h, 3.0).unwrap();
+    assert!(t.share < 0.5, "{t:?}");
 }
 
 #[test]
