@@ -6,7 +6,8 @@
 //!
 //! Rooms: `ransac.rs` (the settings both estimators share), `relative.rs` (essential matrix), `absolute.rs`
 //! (PnP, also with the focal length unknown), `covariance.rs` (how sure an absolute pose is, in a client's
-//! convention); here, the comparisons of two poses that evaluations and tests make.
+//! convention), `track.rs` (several frames with known relative poses located together); here, the comparisons
+//! of two poses that evaluations and tests make.
 
 use nalgebra::{Isometry3, Rotation3, Vector3};
 
@@ -16,6 +17,9 @@ mod ransac;
 mod relative;
 #[cfg(test)]
 mod tests;
+mod track;
+#[cfg(test)]
+mod track_tests;
 
 pub use absolute::{
     absolute_pose, absolute_pose_unknown_focal, focal_candidates, AbsolutePose, CANDIDATE_ITERATIONS, RANSAC_HEAD,
@@ -23,6 +27,7 @@ pub use absolute::{
 pub use covariance::{pose_covariance, pose_difference, CHI2_6_95};
 pub use ransac::{ransac_iterations_needed, EssentialMethod, RansacSettings};
 pub use relative::{relative_pose, RelativePose};
+pub use track::{track_pose, FrameOutcome, TrackFrame, TrackPose, TrackScale};
 
 /// Angle between two rotations, degrees: acos((tr(R1ᵀ R2) − 1) / 2).
 pub fn rotation_error_deg(a: &Rotation3<f64>, b: &Rotation3<f64>) -> f64 {
