@@ -366,6 +366,8 @@ def train(cfg: dict, run_dir: Path, steps: int | None = None, units=None) -> Pat
         opt, lambda s: (t["lr_final"] + 0.5 * (t["lr"] - t["lr_final"]) * (1 + math.cos(math.pi * min(s, steps) / steps))) / t["lr"]
     )
     grouped = t.get("loss", "contrastive") == "triplet_frames"
+    if not grouped and not isinstance(model, SconeNet):
+        raise ValueError("the ring network trains with the whole-frame loss (train.loss: triplet_frames)")
     if grouped:
         sampler = GroupSampler(train_units, t.get("group_frames", 4), seed=cfg["seed"], weight=t.get("pair_weight", "shared"),
                                real_share=t.get("real_share", 0.0))

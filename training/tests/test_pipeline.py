@@ -22,6 +22,7 @@ from scone_train.render import render_sequence
 from scone_train.train import train
 
 CONFIG = Path(__file__).resolve().parents[1] / "configs" / "scone.yaml"
+TINY_ROOT: list[Path] = []
 
 
 @pytest.fixture(scope="module")
@@ -29,6 +30,7 @@ def tiny_unit(tmp_path_factory):
     if not scone_binary().exists():
         pytest.fail(f"{scone_binary()} missing: run scripts/setup")
     root = tmp_path_factory.mktemp("render")
+    TINY_ROOT[:] = [root]
     render_sequence(root / "seq000", seed=3, frames=4, width=320, height=240)
     return build_unit(root / "seq000", root / "cache")
 
@@ -65,6 +67,39 @@ def test_training_steps_export_and_parity(tiny_unit, tmp_path):
     ref = E.embed_frames(model, [f])[0]
     assert np.abs(got - ref).max() <= 1e-4
     assert np.allclose(np.linalg.norm(got, axis=1), 1.0, atol=1e-4)
+
+
+def test_ring_context_of_the_rust_export_equals_the_reference_and_a_ring_model_exports(tiny_unit, tmp_path):
+    """The Rust export's ring contexts are byte for byte `context.sample` on the frames' images; a RingNet
+    trains a few steps on them, exports to ONNX, and onnxruntime agrees with PyTorch on real inputs."""
+    import cv2
+
+    from scone_train import context as CX
+    from scone_train.model import RingNet
+
+    root = tiny_unit_root(tiny_unit)
+    for k, f in enumerate(tiny_unit.frames[:2]):
+        grey = cv2.imread(str(root / "rgb" / f"{k:06d}.png"), cv2.IMREAD_UNCHANGED)
+        assert f.context is not None and f.context.shape == (len(f), CX.SAMPLES)
+        assert np.array_equal(f.context, CX.sample(grey, f.keypoints[:, :4]))
+    cfg = yaml.safe_load(CONFIG.read_text())
+    cfg["model"] = {"context": "ring", "k": 0, "embed_dim": 48, "desc_dim": 64, "lstm_hidden": 32}
+    cfg["train"].update(steps=3, eval_every=3, checkpoint_every=3, anchors=32, threads=1, loss="triplet_frames",
+                        frame_loss="softmax+triplet", group_frames=3, select_on="ratio_f1")
+    best = train(cfg, tmp_path / "ring", units=([tiny_unit], [tiny_unit]))
+    model = RingNet()
+    model.load_state_dict(torch.load(best, weights_only=False)["model"])
+    path = X.export_onnx(model, tmp_path / "ring.onnx")
+    assert [i.name for i in onnx.load(str(path)).graph.input] == ["descriptors", "context"]
+    assert X.check_parity(model, path, n=91) <= 1e-4
+    f = tiny_unit.frames[1]
+    got = X.run_onnx(X.session(path, 1), f.descriptors, f.context)
+    assert np.abs(got - E.embed_frames(model, [f])[0]).max() <= 1e-4
+
+
+def tiny_unit_root(unit) -> Path:
+    """The rendered sequence a unit was built from (the fixture renders `seq000`)."""
+    return Path(TINY_ROOT[0]) / "seq000"
 
 
 def test_unpack_bits_order_matches_numpy():
