@@ -479,6 +479,11 @@ impl MapStore {
         map.read(|data, index| localize(data, index, features, embeddings, camera, prior, &self.config.localize))
     }
 
+    /// How this store localises (`[store.localize]`): the settings a track query shares with single frames.
+    pub fn localize_settings(&self) -> &LocalizeSettings {
+        &self.config.localize
+    }
+
     /// The whole map in the versioned, checksummed export format, with its index dump when it has an HNSW
     /// graph ([`encode_export`]: an import then answers exactly as this map). The dump is written into the
     /// map's index directory first (as a compaction would); if that fails the export goes without it.

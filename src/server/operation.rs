@@ -21,12 +21,13 @@ pub enum Operation {
     Describe,
     MatchPair,
     Localize,
+    LocalizeTrack,
 }
 
 use Operation::*;
 
 /// Every operation, for tests that walk the table.
-pub const ALL: [Operation; 13] = [
+pub const ALL: [Operation; 14] = [
     CreateMap,
     GetMap,
     ListMaps,
@@ -40,6 +41,7 @@ pub const ALL: [Operation; 13] = [
     Describe,
     MatchPair,
     Localize,
+    LocalizeTrack,
 ];
 
 impl Operation {
@@ -60,13 +62,16 @@ impl Operation {
             Describe => "Describe",
             MatchPair => "MatchPair",
             Localize => "Localize",
+            LocalizeTrack => "LocalizeTrack",
         }
     }
 
     /// What the key must allow: reads change nothing.
     pub fn access(self) -> Access {
         match self {
-            GetMap | ListMaps | MapContents | ExportMap | Describe | MatchPair | Localize => Access::Read,
+            GetMap | ListMaps | MapContents | ExportMap | Describe | MatchPair | Localize | LocalizeTrack => {
+                Access::Read
+            }
             CreateMap | DeleteMap | AddKeyframes | RemoveKeyframe | MergeMaps | ImportMap => Access::Write,
         }
     }
@@ -87,6 +92,7 @@ impl Operation {
             "/scone.v1.Matching/Describe" => Describe,
             "/scone.v1.Matching/MatchPair" => MatchPair,
             "/scone.v1.Matching/Localize" => Localize,
+            "/scone.v1.Matching/LocalizeTrack" => LocalizeTrack,
             _ => return None,
         })
     }
@@ -108,6 +114,7 @@ impl Operation {
             ("POST", "/v1/describe") => Describe,
             ("POST", "/v1/match") => MatchPair,
             ("POST", "/v1/maps/{map_id}/localize") => Localize,
+            ("POST", "/v1/maps/{map_id}/localize-track") => LocalizeTrack,
             _ => return None,
         })
     }
@@ -138,7 +145,7 @@ mod tests {
                 paths.push((format!("/scone.v1.{service}/{method}"), method.to_string()));
             }
         }
-        assert_eq!(paths.len(), 12);
+        assert_eq!(paths.len(), 13);
         for (path, method) in &paths {
             let op = Operation::from_grpc_path(path).unwrap_or_else(|| panic!("{path} is not an operation"));
             assert_eq!(op.name(), method);
@@ -163,6 +170,7 @@ mod tests {
             ("POST", "/v1/describe"),
             ("POST", "/v1/match"),
             ("POST", "/v1/maps/{map_id}/localize"),
+            ("POST", "/v1/maps/{map_id}/localize-track"),
         ];
         for op in ALL {
             assert!(routes.iter().any(|(m, r)| Operation::from_http(m, r) == Some(op)), "{op:?} has no route");

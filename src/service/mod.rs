@@ -10,8 +10,8 @@
 //!
 //! Rooms: `core.rs` (the service, its store, the lookup of a request's map), `frame.rs` (a frame's source and
 //! intrinsics checked and described: Describe), `pair.rs`
-//! (MatchPair), `localize.rs` (Localize), `maps.rs` (the map operations), `error.rs` (what a client is told,
-//! and its class).
+//! (MatchPair), `localize.rs` (Localize), `track.rs` (LocalizeTrack), `maps.rs` (the map operations),
+//! `error.rs` (what a client is told, and its class).
 //! Operations on one map take the map itself: the transport looks it up once per request ([`Service::map`]).
 
 mod core;
@@ -20,15 +20,18 @@ mod frame;
 mod localize;
 mod maps;
 mod pair;
+mod track;
 
 pub use crate::camera::{Distortion, DistortionModel, PoseConvention, Similarity};
 // What the transports need of the map layer, so that they import only this module.
 pub use crate::map::builder::ExternalObservation;
 pub use crate::map::localize::Prior;
 pub use crate::map::store::{Map, MapSummary};
+pub use crate::pose::TrackScale;
 pub use core::{Holdings, Service};
 pub use error::{ErrorKind, ServiceError};
 pub use frame::{Description, FrameInput, FrameSource, KeypointsInput};
 pub use localize::LocalizeOutcome;
 pub use maps::{KeyframeRequest, MapListing, MergeOutcome, DEFAULT_CONTENTS_LANDMARKS, MAX_CONTENTS_LANDMARKS};
 pub use pair::{PairOptions, PairOutcome};
+pub use track::{TrackFrameInput, TrackFrameOutcome, TrackOutcome, TrackRequest, TRACK_FRAMES};

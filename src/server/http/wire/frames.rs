@@ -1,0 +1,158 @@
+//! The bodies of the frame routes: Describe, MatchPair, Localize and LocalizeTrack.
+
+use serde::{Deserialize, Serialize};
+use utoipa::ToSchema;
+
+use super::common::{Frame, Intrinsics, Keypoint, Pose, PoseConvention, Prior};
+
+/// Describe: keypoints, FREAK descriptors and SConE embeddings of one frame.
+#[derive(Debug, Default, Deserialize, Serialize, ToSchema)]
+#[serde(deny_unknown_fields)]
+pub struct DescribeRequest {
+    /// Absent when the image comes as a raw body or a multipart `image` part.
+    #[serde(default)]
+    pub frame: Option<Frame>,
+}
+
+/// How MatchPair picks its matches.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Deserialize, Serialize, ToSchema)]
+#[serde(rename_all = "lowercase")]
+pub enum Matcher {
+    /// The SConE embedding alone: L2 nearest neighbour with the ratio test.
+    Plain,
+    /// Plain SConE matches plus FREAK's where SConE has none.
+    Union,
+    /// FREAK's nearest candidates re-ranked by the SConE embedding.
+    Rerank,
+    /// `rerank`, or `union` when the two images differ in scale by 1.6x or more (the default).
+    #[serde(rename = "scale-aware")]
+    ScaleAware,
+    /// FREAK alone (Hamming + ratio test): the baseline, for comparison on the same keypoints.
+    Freak,
+}
+
+impl From<Matcher> for crate::matching::SconeMatcher {
+    fn from(m: Matcher) -> Self {
+        match m {
+            Matcher::Plain => Self::Plain,
+            Matcher::Union => Self::Union,
+            Matcher::Rerank => Self::Rerank,
+            Matcher::ScaleAware => Self::ScaleAware,
+            Matcher::Freak => Self::Freak,
+        }
+    }
+}
+
+/// MatchPair: matches between two frames and their relative pose.
+#[derive(Debug, Default, Deserialize, Serialize, ToSchema)]
+#[serde(deny_unknown_fields)]
+pub struct MatchRequest {
+    /// Absent when its image is the multipart part `image1` (or `image`).
+    #[serde(default)]
+    pub frame1: Option<Frame>,
+    /// Absent when its image is the multipart part `image2`.
+    #[serde(default)]
+    pub frame2: Option<Frame>,
+    /// Ratio-test threshold in (0, 1]; default 0.8.
+    #[serde(default)]
+    pub ratio: Option<f32>,
+    /// Keep only mutual nearest neighbours.
+    #[serde(default)]
+    pub mutual: bool,
+    /// Absent: the server's default (`scale-aware`).
+    #[serde(default)]
+    pub matcher: Option<Matcher>,
+    /// The camera axes of the answer's relative pose (OpenGL: y up, z backward); it maps camera 1 into camera 2
+    /// in every convention.
+    #[serde(default)]
+    pub pose_convention: Option<PoseConvention>,
+}
+
+/// Localize: the camera-to-world pose of a frame against a map.
+#[derive(Debug, Default, Deserialize, Serialize, ToSchema)]
+#[serde(deny_unknown_fields)]
+pub struct LocalizeRequest {
+    /// Absent when the image comes as a raw body or a multipart `image` part.
+    #[serde(default)]
+    pub frame: Option<Frame>,
+    /// The frame's intrinsics given outside it (they must agree with `frame.intrinsics` if both are given).
+    #[serde(default)]
+    pub intrinsics: Option<Intrinsics>,
+    #[serde(default)]
+    pub prior: Option<Prior>,
+    /// The convention of the answer's pose (or give `?pose_convention=`; both must agree).
+    #[serde(default)]
+    pub pose_convention: Option<PoseConvention>,
+}
+
+/// Keypoints, FREAK descriptors and SConE embeddings of a frame.
+#[derive(Debug, Serialize, ToSchema)]
+pub struct DescribeResponse {
+    pub width: u32,
+    pub height: u32,
+    pub keypoints: Vec<Keypoint>,
+    /// 64 bytes per keypoint, base64.
+    pub descriptors_base64: String,
+    /// `[keypoints, dim]`, row-major, unit norm.
+    pub embeddings: Vec<f32>,
+    pub dim: usize,
+    pub model_id: String,
+    /// The ring context, 113 bytes per keypoint, base64; empty when the model does not read it.
+    pub context_base64: String,
+}
+
+/// One putative match: keypoint `index1` of frame 1 and `index2` of frame 2.
+#[derive(Debug, Serialize, ToSchema)]
+pub struct PairMatch {
+    pub index1: usize,
+    pub index2: usize,
+    pub distance: f32,
+    /// Whether the relative pose's RANSAC kept it.
+    pub inlier: bool,
+}
+
+/// Frame 1's camera into frame 2's: `X2 = R X1 + t`, `t` of unit length (the scale is unobservable).
+#[derive(Debug, Serialize, ToSchema)]
+pub struct RelativePose {
+    pub qx: f64,
+    pub qy: f64,
+    pub qz: f64,
+    pub qw: f64,
+    pub tx: f64,
+    pub ty: f64,
+    pub tz: f64,
+}
+
+/// Matches and the relative pose (null when too few matches support one).
+#[derive(Debug, Serialize, ToSchema)]
+pub struct MatchResponse {
+    pub matches: Vec<PairMatch>,
+    pub pose: Option<RelativePose>,
+    pub inliers: usize,
+}
+
+/// A pose, or `localized: false`.
+#[derive(Debug, Serialize, ToSchema)]
+pub struct LocalizeResponse {
+    pub localized: bool,
+    /// Camera-to-world, in the map's frame.
+    pub pose: Option<Pose>,
+    /// 2D-3D matches found.
+    pub matches: usize,
+    pub inliers: usize,
+    /// Mean reprojection error of the inliers, pixels.
+    pub reprojection_error: f64,
+    /// In [0, 1]: the probability, under the pose's covariance, that the pose is within 2° and within 5 % of
+    /// the inliers' median depth of the truth; 0 without a pose. As calibrated as the covariance is.
+    pub confidence: f64,
+    /// The focal length of the pose, pixels: the request's `fx`, or the estimate when it left it out; 0 when
+    /// not localised.
+    pub focal_length: f64,
+    /// Whether `focal_length` is the server's estimate.
+    pub focal_estimated: bool,
+    /// When localised: the pose's 6x6 covariance, row-major (36 values), in the request's convention, over
+    /// (tx, ty, tz, rx, ry, rz): translation in map units, then a rotation vector in radians perturbing the
+    /// returned rotation on the left (`R_true = exp([r]x) R`). Scaled so that about 95 % of true errors lie in
+    /// its 95 % ellipsoid (calibrated on real scenes); empty when it cannot be computed.
+    pub covariance: Vec<f64>,
+}
