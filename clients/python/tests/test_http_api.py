@@ -34,6 +34,7 @@ OPERATIONS = [
     ("POST", "/v1/describe"),
     ("POST", "/v1/match"),
     ("POST", "/v1/maps/{map_id}/localize"),
+    ("POST", "/v1/maps/{map_id}/localize-track"),
     ("GET", "/v1/maps/{map_id}/export"),
     ("POST", "/v1/maps/{map_id}/import"),
     ("POST", "/v1/maps/{map_id}/merge"),

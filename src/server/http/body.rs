@@ -22,6 +22,8 @@ pub struct Body {
     pub image: Option<Bytes>,
     pub image2: Option<Bytes>,
     pub depth: Option<Bytes>,
+    /// A track's images by position (parts `track0` .. `track9`).
+    pub track: std::collections::BTreeMap<usize, Bytes>,
 }
 
 /// The body types each route takes (also in `openapi.json`); anything else is 415.
@@ -100,15 +102,26 @@ pub async fn read_body(req: Request, limit: usize, accepted: &'static [&'static 
         let mut body = Body::default();
         while let Some(field) = mp.next_field().await.map_err(|e| multipart_error(e, limit))? {
             let name = field.name().unwrap_or("").to_string();
-            let slot = match name.as_str() {
-                "request" => &mut body.json,
-                "image" | "image1" => &mut body.image,
-                "image2" => &mut body.image2,
-                "depth" => &mut body.depth,
-                other => {
+            let track = name.strip_prefix("track").and_then(|n| n.parse::<usize>().ok()).filter(|&n| n < 10);
+            let slot = match (name.as_str(), track) {
+                ("request", _) => &mut body.json,
+                ("image" | "image1", _) => &mut body.image,
+                ("image2", _) => &mut body.image2,
+                ("depth", _) => &mut body.depth,
+                (_, Some(n)) => {
+                    if body.track.contains_key(&n) {
+                        return Err(invalid("body", format!("multipart part '{name}' is given more than once")));
+                    }
+                    let bytes = field.bytes().await.map_err(|e| multipart_error(e, limit))?;
+                    body.track.insert(n, bytes);
+                    continue;
+                }
+                (other, None) => {
                     return Err(invalid(
                         "body",
-                        format!("unknown multipart part '{other}': use request, image, image1, image2, depth"),
+                        format!(
+                            "unknown multipart part '{other}': use request, image, image1, image2, depth, track0-track9"
+                        ),
                     ))
                 }
             };

@@ -10,7 +10,7 @@ use axum::{Extension, Json};
 use base64::Engine;
 
 use super::body::{
-    frame_input, parse_json, query_pairs, read_body, wants_picture, ApiPath, Body, IntrinsicsQuery, Render,
+    frame_input, json_body, parse_json, query_pairs, read_body, wants_picture, ApiPath, Body, IntrinsicsQuery, Render,
     FRAME_BODIES, JSON_OR_MULTIPART,
 };
 use super::error::{ApiErrors, ApiResult};
@@ -21,7 +21,10 @@ use crate::render::{self, Backdrop};
 use crate::server::app::{App, MapId, NoMap};
 use crate::server::auth::Authorized;
 use crate::server::http::plumbing::call;
-use crate::service::{FrameInput, FrameSource, PairOptions, PoseConvention, Prior, ServiceError};
+use crate::service::{
+    FrameInput, FrameSource, PairOptions, PoseConvention, Prior, ServiceError, Similarity, TrackFrameInput,
+    TrackRequest, TrackScale,
+};
 
 /// What a frame is drawn on: its image, or a blank canvas of its keypoint set's size.
 fn backdrop(f: &FrameInput) -> Backdrop<'_> {
@@ -254,4 +257,75 @@ fn query_convention(pairs: &[(String, String)]) -> Result<Option<wire::PoseConve
         }),
         (None, _) => Ok(None),
     }
+}
+
+/// A short track against a map (rpc Matching.LocalizeTrack): 2-10 frames with their poses relative to each
+/// other, located together.
+#[utoipa::path(post, path = "/v1/maps/{map_id}/localize-track", tag = "maps",
+    params(("map_id" = String, Path, description = "The map", example = "office")),
+    request_body(description = "Frames with poses: JSON (base64 images or keypoints), or multipart (request and \
+        the images as parts track0, track1, ...)", content(
+        (wire::LocalizeTrackRequest = "application/json", example = examples::localize_track),
+        (wire::TrackForm = "multipart/form-data"))),
+    responses((status = 200, description = "The track's transform into the map, or localized=false",
+        body = wire::LocalizeTrackResponse), ApiErrors))]
+pub async fn localize_track(
+    State(app): State<Arc<App>>,
+    Extension(authorized): Extension<Authorized>,
+    ApiPath(map_id): ApiPath<String>,
+    req: Request,
+) -> ApiResult<Json<wire::LocalizeTrackResponse>> {
+    let body = read_body(req, app.settings.server.max_request_bytes, JSON_OR_MULTIPART).await?;
+    let out = call(&app, authorized, MapId(map_id), move |a, map| {
+        let Some(json) = &body.json else {
+            return Err(ServiceError::invalid(
+                "body",
+                "a track needs JSON (frames with their poses): send application/json or a multipart part 'request'",
+            ));
+        };
+        let j: wire::LocalizeTrackRequest = json_body(json)?;
+        let convention: PoseConvention = j.pose_convention.map(Into::into).unwrap_or_default();
+        let mut images = body.track;
+        let mut frames = Vec::with_capacity(j.frames.len());
+        for (i, f) in j.frames.into_iter().enumerate() {
+            let frame = frame_input(f.frame, images.remove(&i), &[], &format!("frames[{i}].frame"))?;
+            frames.push(TrackFrameInput { frame, pose: f.pose.domain() });
+        }
+        if let Some(n) = images.keys().next() {
+            return Err(ServiceError::invalid(format!("track{n}"), "names no frame of the request's frames"));
+        }
+        let request = TrackRequest {
+            frames,
+            convention,
+            scale: if j.estimate_scale { TrackScale::Free } else { TrackScale::Rigid },
+            prior: j.prior.map(|p| Prior { position: [p.x, p.y, p.z], radius: p.radius }),
+        };
+        let o = a.service.localize_track(&map, request)?;
+        a.metrics.stages(&o.times);
+        Ok(wire::LocalizeTrackResponse {
+            localized: o.map_from_track.is_some(),
+            map_from_track: o.map_from_track.as_ref().map(|s| Similarity::from_nalgebra(s).into()),
+            frames: o
+                .frames
+                .iter()
+                .map(|f| wire::TrackFrameResult {
+                    pose: f
+                        .camera_to_map
+                        .as_ref()
+                        .map(|p| wire::Pose::from_isometry(&convention.from_opencv_camera_to_world(p))),
+                    matches: f.matches,
+                    inliers: f.inliers,
+                    dropped: f.dropped,
+                    localized_alone: f.localized_alone,
+                })
+                .collect(),
+            inliers: o.inliers,
+            reprojection_error: o.reprojection_error,
+            confidence: o.confidence,
+            covariance: o.covariance(convention),
+            single_frame: o.single_frame,
+        })
+    })
+    .await?;
+    Ok(Json(out))
 }

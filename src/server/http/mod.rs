@@ -267,6 +267,7 @@ mod tests {
             "POST /v1/maps/{map_id}/import",
             "POST /v1/maps/{map_id}/keyframes",
             "POST /v1/maps/{map_id}/localize",
+            "POST /v1/maps/{map_id}/localize-track",
             "POST /v1/maps/{map_id}/merge",
             "POST /v1/match",
         ];

@@ -69,6 +69,7 @@ pub fn pool_routes(map_limit: usize) -> OpenApiRouter<Arc<App>> {
         .routes(routes!(maps::add_keyframe))
         .routes(routes!(maps::remove_keyframe))
         .routes(routes!(frames::localize))
+        .routes(routes!(frames::localize_track))
         .routes(routes!(maps::export_map))
         .routes(routes!(maps::merge_maps))
         .routes((schemas, paths, import.layer(DefaultBodyLimit::max(map_limit))))

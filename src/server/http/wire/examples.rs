@@ -56,3 +56,11 @@ pub fn merge_maps() -> Value {
     json!({"source_map_id": "office-copy",
            "transform": {"tx": 0.0, "ty": 0.0, "tz": 0.0, "qx": 0.0, "qy": 0.0, "qz": 0.0, "qw": 1.0, "scale": 1.0}})
 }
+
+pub fn localize_track() -> Value {
+    let frame = |dx: f32, tx: f64| {
+        json!({"frame": {"keypoints": keypoint_set(dx), "intrinsics": intrinsics()},
+               "pose": {"tx": tx, "ty": 0.0, "tz": 0.0, "qx": 0.0, "qy": 0.0, "qz": 0.0, "qw": 1.0}})
+    };
+    json!({"frames": [frame(0.0, 0.0), frame(6.0, 0.1), frame(12.0, 0.2)], "estimate_scale": false})
+}

@@ -47,3 +47,18 @@ pub struct KeyframeForm {
     #[schema(value_type = Option<String>, format = Binary)]
     depth: Option<Vec<u8>>,
 }
+
+/// A LocalizeTrack request as `multipart/form-data`: the JSON in `request`, each frame's image as the part
+/// `trackN` (N its position in `frames`, 0-9).
+#[derive(ToSchema)]
+#[allow(dead_code)] // Documentation of the multipart layout that `body::read_body` reads.
+pub struct TrackForm {
+    /// The request's JSON fields (frames with their poses and intrinsics, estimate_scale, ...).
+    request: String,
+    /// Frame 0's image (PNG or JPEG); likewise `track1` .. `track9`.
+    #[schema(value_type = Option<String>, format = Binary)]
+    track0: Option<Vec<u8>>,
+    /// Frame 1's image.
+    #[schema(value_type = Option<String>, format = Binary)]
+    track1: Option<Vec<u8>>,
+}

@@ -3,7 +3,7 @@
 use serde::{Deserialize, Serialize};
 use utoipa::ToSchema;
 
-use super::common::{Frame, Intrinsics, Keypoint, Pose, PoseConvention, Prior};
+use super::common::{Frame, Intrinsics, Keypoint, Pose, PoseConvention, Prior, Similarity};
 
 /// Describe: keypoints, FREAK descriptors and SConE embeddings of one frame.
 #[derive(Debug, Default, Deserialize, Serialize, ToSchema)]
@@ -155,4 +155,65 @@ pub struct LocalizeResponse {
     /// returned rotation on the left (`R_true = exp([r]x) R`). Scaled so that about 95 % of true errors lie in
     /// its 95 % ellipsoid (calibrated on real scenes); empty when it cannot be computed.
     pub covariance: Vec<f64>,
+}
+
+/// One frame of a track: the frame (or a multipart part `trackN` with its image, N its position) and its
+/// pose in the track's frame.
+#[derive(Debug, Clone, Deserialize, Serialize, ToSchema)]
+#[serde(deny_unknown_fields)]
+pub struct TrackFrame {
+    /// Absent when the image comes as the multipart part `trackN`; its intrinsics are then given here with no
+    /// image: `{"intrinsics": {...}}`.
+    #[serde(default)]
+    pub frame: Option<Frame>,
+    /// The frame's pose in the track's frame (camera-to-track in the default convention): the tracker's pose.
+    pub pose: Pose,
+}
+
+/// 2-10 frames with their poses relative to each other, located together (rpc LocalizeTrack).
+#[derive(Debug, Clone, Default, Deserialize, Serialize, ToSchema)]
+#[serde(deny_unknown_fields)]
+pub struct LocalizeTrackRequest {
+    pub frames: Vec<TrackFrame>,
+    /// False: rigid (a metric track against a metric map); true: the scale between track and map is estimated.
+    #[serde(default)]
+    pub estimate_scale: bool,
+    #[serde(default)]
+    pub prior: Option<Prior>,
+    /// The convention of the frames' poses and of the answer's.
+    #[serde(default)]
+    pub pose_convention: Option<PoseConvention>,
+}
+
+/// What became of one frame of a track.
+#[derive(Debug, Serialize, ToSchema)]
+pub struct TrackFrameResult {
+    /// When localised: the frame's camera in the map, in the request's convention.
+    pub pose: Option<Pose>,
+    pub matches: usize,
+    pub inliers: usize,
+    /// Left out of the estimate: its own pose disagreed with the other frames' (blur, a wrong relative pose).
+    pub dropped: bool,
+    /// Whether Localize of this frame alone found a pose.
+    pub localized_alone: bool,
+}
+
+/// A track's transform into the map, or `localized: false`.
+#[derive(Debug, Serialize, ToSchema)]
+pub struct LocalizeTrackResponse {
+    pub localized: bool,
+    /// Track to map: `X_map = scale * R * X_track + t` (scale 1 when rigid).
+    pub map_from_track: Option<Similarity>,
+    /// In the request's order.
+    pub frames: Vec<TrackFrameResult>,
+    /// Over all frames.
+    pub inliers: usize,
+    pub reprojection_error: f64,
+    /// As Localize's, for frame 0's pose.
+    pub confidence: f64,
+    /// Frame 0's pose covariance, as Localize's.
+    pub covariance: Vec<f64>,
+    /// The frame whose own pose is the answer (no joint estimate had more inliers than it alone); absent for
+    /// the joint estimate.
+    pub single_frame: Option<usize>,
 }
