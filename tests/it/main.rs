@@ -22,3 +22,4 @@ mod service;
 mod storage_faults;
 #[path = "../../src/test_dir.rs"]
 mod test_dir;
+mod track;
