@@ -150,6 +150,28 @@ class SconeClient:
             request.prior.CopyFrom(prior)
         return self._call(self.matching.Localize, request)
 
+    def localize_track(
+        self,
+        map_id: str,
+        frames: list[tuple[pb.Frame, pb.Pose]],
+        *,
+        estimate_scale: bool = False,
+        prior: pb.PosePrior | None = None,
+        pose_convention: int = pb.POSE_CONVENTION_OPENCV_CAMERA_TO_WORLD,
+    ) -> pb.LocalizeTrackResponse:
+        """Localizes a short track: 2-10 (frame, pose) pairs, each pose the frame's in the track's own frame (what a
+        phone's tracker or a rig's extrinsics give), in ``pose_convention``. ``estimate_scale`` when the track's
+        units are not the map's. The answer holds the track-to-map transform and every frame's pose in the map."""
+        request = pb.LocalizeTrackRequest(
+            map_id=map_id,
+            frames=[pb.TrackFrame(frame=f, pose=p) for f, p in frames],
+            estimate_scale=estimate_scale,
+            pose_convention=pose_convention,
+        )
+        if prior is not None:
+            request.prior.CopyFrom(prior)
+        return self._call(self.matching.LocalizeTrack, request)
+
     def match_pair(
         self,
         frame1: pb.Frame,

@@ -314,3 +314,26 @@ def test_example_script_runs(server):
         timeout=300,
     ).stdout
     assert "localised" in out, out
+
+
+def test_track_example_script_runs_and_recovers_the_made_up_motion(server):
+    out = subprocess.run(
+        [
+            sys.executable,
+            str(REPO / "clients/python/examples/localize_track.py"),
+            "--server",
+            server[0],
+            "--scene",
+            str(FIXTURES / "rendered"),
+            "--map",
+            "track-example",
+        ],
+        check=True,
+        capture_output=True,
+        text=True,
+        timeout=300,
+    ).stdout
+    tracks = [line for line in out.splitlines() if line.startswith("track [")]
+    assert tracks and all("not localised" not in t for t in tracks), out
+    errors = [float(line.rsplit("position error ", 1)[1].split()[0]) for line in out.splitlines() if "position error" in line]
+    assert errors and max(errors) < 0.05, out

@@ -426,6 +426,62 @@ class LocalizeRequest(_message.Message):
     pose_convention: PoseConvention
     def __init__(self, map_id: _Optional[str] = ..., frame: _Optional[_Union[Frame, _Mapping]] = ..., prior: _Optional[_Union[PosePrior, _Mapping]] = ..., pose_convention: _Optional[_Union[PoseConvention, str]] = ...) -> None: ...
 
+class TrackFrame(_message.Message):
+    __slots__ = ("frame", "pose")
+    FRAME_FIELD_NUMBER: _ClassVar[int]
+    POSE_FIELD_NUMBER: _ClassVar[int]
+    frame: Frame
+    pose: Pose
+    def __init__(self, frame: _Optional[_Union[Frame, _Mapping]] = ..., pose: _Optional[_Union[Pose, _Mapping]] = ...) -> None: ...
+
+class LocalizeTrackRequest(_message.Message):
+    __slots__ = ("map_id", "frames", "estimate_scale", "prior", "pose_convention")
+    MAP_ID_FIELD_NUMBER: _ClassVar[int]
+    FRAMES_FIELD_NUMBER: _ClassVar[int]
+    ESTIMATE_SCALE_FIELD_NUMBER: _ClassVar[int]
+    PRIOR_FIELD_NUMBER: _ClassVar[int]
+    POSE_CONVENTION_FIELD_NUMBER: _ClassVar[int]
+    map_id: str
+    frames: _containers.RepeatedCompositeFieldContainer[TrackFrame]
+    estimate_scale: bool
+    prior: PosePrior
+    pose_convention: PoseConvention
+    def __init__(self, map_id: _Optional[str] = ..., frames: _Optional[_Iterable[_Union[TrackFrame, _Mapping]]] = ..., estimate_scale: _Optional[bool] = ..., prior: _Optional[_Union[PosePrior, _Mapping]] = ..., pose_convention: _Optional[_Union[PoseConvention, str]] = ...) -> None: ...
+
+class TrackFrameResult(_message.Message):
+    __slots__ = ("pose", "matches", "inliers", "dropped", "localized_alone")
+    POSE_FIELD_NUMBER: _ClassVar[int]
+    MATCHES_FIELD_NUMBER: _ClassVar[int]
+    INLIERS_FIELD_NUMBER: _ClassVar[int]
+    DROPPED_FIELD_NUMBER: _ClassVar[int]
+    LOCALIZED_ALONE_FIELD_NUMBER: _ClassVar[int]
+    pose: Pose
+    matches: int
+    inliers: int
+    dropped: bool
+    localized_alone: bool
+    def __init__(self, pose: _Optional[_Union[Pose, _Mapping]] = ..., matches: _Optional[int] = ..., inliers: _Optional[int] = ..., dropped: _Optional[bool] = ..., localized_alone: _Optional[bool] = ...) -> None: ...
+
+class LocalizeTrackResponse(_message.Message):
+    __slots__ = ("localized", "map_from_track", "frames", "inliers", "reprojection_error", "confidence", "covariance", "single_frame")
+    LOCALIZED_FIELD_NUMBER: _ClassVar[int]
+    MAP_FROM_TRACK_FIELD_NUMBER: _ClassVar[int]
+    FRAMES_FIELD_NUMBER: _ClassVar[int]
+    INLIERS_FIELD_NUMBER: _ClassVar[int]
+    REPROJECTION_ERROR_FIELD_NUMBER: _ClassVar[int]
+    CONFIDENCE_FIELD_NUMBER: _ClassVar[int]
+    COVARIANCE_FIELD_NUMBER: _ClassVar[int]
+    SINGLE_FRAME_FIELD_NUMBER: _ClassVar[int]
+    localized: bool
+    map_from_track: Similarity
+    frames: _containers.RepeatedCompositeFieldContainer[TrackFrameResult]
+    inliers: int
+    reprojection_error: float
+    confidence: float
+    covariance: _containers.RepeatedScalarFieldContainer[float]
+    single_frame: int
+    def __init__(self, localized: _Optional[bool] = ..., map_from_track: _Optional[_Union[Similarity, _Mapping]] = ..., frames: _Optional[_Iterable[_Union[TrackFrameResult, _Mapping]]] = ..., inliers: _Optional[int] = ..., reprojection_error: _Optional[float] = ..., confidence: _Optional[float] = ..., covariance: _Optional[_Iterable[float]] = ..., single_frame: _Optional[int] = ...) -> None: ...
+
 class LocalizeResponse(_message.Message):
     __slots__ = ("localized", "pose", "matches", "inliers", "reprojection_error", "confidence", "focal_length", "focal_estimated", "covariance")
     LOCALIZED_FIELD_NUMBER: _ClassVar[int]

@@ -533,6 +533,11 @@ class MatchingStub:
                 request_serializer=scone__client_dot___proto_dot_scone_dot_v1_dot_scone__pb2.LocalizeRequest.SerializeToString,
                 response_deserializer=scone__client_dot___proto_dot_scone_dot_v1_dot_scone__pb2.LocalizeResponse.FromString,
                 _registered_method=True)
+        self.LocalizeTrack = channel.unary_unary(
+                '/scone.v1.Matching/LocalizeTrack',
+                request_serializer=scone__client_dot___proto_dot_scone_dot_v1_dot_scone__pb2.LocalizeTrackRequest.SerializeToString,
+                response_deserializer=scone__client_dot___proto_dot_scone_dot_v1_dot_scone__pb2.LocalizeTrackResponse.FromString,
+                _registered_method=True)
 
 
 class MatchingServicer:
@@ -565,6 +570,17 @@ class MatchingServicer:
         context.set_details('Method not implemented!')
         raise NotImplementedError('Method not implemented!')
 
+    def LocalizeTrack(self, request, context):
+        """A short track against a map: 2-10 frames with their poses relative to each other (a phone's tracker, a
+        rig's extrinsics), located together. Each frame goes through Localize's stages; then one robust estimate
+        of the track-to-map transform over every frame's matches and a joint refinement. A frame that disagrees
+        with the others (blur, a wrong relative pose) is dropped and said so; the answer is never worse than the
+        best frame alone.
+        """
+        context.set_code(grpc.StatusCode.UNIMPLEMENTED)
+        context.set_details('Method not implemented!')
+        raise NotImplementedError('Method not implemented!')
+
 
 def add_MatchingServicer_to_server(servicer, server):
     rpc_method_handlers = {
@@ -582,6 +598,11 @@ def add_MatchingServicer_to_server(servicer, server):
                     servicer.Localize,
                     request_deserializer=scone__client_dot___proto_dot_scone_dot_v1_dot_scone__pb2.LocalizeRequest.FromString,
                     response_serializer=scone__client_dot___proto_dot_scone_dot_v1_dot_scone__pb2.LocalizeResponse.SerializeToString,
+            ),
+            'LocalizeTrack': grpc.unary_unary_rpc_method_handler(
+                    servicer.LocalizeTrack,
+                    request_deserializer=scone__client_dot___proto_dot_scone_dot_v1_dot_scone__pb2.LocalizeTrackRequest.FromString,
+                    response_serializer=scone__client_dot___proto_dot_scone_dot_v1_dot_scone__pb2.LocalizeTrackResponse.SerializeToString,
             ),
     }
     generic_handler = grpc.method_handlers_generic_handler(
@@ -669,6 +690,33 @@ class Matching:
             '/scone.v1.Matching/Localize',
             scone__client_dot___proto_dot_scone_dot_v1_dot_scone__pb2.LocalizeRequest.SerializeToString,
             scone__client_dot___proto_dot_scone_dot_v1_dot_scone__pb2.LocalizeResponse.FromString,
+            options,
+            channel_credentials,
+            insecure,
+            call_credentials,
+            compression,
+            wait_for_ready,
+            timeout,
+            metadata,
+            _registered_method=True)
+
+    @staticmethod
+    def LocalizeTrack(request,
+            target,
+            options=(),
+            channel_credentials=None,
+            call_credentials=None,
+            insecure=False,
+            compression=None,
+            wait_for_ready=None,
+            timeout=None,
+            metadata=None):
+        return grpc.experimental.unary_unary(
+            request,
+            target,
+            '/scone.v1.Matching/LocalizeTrack',
+            scone__client_dot___proto_dot_scone_dot_v1_dot_scone__pb2.LocalizeTrackRequest.SerializeToString,
+            scone__client_dot___proto_dot_scone_dot_v1_dot_scone__pb2.LocalizeTrackResponse.FromString,
             options,
             channel_credentials,
             insecure,
