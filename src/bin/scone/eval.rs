@@ -127,6 +127,16 @@ pub enum EvalCommand {
         /// service's default).
         #[arg(long, value_enum, default_value = "landmarks")]
         index_points: scone::map::index::IndexPoints,
+        /// Tracks of N frames instead of single frames: each query with its N - 1 nearest query frames, their
+        /// relative poses from the ground truth with a tracker's error (LocalizeTrack, rigid); 0 or 1: single frames.
+        #[arg(long, default_value_t = 0)]
+        track: usize,
+        /// The tracker's translation error, as a share of each frame's distance from the query.
+        #[arg(long, default_value_t = 0.01)]
+        track_translation_share: f64,
+        /// The tracker's rotation error per frame of the track, degrees.
+        #[arg(long, default_value_t = 0.5)]
+        track_degrees_per_frame: f64,
         #[command(flatten)]
         report: ReportArgs,
         #[command(flatten)]
@@ -297,10 +307,14 @@ pub fn run(cmd: EvalCommand) -> anyhow::Result<()> {
             foreign,
             foreign_stride,
             index_points,
+            track,
+            track_translation_share,
+            track_degrees_per_frame,
             report: out,
             extractor,
         } => {
             anyhow::ensure!(unit_scale.is_finite() && unit_scale > 0.0, "--unit-scale must be positive");
+            anyhow::ensure!(track <= 10, "--track: a track holds at most 10 frames");
             let cfg = extractor.config()?;
             for m in &methods {
                 anyhow::ensure!(
@@ -333,6 +347,12 @@ pub fn run(cmd: EvalCommand) -> anyhow::Result<()> {
             rc.foreign = foreign;
             rc.foreign_stride = foreign_stride;
             rc.index_points = index_points;
+            rc.track = track;
+            rc.track_noise = reloc::TrackNoise {
+                translation_share: track_translation_share,
+                degrees_per_frame: track_degrees_per_frame,
+                ..Default::default()
+            };
             rc.localize.validate().map_err(|e| anyhow::anyhow!(e))?;
             let report = reloc::evaluate(&s, &rc, embedder.as_ref()).map_err(|e| anyhow::anyhow!("{e}"))?;
             print!("{}", reloc::markdown(&report));

@@ -24,7 +24,7 @@ enum Command {
     Extract(features::ExtractArgs),
     /// Evaluate on a real scene (the paper's protocol).
     #[command(subcommand)]
-    Eval(eval::EvalCommand),
+    Eval(Box<eval::EvalCommand>),
     /// Maps on disk, through the same store the service uses.
     #[command(subcommand)]
     Map(map::MapCommand),
@@ -41,7 +41,7 @@ fn main() -> anyhow::Result<()> {
     match Cli::parse().command {
         Command::Serve(args) => serve::run(args),
         Command::Extract(args) => features::extract(args),
-        Command::Eval(cmd) => eval::run(cmd),
+        Command::Eval(cmd) => eval::run(*cmd),
         Command::Map(cmd) => map::run(cmd),
         Command::Features(args) => features::export(args),
     }

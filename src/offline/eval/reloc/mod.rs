@@ -31,8 +31,12 @@
 //!   of localised queries within the 95 % ellipsoid (`pose::CHI2_6_95`), which should be close to 0.95.
 
 //!
+//! **Tracks** (`track`, issue 43): each query is localised together with its nearest query frames, their poses
+//! relative to it from the ground truth with a tracker's error added (`track_noise`); foreign scenes as tracks
+//! of consecutive frames.
+//!
 //! Rooms: `protocol.rs` (the settings and the split of the frames), `stages.rs` (a method's map, queries and
-//! foreign frames), `report.rs` (records and summaries), `tables.rs` (the markdown); here, the run over the
+//! foreign frames), `tracks.rs` (the same for tracks), `report.rs` (records and summaries), `tables.rs` (the markdown); here, the run over the
 //! methods.
 
 use crate::decode::{decode_grey, ImageLimitSettings};
@@ -46,14 +50,16 @@ mod stages;
 mod tables;
 #[cfg(test)]
 mod tests;
+mod tracks;
 
-pub use protocol::{check_block, with_stages, RelocConfig, Stage};
+pub use protocol::{check_block, with_stages, RelocConfig, Stage, TrackNoise};
 pub use report::{BinSummary, QueryRecord, RelocReport, RelocSummary, ANGLE_BINS};
 pub use tables::markdown;
 
 use protocol::split_frames;
 use report::summarise;
 use stages::{foreign_poses, MethodView};
+use tracks::foreign_tracks;
 
 type BoxError = Box<dyn std::error::Error + Send + Sync>;
 
@@ -76,8 +82,13 @@ pub fn evaluate(scene: &Scene, cfg: &RelocConfig, embedder: Option<&Embedder>) -
         let (build, localize) = cfg.settings_for(method);
         let view = MethodView::describe(scene, &images, method, cfg, embedder, &mut progress)?;
         let map = view.build_map(&map_frames, cfg, &build, embedder, &mut progress)?;
-        let records = view.localise_queries(&query_frames, &map_frames, &map, cfg, &localize, &mut progress)?;
-        let foreign = foreign_poses(&map.data, &map.index, method, cfg, &localize, embedder)?;
+        let (records, foreign) = if cfg.track >= 2 {
+            let records = view.localise_tracks(&query_frames, &map_frames, &map, cfg, &localize, &mut progress)?;
+            (records, foreign_tracks(&map, method, cfg, &localize, embedder)?)
+        } else {
+            let records = view.localise_queries(&query_frames, &map_frames, &map, cfg, &localize, &mut progress)?;
+            (records, foreign_poses(&map.data, &map.index, method, cfg, &localize, embedder)?)
+        };
         let scene_focal = (scene.camera.fx + scene.camera.fy) / 2.0;
         summaries.push(summarise(method, &records, map.figures(), foreign, scene_focal, cfg.unit_scale));
         queries.extend(records.into_iter().map(|r| (method, r)));

@@ -52,6 +52,29 @@ pub struct RelocConfig {
     /// written before the setting read as one point per observation, which they ran with).
     #[serde(default)]
     pub index_points: IndexPoints,
+    /// Tracks instead of single frames (issue 43): each query is localised with its `track - 1` nearest query
+    /// frames by sequence position, their poses relative to it from the ground truth with [`TrackNoise`]
+    /// added (0 or 1: single frames).
+    #[serde(default)]
+    pub track: usize,
+    #[serde(default)]
+    pub track_noise: TrackNoise,
+}
+
+/// The error a tracker makes, added to a track's relative poses (seeded by `seed` and the query).
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct TrackNoise {
+    /// Translation error as a share of the distance from the track's first frame (in a random direction).
+    pub translation_share: f64,
+    /// Rotation error per frame of the track, degrees (frame k of the track: k times it, about a random axis).
+    pub degrees_per_frame: f64,
+    pub seed: u64,
+}
+
+impl Default for TrackNoise {
+    fn default() -> Self {
+        Self { translation_share: 0.01, degrees_per_frame: 0.5, seed: 43 }
+    }
 }
 
 /// The parts of issue 27 an evaluation can turn on one by one (`--stages`); the rest stay as today's pipeline.
@@ -116,6 +139,8 @@ impl Default for RelocConfig {
             foreign: Vec::new(),
             foreign_stride: 5,
             index_points: IndexSettings::default().points,
+            track: 0,
+            track_noise: TrackNoise::default(),
         }
     }
 }

@@ -29,7 +29,7 @@ const DISTRACTOR_OFFSET: f64 = 1.0e4;
 
 /// The features the service would hold for `d`: its keypoints and, for SConE, their FREAK bits (a keyframe's
 /// payload keeps them, and the stages that join FREAK's matches read them).
-fn features_of(d: &Described) -> Result<Features, BoxError> {
+pub(super) fn features_of(d: &Described) -> Result<Features, BoxError> {
     let mut descriptors = Vec::new();
     if let Some(bits) = &d.freak {
         for r in 0..bits.rows() {
@@ -41,7 +41,7 @@ fn features_of(d: &Described) -> Result<Features, BoxError> {
 }
 
 /// Vectors a method's descriptors are compared as, row-major, with their dimension.
-fn vectors(method: Method, d: &Described) -> Result<(Vec<f32>, usize), BoxError> {
+pub(super) fn vectors(method: Method, d: &Described) -> Result<(Vec<f32>, usize), BoxError> {
     let rows = d.descriptors.rows() as usize;
     if rows == 0 {
         return Ok((Vec::new(), if method == Method::Freak { 512 } else { d.descriptors.cols().max(1) as usize }));
@@ -71,10 +71,10 @@ fn vectors(method: Method, d: &Described) -> Result<(Vec<f32>, usize), BoxError>
 
 /// The scene as one method sees it: every frame described, with its descriptors as the vectors a map holds.
 pub(super) struct MethodView<'a> {
-    scene: &'a Scene,
-    method: Method,
-    described: Vec<Described>,
-    vectors: Vec<(Vec<f32>, usize)>,
+    pub scene: &'a Scene,
+    pub method: Method,
+    pub described: Vec<Described>,
+    pub vectors: Vec<(Vec<f32>, usize)>,
 }
 
 /// A method's map of the scene (and of the distractors), with its index.
@@ -260,7 +260,7 @@ impl<'a> MethodView<'a> {
 }
 
 /// Baseline to the nearest map camera centre, and viewing angle to the most similarly oriented map keyframe.
-fn distance_to_map(scene: &Scene, map_frames: &[usize], pose: &nalgebra::Isometry3<f64>) -> (f64, f64) {
+pub(super) fn distance_to_map(scene: &Scene, map_frames: &[usize], pose: &nalgebra::Isometry3<f64>) -> (f64, f64) {
     let mut baseline = f64::INFINITY;
     let mut angle = f64::INFINITY;
     for &k in map_frames {
