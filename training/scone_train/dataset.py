@@ -20,6 +20,7 @@ class Unit:
     frames: list[FrameFeatures]
     ids: list[np.ndarray]  # landmark id per keypoint, -1 none
     real: bool = False  # photographs (castle-P30) rather than rendered frames
+    scene: bool = False  # views of a real 3D scene (multi-view labels), not warps of one photograph
 
     def observations(self) -> int:
         return int(sum((i >= 0).sum() for i in self.ids))
@@ -212,16 +213,21 @@ class GroupSampler:
     whole-frame negatives cost one embedding per frame rather than one per pair."""
 
     def __init__(self, units: list[Unit], size: int, seed: int, min_shared: int = 8, weight: str = "shared",
-                 real_share: float = 0.0):
+                 real_share: float = 0.0, scene_share: float = 0.0):
         """`real_share` > 0: that share of the groups comes from real units (`Unit.real`), the rest from
         rendered ones; within each part pairs are drawn by `weight`. 0 draws from all pairs by `weight`; with the
-        default castle labels the real scene then gets about 0.02 % of the groups (12 of 23,358 pairs)."""
+        default castle labels the real scene then gets about 0.02 % of the groups (12 of 23,358 pairs).
+        `scene_share` > 0 does the same between the views of real 3D scenes (`Unit.scene`) and the rest (warps
+        of photographs, rendered sequences)."""
         self.pairs = PairSampler(units, anchors=128, pool=0, seed=seed, min_shared=min_shared, weight=weight)
-        self.real_share = real_share
-        if real_share > 0:
-            real = np.array([u.real for u, _, _ in self.pairs.pairs])
+        if real_share > 0 and scene_share > 0:
+            raise ValueError("give real_share or scene_share, not both")
+        self.real_share = real_share or scene_share
+        if self.real_share > 0:
+            attr = "real" if real_share > 0 else "scene"
+            real = np.array([getattr(u, attr) for u, _, _ in self.pairs.pairs])
             if real.all() or not real.any():
-                raise ValueError("real_share needs both real and rendered frame pairs")
+                raise ValueError(f"{attr}_share needs frame pairs of both kinds")
             w = self.pairs.weights
             self.parts = [(np.nonzero(sel)[0], w[sel] / w[sel].sum()) for sel in (~real, real)]
         self.rng = self.pairs.rng

@@ -79,6 +79,7 @@ def load_units(cfg: dict, rendered_root: Path | None = None) -> tuple[list[Unit]
             src, keep = part(name, "train")
             u = build_unit(src, cache / "real", keep, geo, f"{name}-train", args)
             u.real = True
+            u.scene = True
             train.append(u)
             select.append(build_unit(src, cache / "real", part(name, "select")[1], geo, f"{name}-sel", args))
     if d.get("warps"):
@@ -109,6 +110,7 @@ def load_units(cfg: dict, rendered_root: Path | None = None) -> tuple[list[Unit]
             geo = C.GeometryParams(window=d.get("castle_window", 0))
             train.append(build_unit(castle, cache / "real", list(range(cut)), geo, "castle-train", args))
             train[-1].real = True
+            train[-1].scene = True
             select.append(build_unit(castle, cache / "real", list(range(cut, total)), C.GeometryParams(), "castle-sel", args))
     return train, select
 
@@ -370,7 +372,7 @@ def train(cfg: dict, run_dir: Path, steps: int | None = None, units=None) -> Pat
         raise ValueError("the ring network trains with the whole-frame loss (train.loss: triplet_frames)")
     if grouped:
         sampler = GroupSampler(train_units, t.get("group_frames", 4), seed=cfg["seed"], weight=t.get("pair_weight", "shared"),
-                               real_share=t.get("real_share", 0.0))
+                               real_share=t.get("real_share", 0.0), scene_share=t.get("scene_share", 0.0))
     else:
         sampler = PairSampler(train_units, t["anchors"], t["pool"], seed=cfg["seed"], near=t.get("near_negatives", 0))
     gen = torch.Generator().manual_seed(cfg["seed"])
