@@ -4,6 +4,7 @@
 //! ([`crate::pose::track_pose`]).
 
 use nalgebra::{Isometry3, Matrix6, Similarity3};
+use rayon::prelude::*;
 
 use super::core::Service;
 use super::error::ServiceError;
@@ -105,28 +106,42 @@ impl Service {
             size = Some(this);
         }
         let settings = store.localize_settings();
+        // The frames are independent until the joint estimate: described and localised side by side (rayon's
+        // pool), so a track costs less than its frames one after the other.
+        let (convention, scale, prior) = (request.convention, request.scale, request.prior);
+        let described: Vec<Result<(TrackFrame, StageTimes), ServiceError>> = request
+            .frames
+            .into_par_iter()
+            .enumerate()
+            .map(|(i, f)| {
+                let field = format!("frames[{i}].frame.intrinsics");
+                let cam = Self::camera(&f.frame, &field)?;
+                let FrameInput { source, distortion, .. } = f.frame;
+                let d = self.describe_source(source, Some((&cam, &distortion)))?;
+                Self::check_frame_size(&d, &cam, &field)?;
+                let mut times = d.times;
+                let l = store.localize(map, &d.features, &d.embeddings, &cam, prior.as_ref())?;
+                times.add(&StageTimes(vec![("search", l.search_s), ("pnp", l.pnp_s), ("stages", l.stages_s)]));
+                let points2d = l.matches.iter().map(|m| d.features.keypoints[m.keypoint]).map(|k| (k.x, k.y)).collect();
+                let frame = TrackFrame {
+                    camera_to_track: convention.to_opencv_camera_to_world(&f.pose.isometry()),
+                    camera: cam,
+                    points3d: l.points,
+                    points2d,
+                    own: l.pose,
+                };
+                Ok((frame, times))
+            })
+            .collect();
         let mut times = StageTimes::default();
         let mut frames = Vec::with_capacity(n);
-        for (i, f) in request.frames.into_iter().enumerate() {
-            let field = format!("frames[{i}].frame.intrinsics");
-            let cam = Self::camera(&f.frame, &field)?;
-            let FrameInput { source, distortion, .. } = f.frame;
-            let d = self.describe_source(source, Some((&cam, &distortion)))?;
-            Self::check_frame_size(&d, &cam, &field)?;
-            times.add(&d.times);
-            let l = store.localize(map, &d.features, &d.embeddings, &cam, request.prior.as_ref())?;
-            times.add(&StageTimes(vec![("search", l.search_s), ("pnp", l.pnp_s), ("stages", l.stages_s)]));
-            let points2d = l.matches.iter().map(|m| d.features.keypoints[m.keypoint]).map(|k| (k.x, k.y)).collect();
-            frames.push(TrackFrame {
-                camera_to_track: request.convention.to_opencv_camera_to_world(&f.pose.isometry()),
-                camera: cam,
-                points3d: l.points,
-                points2d,
-                own: l.pose,
-            });
+        for r in described {
+            let (frame, t) = r?;
+            times.add(&t);
+            frames.push(frame);
         }
-        let estimate = times
-            .time("track", || track_pose(&frames, request.scale, &settings.ransac, settings.min_inliers, TRACK_SEED))?;
+        let estimate =
+            times.time("track", || track_pose(&frames, scale, &settings.ransac, settings.min_inliers, TRACK_SEED))?;
         let Some(t) = estimate else {
             return Ok(TrackOutcome {
                 map_from_track: None,
