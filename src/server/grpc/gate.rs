@@ -15,7 +15,7 @@ use crate::server::operation::Operation;
 /// The gate of the `scone.v1` services, before a call's message is read or decoded: a call is refused with
 /// RESOURCE_EXHAUSTED (and `retry-after`, after [`App::hold_refusal`]) when the CPU pool has no free slot, then
 /// with UNAUTHENTICATED or PERMISSION_DENIED when its key does not allow its operation ([`Operation`]); a call
-/// that passes carries the proof ([`Authorized`]) to its method. Counts the bytes of the messages it lets
+/// that passes carries the proof ([`auth::Authorized`]) to its method. Counts the bytes of the messages it lets
 /// through.
 #[derive(Clone)]
 pub struct GateLayer {
