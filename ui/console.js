@@ -195,10 +195,14 @@ function buildScene(canvas, contents) {
   return {
     /** Places the localised camera (red) in the view. */
     showEstimate(pose, intrinsics) {
+      this.showEstimates([{ pose, intrinsics }]);
+    },
+    /** Places several localised cameras (a track's frames) in the view, replacing the last estimate. */
+    showEstimates(views) {
       if (estimate) scene.remove(estimate);
-      estimate = frustaObject([{ pose, intrinsics }], frustumDepth * 2, 0xff4d4d);
+      estimate = frustaObject(views, frustumDepth * 2, 0xff4d4d);
       scene.add(estimate);
-      state.estimate = pose;
+      state.estimate = views.map((v) => v.pose);
     },
   };
 }
@@ -233,7 +237,7 @@ async function mapPage(id) {
     el("h2", {}, el("a", { href: "#/", text: "Maps" }), ` / ${id}`),
     el("div", { class: "map-layout" },
       el("div", {}, canvas, el("p", { class: "muted", text: "Landmarks coloured by height; keyframes grey, the localised camera red. Drag to orbit, scroll to zoom." })),
-      el("div", {}, el("div", { class: "panel" }, el("h2", { text: "Map" }), stats), form)));
+      el("div", {}, el("div", { class: "panel" }, el("h2", { text: "Map" }), stats), form, trackPanel(enc, k0, () => scene3d))));
   const scene3d = buildScene(canvas, contents);
   setStatus(`map ${id}: ${fmt(contents.keyframes.length)} keyframes, ${fmt(contents.landmarks.length)} landmarks drawn`);
 
@@ -275,6 +279,91 @@ async function mapPage(id) {
       button.disabled = false;
     }
   });
+}
+
+/**
+ * A tracker's poses from a file: a JSON array of poses ({tx, ty, tz, qx, qy, qz, qw}, camera-to-track), or
+ * lines of 7 numbers (tx ty tz qx qy qz qw) or 8 (a timestamp first, the TUM trajectory format); '#' starts a
+ * comment. Throws, naming the line, on anything else.
+ */
+function parsePoses(text) {
+  const keys = ["tx", "ty", "tz", "qx", "qy", "qz", "qw"];
+  const trimmed = text.trim();
+  if (trimmed.startsWith("[")) {
+    const poses = JSON.parse(trimmed);
+    poses.forEach((p, i) => {
+      if (!keys.every((k) => Number.isFinite(p[k]))) throw new Error(`pose ${i}: needs finite ${keys.join(", ")}`);
+    });
+    return poses.map((p) => Object.fromEntries(keys.map((k) => [k, p[k]])));
+  }
+  const poses = [];
+  text.split("\n").forEach((line, i) => {
+    const body = line.split("#")[0].trim();
+    if (!body) return;
+    const numbers = body.split(/[\s,]+/).map(Number);
+    if (!(numbers.length === 7 || numbers.length === 8) || !numbers.every(Number.isFinite)) {
+      throw new Error(`poses file, line ${i + 1}: expected 7 numbers (tx ty tz qx qy qz qw) or 8 (a timestamp first)`);
+    }
+    const v = numbers.slice(numbers.length - 7);
+    poses.push(Object.fromEntries(keys.map((k, j) => [k, v[j]])));
+  });
+  return poses;
+}
+
+/** The panel that localises a track: 2-10 images (in file-name order) and their poses in the tracker's frame. */
+function trackPanel(enc, k0, scene3d) {
+  const button = el("button", { id: "track-go", text: "Localize track" });
+  const result = el("div", { id: "track-result" });
+  button.addEventListener("click", async () => {
+    const files = [...document.getElementById("track-images").files].sort((a, b) => a.name.localeCompare(b.name));
+    const posesFile = document.getElementById("track-poses").files[0];
+    if (files.length < 2 || files.length > 10 || !posesFile) {
+      setStatus("choose 2-10 images and their poses file first", true);
+      return;
+    }
+    button.disabled = true;
+    setStatus("localising the track…");
+    try {
+      const poses = parsePoses(await posesFile.text());
+      if (poses.length !== files.length) throw new Error(`${files.length} images but ${poses.length} poses in ${posesFile.name}`);
+      const intrinsics = Object.fromEntries(["fx", "fy", "cx", "cy"].map((k) => [k, Number(document.getElementById(`track-${k}`).value)]));
+      const request = {
+        frames: poses.map((pose) => ({ frame: { intrinsics }, pose })),
+        estimate_scale: document.getElementById("track-scale").checked,
+      };
+      const form = new FormData();
+      form.append("request", JSON.stringify(request));
+      files.forEach((f, i) => form.append(`track${i}`, f));
+      const answer = await (await api(`/v1/maps/${enc}/localize-track`, { method: "POST", body: form })).json();
+      const rows = answer.frames.map((f, i) => el("tr", { "data-frame": String(i) },
+        el("td", { text: files[i].name }), el("td", { class: "num", text: `${f.inliers} / ${f.matches}` }),
+        el("td", { text: f.dropped ? "dropped" : f.pose ? "localised" : "-" }),
+        el("td", { text: f.localized_alone ? "yes" : "no" })));
+      result.replaceChildren(
+        el("p", { id: "track-summary", "data-localized": String(answer.localized),
+          text: answer.localized ? `localised: ${answer.inliers} inliers over ${answer.frames.length} frames${answer.single_frame != null ? ` (frame ${answer.single_frame}'s pose alone)` : ""}` : "not localised" }),
+        el("table", { id: "track-frames" }, el("thead", {}, el("tr", {}, el("th", { text: "image" }),
+          el("th", { class: "num", text: "inliers / matches" }), el("th", { text: "in the estimate" }), el("th", { text: "alone" }))),
+          el("tbody", {}, ...rows)),
+        el("pre", { id: "track-answer", text: JSON.stringify(answer, null, 2) }));
+      if (answer.localized) {
+        scene3d().showEstimates(answer.frames.filter((f) => f.pose).map((f) => ({ pose: f.pose, intrinsics })));
+      }
+      setStatus(answer.localized ? "track localised" : "track not localised");
+    } catch (e) {
+      setStatus(String(e.message || e), true);
+    } finally {
+      button.disabled = false;
+    }
+  });
+  return el("div", { class: "panel" }, el("h2", { text: "Localize a track" }),
+    el("p", { class: "muted", text: "2-10 images (taken in file-name order) and a file of their poses in the tracker's frame: a JSON array of {tx, ty, tz, qx, qy, qz, qw}, or one line per image of 7 numbers, or 8 with a timestamp first (TUM)." }),
+    el("div", { class: "form-row" }, el("label", { text: "images" }), el("input", { id: "track-images", type: "file", multiple: "", accept: "image/png,image/jpeg" })),
+    el("div", { class: "form-row" }, el("label", { text: "poses" }), el("input", { id: "track-poses", type: "file", accept: ".txt,.json,text/plain,application/json" })),
+    el("div", { class: "form-row" }, numberField("track-fx", "fx", k0.fx), numberField("track-fy", "fy", k0.fy)),
+    el("div", { class: "form-row" }, numberField("track-cx", "cx", k0.cx), numberField("track-cy", "cy", k0.cy)),
+    el("div", { class: "form-row" }, el("label", {}, el("input", { id: "track-scale", type: "checkbox" }), " estimate the scale (track units are not the map's)")),
+    el("div", { class: "form-row" }, button), result);
 }
 
 // ------------------------------------------------------------------------------------------------------

@@ -1,7 +1,8 @@
 //! The web console in a real browser: headless Chromium (Debian's `chromium`) driven through Debian's
 //! `chromedriver` over WebDriver (thirtyfour), against the real server on a map built from a scene. The page
 //! must load without errors, list the maps, draw the 3D view, and place a localisation uploaded through the
-//! page where the API puts it; the pair page and the API reference must render.
+//! page where the API puts it, and a track of uploaded images with a poses file where the truth puts it; the
+//! pair page and the API reference must render.
 //!
 //! The browser is installed by `scripts/setup`; without it the tests skip, except under `CI=true`.
 //! `SCONE_CONSOLE_SCENE=<scene dir>` builds the map from another scene (e.g. a real one of ../shared/data), and
@@ -247,6 +248,46 @@ async fn the_console_lists_maps_draws_one_in_3d_and_localises_an_upload_as_the_a
         wait_for(&d, "return window.sconeView.estimate !== null", 10, |v| v == &Value::Bool(true)).await;
         no_page_errors(&d, "the map page").await;
         screenshot(&d, "map").await;
+
+        // A track of two held-out frames with their poses from a file (TUM lines; the ground truth in the
+        // map's own frame, so every frame must come back where the truth puts it).
+        let track: Vec<usize> = vec![query, held[(held.len() * 2 / 3 + 1).min(held.len() - 1)]];
+        let poses_file = profile.join("track-poses.txt");
+        let mut lines = String::from("# timestamp tx ty tz qx qy qz qw\n");
+        for (n, &i) in track.iter().enumerate() {
+            let p = scene.frames[i].pose.unwrap();
+            let (t, q) = (p.translation.vector, p.rotation.quaternion());
+            lines += &format!("{n} {} {} {} {} {} {} {}\n", t.x, t.y, t.z, q.i, q.j, q.k, q.w);
+        }
+        std::fs::write(&poses_file, lines).unwrap();
+        let images: Vec<String> =
+            track.iter().map(|&i| std::fs::canonicalize(&scene.frames[i].rgb).unwrap().display().to_string()).collect();
+        d.find(By::Id("track-images")).await.unwrap().send_keys(images.join("\n")).await.unwrap();
+        d.find(By::Id("track-poses")).await.unwrap().send_keys(poses_file.display().to_string()).await.unwrap();
+        for (id, v) in [("track-fx", cam.fx), ("track-fy", cam.fy), ("track-cx", cam.cx), ("track-cy", cam.cy)] {
+            set_number(&d, id, v).await;
+        }
+        d.find(By::Id("track-go")).await.unwrap().click().await.unwrap();
+        wait_for(&d, "return document.getElementById('track-answer') !== null", 60, |v| v == &Value::Bool(true)).await;
+        let shown: Value =
+            serde_json::from_str(&d.find(By::Id("track-answer")).await.unwrap().text().await.unwrap()).unwrap();
+        assert_eq!(shown["localized"], true, "{shown}");
+        // The page sorts the images by name; the fixture's names follow its frame order.
+        let mut sorted = track.clone();
+        sorted.sort_by_key(|&i| scene.frames[i].rgb.file_name().unwrap().to_owned());
+        for (f, &i) in shown["frames"].as_array().unwrap().iter().zip(&sorted) {
+            let p = scene.frames[i].pose.unwrap();
+            let (t, q) = (p.translation.vector, p.rotation.quaternion());
+            let truth =
+                serde_json::json!({"tx": t.x, "ty": t.y, "tz": t.z, "qx": q.i, "qy": q.j, "qz": q.k, "qw": q.w});
+            let (dt, dr) = pose_distance(&f["pose"], &truth);
+            assert!(dt < 0.05 && dr < 1.0, "track frame {i}: {dt} m, {dr} deg: {shown}");
+        }
+        assert_eq!(d.find_all(By::Css("#track-frames tbody tr")).await.unwrap().len(), 2);
+        let drawn = d.execute("return window.sconeView.estimate.length", Vec::new()).await.unwrap();
+        assert_eq!(drawn.json().as_u64(), Some(2));
+        no_page_errors(&d, "the map page's track").await;
+        screenshot(&d, "track").await;
 
         // The pair page: SConE and FREAK side by side.
         d.goto(format!("{base}/ui#/pair")).await.unwrap();
