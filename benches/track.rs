@@ -20,6 +20,7 @@ use scone::offline::scene::Scene;
 use scone::pipeline::Describer;
 use scone::service::{
     FrameInput, FrameSource, KeyframeRequest, PoseConvention, Service, TrackFrameInput, TrackRequest, TrackScale,
+    TrackerError,
 };
 
 fn scene_dir() -> PathBuf {
@@ -92,8 +93,13 @@ fn main() {
                 pose: scone::camera::Pose::from_isometry(&(first * scene.frames[j].pose.unwrap())),
             })
             .collect();
-        let request =
-            TrackRequest { frames, convention: PoseConvention::default(), scale: TrackScale::Rigid, prior: None };
+        let request = TrackRequest {
+            frames,
+            convention: PoseConvention::default(),
+            scale: TrackScale::Rigid,
+            prior: None,
+            tracker: TrackerError::default(),
+        };
         let t = Instant::now();
         let r = service.localize_track(&map, request).unwrap();
         let three = t.elapsed().as_secs_f64() * 1e3;

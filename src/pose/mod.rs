@@ -27,7 +27,7 @@ pub use absolute::{
 pub use covariance::{pose_covariance, pose_difference, CHI2_6_95};
 pub use ransac::{ransac_iterations_needed, EssentialMethod, RansacSettings};
 pub use relative::{relative_pose, RelativePose};
-pub use track::{track_pose, FrameOutcome, TrackFrame, TrackPose, TrackScale};
+pub use track::{track_pose, FrameOutcome, TrackFrame, TrackPose, TrackScale, TrackerError};
 
 /// Angle between two rotations, degrees: acos((tr(R1ᵀ R2) − 1) / 2).
 pub fn rotation_error_deg(a: &Rotation3<f64>, b: &Rotation3<f64>) -> f64 {

@@ -13,7 +13,10 @@
 //! 2. **Scoring:** every hypothesis on every frame's matches (reprojection error within the threshold); the one
 //!    with the most inliers in total wins.
 //! 3. **Refinement:** Levenberg-Marquardt (the `levenberg-marquardt` crate) of `S` over every frame's inliers,
-//!    selected again and refined again; its covariance `σ² (JᵀJ)⁻¹`.
+//!    selected again and refined again. Its covariance is the images' `σ² (JᵀJ)⁻¹` plus what the tracker's
+//!    error ([`TrackerError`]) does to the answer: every frame but 0 carries a 6-dof error of its pose in the
+//!    track, propagated through the least squares to `S` (first order). With exact relative poses (a rig) only
+//!    the images' part is left.
 //! 4. **Frames that disagree** (a blurred frame, a wrong relative pose): a frame whose own pose had at least
 //!    `min_inliers` inliers but keeps fewer than half of them under `S` is dropped and `S` refined without it;
 //!    the answer says which.
@@ -54,6 +57,52 @@ pub struct TrackFrame {
     pub points2d: Vec<(f32, f32)>,
     /// Its single-frame pose, when it has one (a hypothesis, and the answer if no joint estimate beats it).
     pub own: Option<AbsolutePose>,
+}
+
+/// How far a track's relative poses may be off, for the answer's covariance (root mean square sizes, in no
+/// preferred direction): frame `f`'s position relative to frame 0 by `translation_share` of their distance, its
+/// orientation by `degrees_per_frame` per frame between it and frame 0 in the track's order. The default is a
+/// phone's visual-inertial tracker over a few metres (about a percent); zeros are a rig's calibrated extrinsics.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct TrackerError {
+    pub translation_share: f64,
+    pub degrees_per_frame: f64,
+}
+
+impl Default for TrackerError {
+    fn default() -> Self {
+        Self { translation_share: 0.01, degrees_per_frame: 0.5 }
+    }
+}
+
+impl TrackerError {
+    /// Why this error cannot be used, if it cannot: each part finite, the share in [0, 1], the degrees in
+    /// [0, 45].
+    pub fn problem(&self) -> Option<String> {
+        let ok = |v: f64, max: f64| v.is_finite() && (0.0..=max).contains(&v);
+        if !ok(self.translation_share, 1.0) {
+            return Some(format!("translation_share must be in [0, 1], got {}", self.translation_share));
+        }
+        if !ok(self.degrees_per_frame, 45.0) {
+            return Some(format!("degrees_per_frame must be in [0, 45], got {}", self.degrees_per_frame));
+        }
+        None
+    }
+
+    /// The covariance of frame `f`'s pose error `(rotation vector, translation)` in its own camera axes; `None`
+    /// when the frame's relative pose is exact (frame 0, or a rig).
+    fn covariance(&self, frames: &[TrackFrame], f: usize) -> Option<Matrix6<f64>> {
+        let distance =
+            (frames[f].camera_to_track.translation.vector - frames[0].camera_to_track.translation.vector).norm();
+        // Per axis: a root mean square size spread evenly over three axes.
+        let sigma_t = self.translation_share * distance / 3f64.sqrt();
+        let sigma_r = self.degrees_per_frame.to_radians() * f as f64 / 3f64.sqrt();
+        if f == 0 || (sigma_t <= 0.0 && sigma_r <= 0.0) {
+            return None;
+        }
+        let (vt, vr) = (sigma_t.powi(2), sigma_r.powi(2));
+        Some(Matrix6::from_diagonal(&nalgebra::Vector6::new(vr, vr, vr, vt, vt, vt)))
+    }
 }
 
 /// What became of one frame in the joint estimate.
@@ -103,13 +152,14 @@ const MINIMAL_SETS: usize = 200;
 const SAMPLE_HEAD: usize = 100;
 
 /// Locates a track (module docs); `None` when no hypothesis reaches `min_inliers` over all frames. `seed` makes
-/// the minimal sets repeatable.
+/// the minimal sets repeatable; `tracker` is how far the frames' poses in the track may be off (covariance only).
 pub fn track_pose(
     frames: &[TrackFrame],
     scale: TrackScale,
     params: &RansacSettings,
     min_inliers: usize,
     seed: u64,
+    tracker: &TrackerError,
 ) -> Result<Option<TrackPose>, PoseError> {
     let mut hypotheses = own_hypotheses(frames, scale);
     hypotheses.extend(minimal_hypotheses(frames, scale, seed)?);
@@ -117,7 +167,7 @@ pub fn track_pose(
     let Some(best) = hypotheses.into_iter().max_by_key(|h| inliers(frames, h, params.threshold_px, &keep).1) else {
         return Ok(None);
     };
-    let mut estimate = refine(frames, best, scale, params.threshold_px, &keep);
+    let mut estimate = refine(frames, best, scale, params.threshold_px, &keep, tracker);
     // Frames whose own pose the estimate throws away are dropped, once, and the rest refined again.
     let mut dropped = vec![false; frames.len()];
     let per_frame = inliers(frames, &estimate.0, params.threshold_px, &keep).0;
@@ -128,7 +178,7 @@ pub fn track_pose(
     }
     if dropped.iter().any(|&d| d) && dropped.iter().filter(|&&d| !d).count() > 0 {
         let keep: Vec<bool> = dropped.iter().map(|&d| !d).collect();
-        estimate = refine(frames, estimate.0, scale, params.threshold_px, &keep);
+        estimate = refine(frames, estimate.0, scale, params.threshold_px, &keep, tracker);
     } else {
         dropped.fill(false);
     }
@@ -171,12 +221,21 @@ pub fn track_pose(
 
 /// Where frame `frame` sees map point `x` under `s`, in pixels; `None` behind the camera.
 fn project(s: &Similarity3<f64>, frame: &TrackFrame, x: &[f64; 3]) -> Option<(f64, f64)> {
+    project_from(s, &frame.camera_to_track, &frame.camera, x)
+}
+
+/// [`project`] with the frame's pose in the track given.
+fn project_from(
+    s: &Similarity3<f64>,
+    camera_to_track: &Isometry3<f64>,
+    cam: &Camera,
+    x: &[f64; 3],
+) -> Option<(f64, f64)> {
     let in_track = s.inverse_transform_point(&Point3::new(x[0], x[1], x[2]));
-    let c = frame.camera_to_track.inverse_transform_point(&in_track);
+    let c = camera_to_track.inverse_transform_point(&in_track);
     if c.z <= 1e-9 {
         return None;
     }
-    let cam = &frame.camera;
     Some((cam.fx * c.x / c.z + cam.cx, cam.fy * c.y / c.z + cam.cy))
 }
 
@@ -430,6 +489,7 @@ fn refine(
     scale: TrackScale,
     threshold: f64,
     keep: &[bool],
+    tracker: &TrackerError,
 ) -> (Similarity3<f64>, Option<DMatrix<f64>>) {
     let n = if scale == TrackScale::Free { 7 } else { 6 };
     let mut current = s;
@@ -446,19 +506,61 @@ fn refine(
             break;
         }
         current = solved.transform(&solved.params);
-        covariance = parameter_covariance(&solved);
+        covariance = parameter_covariance(&solved, tracker);
     }
     (current, covariance)
 }
 
-/// `σ² (JᵀJ)⁻¹` at the problem's parameters, `σ²` the residuals' variance.
-fn parameter_covariance(p: &Residuals) -> Option<DMatrix<f64>> {
+/// The covariance of the problem's parameters (module docs, step 3): the images' `H⁻¹`, `H = JᵀJ / σ²` with
+/// `σ²` the residuals' variance, and what each frame's relative pose error does to the least-squares answer,
+/// `H⁻¹ Bᵀ Q B H⁻¹` with `B` the cross term of the frame's residuals by `S` and by its own pose error, and `Q`
+/// that error's covariance.
+fn parameter_covariance(p: &Residuals, tracker: &TrackerError) -> Option<DMatrix<f64>> {
     let r = p.residuals()?;
     let j = p.jacobian()?;
     let dof = r.len().checked_sub(p.params.len()).filter(|&d| d > 0)?;
     let sigma2 = r.norm_squared() / dof as f64;
-    let info = j.transpose() * &j;
-    info.try_inverse().map(|inv| inv * sigma2)
+    let inverse = (j.transpose() * &j / sigma2).try_inverse()?;
+    let mut spread = DMatrix::zeros(p.params.len(), p.params.len());
+    for f in 0..p.frames.len() {
+        let Some(q) = tracker.covariance(p.frames, f) else { continue };
+        let rows: Vec<usize> = p.terms.iter().enumerate().filter(|(_, t)| t.0 == f).map(|(k, _)| k).collect();
+        if rows.is_empty() {
+            continue;
+        }
+        let jp = DMatrix::from_fn(2 * rows.len(), p.params.len(), |r, c| j[(2 * rows[r / 2] + r % 2, c)]);
+        let b = jp.transpose() * frame_error_jacobian(p, f, &rows)? / sigma2;
+        spread += &b * DMatrix::from_fn(6, 6, |r, c| q[(r, c)]) * b.transpose();
+    }
+    Some(&inverse + &inverse * spread * &inverse)
+}
+
+/// The derivatives of frame `f`'s residuals (`rows` of the problem's terms) by an error of its pose in the
+/// track, `(rotation vector, translation)` in its camera axes (central differences).
+fn frame_error_jacobian(p: &Residuals, f: usize, rows: &[usize]) -> Option<DMatrix<f64>> {
+    let frame = &p.frames[f];
+    let s = p.transform(&p.params);
+    let residuals = |e: &nalgebra::Vector6<f64>| -> Option<DVector<f64>> {
+        let error = Isometry3::new(Vector3::new(e[3], e[4], e[5]), Vector3::new(e[0], e[1], e[2]));
+        let pose = frame.camera_to_track * error;
+        let mut out = DVector::zeros(2 * rows.len());
+        for (k, &row) in rows.iter().enumerate() {
+            let i = p.terms[row].1;
+            let (u, v) = project_from(&s, &pose, &frame.camera, &frame.points3d[i])?;
+            out[2 * k] = u - frame.points2d[i].0 as f64;
+            out[2 * k + 1] = v - frame.points2d[i].1 as f64;
+        }
+        Some(out)
+    };
+    let mut j = DMatrix::zeros(2 * rows.len(), 6);
+    for c in 0..6 {
+        let h = 1e-6;
+        let (mut plus, mut minus) = (nalgebra::Vector6::zeros(), nalgebra::Vector6::zeros());
+        plus[c] = h;
+        minus[c] = -h;
+        j.set_column(c, &((residuals(&plus)? - residuals(&minus)?) / (2.0 * h)));
+    }
+    Some(j)
 }
 
 /// The covariance of frame 0's world-to-camera `(rvec, tvec)` under `s`, from the covariance of `s`'s

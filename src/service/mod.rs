@@ -27,7 +27,7 @@ pub use crate::camera::{Distortion, DistortionModel, PoseConvention, Similarity}
 pub use crate::map::builder::ExternalObservation;
 pub use crate::map::localize::Prior;
 pub use crate::map::store::{Map, MapSummary};
-pub use crate::pose::TrackScale;
+pub use crate::pose::{TrackScale, TrackerError};
 pub use core::{Holdings, Service};
 pub use error::{ErrorKind, ServiceError};
 pub use frame::{Description, FrameInput, FrameSource, KeypointsInput};

@@ -13,7 +13,7 @@ use crate::camera::{Pose, PoseConvention};
 use crate::map::localize::{confidence, Prior};
 use crate::map::store::Map;
 use crate::pipeline::StageTimes;
-use crate::pose::{track_pose, AbsolutePose, TrackFrame, TrackScale};
+use crate::pose::{track_pose, AbsolutePose, TrackFrame, TrackScale, TrackerError};
 
 /// Frames a track may hold.
 pub const TRACK_FRAMES: std::ops::RangeInclusive<usize> = 2..=10;
@@ -35,6 +35,8 @@ pub struct TrackRequest {
     pub convention: PoseConvention,
     pub scale: TrackScale,
     pub prior: Option<Prior>,
+    /// How far the frames' poses in the track may be off: it widens the answer's covariance.
+    pub tracker: TrackerError,
 }
 
 /// What became of one frame.
@@ -85,6 +87,9 @@ impl Service {
                 format!("{n} given: a track holds {} to {} frames", TRACK_FRAMES.start(), TRACK_FRAMES.end()),
             ));
         }
+        if let Some(problem) = request.tracker.problem() {
+            return Err(ServiceError::invalid("tracker_error", problem));
+        }
         // Every frame is checked before any is described: a bad frame costs no CPU.
         let mut size: Option<(u32, u32)> = None;
         for (i, f) in request.frames.iter().enumerate() {
@@ -108,7 +113,7 @@ impl Service {
         let settings = store.localize_settings();
         // The frames are independent until the joint estimate: described and localised side by side (rayon's
         // pool), so a track costs less than its frames one after the other.
-        let (convention, scale, prior) = (request.convention, request.scale, request.prior);
+        let (convention, scale, prior, tracker) = (request.convention, request.scale, request.prior, request.tracker);
         let described: Vec<Result<(TrackFrame, StageTimes), ServiceError>> = request
             .frames
             .into_par_iter()
@@ -140,8 +145,9 @@ impl Service {
             times.add(&t);
             frames.push(frame);
         }
-        let estimate =
-            times.time("track", || track_pose(&frames, scale, &settings.ransac, settings.min_inliers, TRACK_SEED))?;
+        let estimate = times.time("track", || {
+            track_pose(&frames, scale, &settings.ransac, settings.min_inliers, TRACK_SEED, &tracker)
+        })?;
         let Some(t) = estimate else {
             return Ok(TrackOutcome {
                 map_from_track: None,

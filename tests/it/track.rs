@@ -75,6 +75,13 @@ async fn a_track_is_located_rigid_and_with_scale_and_bad_tracks_are_refused() {
         assert!(f.inliers > 20 && !f.dropped, "{f:?}");
     }
     assert_eq!(r.covariance.len(), 36);
+    // Told the poses are exact (a rig), the same estimate comes back more certain: the tracker's error widens it.
+    let mut rig = request("m", track(&scene, &held_out, 1.0), false);
+    rig.tracker_error = Some(proto::TrackerError { translation_share: 0.0, degrees_per_frame: 0.0 });
+    let exact = matching.localize_track(rig).await.unwrap().into_inner();
+    assert_eq!(exact.map_from_track, r.map_from_track);
+    let trace = |c: &[f64]| (0..6).map(|i| c[7 * i]).sum::<f64>();
+    assert!(trace(&exact.covariance) < trace(&r.covariance), "{:?} vs {:?}", exact.covariance, r.covariance);
     assert!(r.confidence > 0.0);
     // The transform is the track's world in the map's.
     let w = track_world();
@@ -136,6 +143,11 @@ async fn a_track_is_located_rigid_and_with_scale_and_bad_tracks_are_refused() {
     ));
     let e = matching.localize_track(request("m", mixed, false)).await.unwrap_err();
     assert!(e.message().contains("frames[2]") && e.message().contains("one image size"), "{}", e.message());
+    let mut wild = request("m", track(&scene, &held_out, 1.0), false);
+    wild.tracker_error = Some(proto::TrackerError { translation_share: f64::NAN, degrees_per_frame: 0.5 });
+    let e = matching.localize_track(wild).await.unwrap_err();
+    assert_eq!(e.code(), Code::InvalidArgument);
+    assert!(e.message().contains("tracker_error") && e.message().contains("translation_share"), "{}", e.message());
     let e = matching.localize_track(request("nowhere", track(&scene, &held_out, 1.0), false)).await.unwrap_err();
     assert_eq!(e.code(), Code::NotFound);
     server.shutdown().await.unwrap();

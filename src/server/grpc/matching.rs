@@ -9,7 +9,9 @@ use crate::camera::Pose;
 use crate::matching::{SconeMatcher, DEFAULT_RATIO};
 use crate::server::app::{MapId, NoMap};
 use crate::server::proto;
-use crate::service::{PairOptions, Prior, ServiceError, Similarity, TrackFrameInput, TrackRequest, TrackScale};
+use crate::service::{
+    PairOptions, Prior, ServiceError, Similarity, TrackFrameInput, TrackRequest, TrackScale, TrackerError,
+};
 
 #[tonic::async_trait]
 impl proto::matching_server::Matching for GrpcApi {
@@ -144,6 +146,10 @@ impl proto::matching_server::Matching for GrpcApi {
                     convention: conv,
                     scale: if r.estimate_scale { TrackScale::Free } else { TrackScale::Rigid },
                     prior: r.prior.map(|p| Prior { position: [p.x, p.y, p.z], radius: p.radius }),
+                    tracker: r.tracker_error.map_or_else(TrackerError::default, |e| TrackerError {
+                        translation_share: e.translation_share,
+                        degrees_per_frame: e.degrees_per_frame,
+                    }),
                 };
                 let o = a.service.localize_track(&map, request)?;
                 a.metrics.stages(&o.times);

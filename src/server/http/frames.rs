@@ -23,7 +23,7 @@ use crate::server::auth::Authorized;
 use crate::server::http::plumbing::call;
 use crate::service::{
     FrameInput, FrameSource, PairOptions, PoseConvention, Prior, ServiceError, Similarity, TrackFrameInput,
-    TrackRequest, TrackScale,
+    TrackRequest, TrackScale, TrackerError,
 };
 
 /// What a frame is drawn on: its image, or a blank canvas of its keypoint set's size.
@@ -299,6 +299,10 @@ pub async fn localize_track(
             convention,
             scale: if j.estimate_scale { TrackScale::Free } else { TrackScale::Rigid },
             prior: j.prior.map(|p| Prior { position: [p.x, p.y, p.z], radius: p.radius }),
+            tracker: j.tracker_error.map_or_else(TrackerError::default, |e| TrackerError {
+                translation_share: e.translation_share,
+                degrees_per_frame: e.degrees_per_frame,
+            }),
         };
         let o = a.service.localize_track(&map, request)?;
         a.metrics.stages(&o.times);

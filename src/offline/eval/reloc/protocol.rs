@@ -71,6 +71,16 @@ pub struct TrackNoise {
     pub seed: u64,
 }
 
+impl TrackNoise {
+    /// The tracker's error as the estimator is told of it: the error added, as a client states its tracker's.
+    pub fn told(&self) -> crate::pose::TrackerError {
+        crate::pose::TrackerError {
+            translation_share: self.translation_share,
+            degrees_per_frame: self.degrees_per_frame,
+        }
+    }
+}
+
 impl Default for TrackNoise {
     fn default() -> Self {
         Self { translation_share: 0.01, degrees_per_frame: 0.5, seed: 43 }

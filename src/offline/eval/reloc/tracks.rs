@@ -108,7 +108,14 @@ impl MethodView<'_> {
                 seconds += s;
             }
             let t = Instant::now();
-            let estimate = track_pose(&frames, TrackScale::Rigid, &loc.ransac, loc.min_inliers, cfg.track_noise.seed)?;
+            let estimate = track_pose(
+                &frames,
+                TrackScale::Rigid,
+                &loc.ransac,
+                loc.min_inliers,
+                cfg.track_noise.seed,
+                &cfg.track_noise.told(),
+            )?;
             seconds += t.elapsed().as_secs_f64();
             let gt = truth[0];
             let (baseline_to_map, angle_to_map_deg) = distance_to_map(scene, map_frames, &gt);
@@ -212,7 +219,14 @@ pub(super) fn foreign_tracks(
                 });
             }
             tracks += 1;
-            let t = track_pose(&frames, TrackScale::Rigid, &loc.ransac, loc.min_inliers, cfg.track_noise.seed)?;
+            let t = track_pose(
+                &frames,
+                TrackScale::Rigid,
+                &loc.ransac,
+                loc.min_inliers,
+                cfg.track_noise.seed,
+                &cfg.track_noise.told(),
+            )?;
             localised += usize::from(t.is_some());
         }
     }

@@ -183,6 +183,21 @@ pub struct LocalizeTrackRequest {
     /// The convention of the frames' poses and of the answer's.
     #[serde(default)]
     pub pose_convention: Option<PoseConvention>,
+    /// How far the frames' poses may be off (it widens the answer's covariance). Absent: a phone's tracker, 1 %
+    /// of the distance from frame 0 and 0.5 degrees per frame; zeros: a rig's calibrated extrinsics.
+    #[serde(default)]
+    pub tracker_error: Option<TrackerError>,
+}
+
+/// The error of a track's relative poses, as root mean square sizes in no preferred direction.
+#[derive(Debug, Clone, Copy, Deserialize, Serialize, ToSchema)]
+#[serde(deny_unknown_fields)]
+pub struct TrackerError {
+    /// Frame f's position relative to frame 0 is off by this share of their distance, in [0, 1].
+    pub translation_share: f64,
+    /// Its orientation is off by this many degrees per frame between it and frame 0 in the request's order,
+    /// in [0, 45].
+    pub degrees_per_frame: f64,
 }
 
 /// What became of one frame of a track.

@@ -435,18 +435,28 @@ class TrackFrame(_message.Message):
     def __init__(self, frame: _Optional[_Union[Frame, _Mapping]] = ..., pose: _Optional[_Union[Pose, _Mapping]] = ...) -> None: ...
 
 class LocalizeTrackRequest(_message.Message):
-    __slots__ = ("map_id", "frames", "estimate_scale", "prior", "pose_convention")
+    __slots__ = ("map_id", "frames", "estimate_scale", "prior", "pose_convention", "tracker_error")
     MAP_ID_FIELD_NUMBER: _ClassVar[int]
     FRAMES_FIELD_NUMBER: _ClassVar[int]
     ESTIMATE_SCALE_FIELD_NUMBER: _ClassVar[int]
     PRIOR_FIELD_NUMBER: _ClassVar[int]
     POSE_CONVENTION_FIELD_NUMBER: _ClassVar[int]
+    TRACKER_ERROR_FIELD_NUMBER: _ClassVar[int]
     map_id: str
     frames: _containers.RepeatedCompositeFieldContainer[TrackFrame]
     estimate_scale: bool
     prior: PosePrior
     pose_convention: PoseConvention
-    def __init__(self, map_id: _Optional[str] = ..., frames: _Optional[_Iterable[_Union[TrackFrame, _Mapping]]] = ..., estimate_scale: _Optional[bool] = ..., prior: _Optional[_Union[PosePrior, _Mapping]] = ..., pose_convention: _Optional[_Union[PoseConvention, str]] = ...) -> None: ...
+    tracker_error: TrackerError
+    def __init__(self, map_id: _Optional[str] = ..., frames: _Optional[_Iterable[_Union[TrackFrame, _Mapping]]] = ..., estimate_scale: _Optional[bool] = ..., prior: _Optional[_Union[PosePrior, _Mapping]] = ..., pose_convention: _Optional[_Union[PoseConvention, str]] = ..., tracker_error: _Optional[_Union[TrackerError, _Mapping]] = ...) -> None: ...
+
+class TrackerError(_message.Message):
+    __slots__ = ("translation_share", "degrees_per_frame")
+    TRANSLATION_SHARE_FIELD_NUMBER: _ClassVar[int]
+    DEGREES_PER_FRAME_FIELD_NUMBER: _ClassVar[int]
+    translation_share: float
+    degrees_per_frame: float
+    def __init__(self, translation_share: _Optional[float] = ..., degrees_per_frame: _Optional[float] = ...) -> None: ...
 
 class TrackFrameResult(_message.Message):
     __slots__ = ("pose", "matches", "inliers", "dropped", "localized_alone")
