@@ -194,11 +194,22 @@ pub fn track_pose(
         let own = frames[f].own.as_ref().expect("a single-frame pose");
         let mut outcomes: Vec<FrameOutcome> = vec![FrameOutcome { inliers: Vec::new(), dropped: false }; frames.len()];
         outcomes[f].inliers = own.inliers.clone();
+        let map_from_track = from_frame(&own.camera_to_world, &frames[f]);
+        // Frame 0 is where frame f's pose and the track put it: f's images and f's relative pose both count.
+        let covariance_w2c = if f == 0 {
+            own.covariance_w2c
+        } else {
+            let terms = own.inliers.iter().map(|&i| (f, i)).collect();
+            let alone =
+                Residuals { frames, base: map_from_track, scale: TrackScale::Rigid, terms, params: DVector::zeros(6) };
+            parameter_covariance(&alone, tracker)
+                .map(|c| frame_covariance(&map_from_track, TrackScale::Rigid, &frames[0], &c))
+        };
         return Ok(Some(TrackPose {
-            map_from_track: from_frame(&own.camera_to_world, &frames[f]),
+            map_from_track,
             frames: outcomes,
             reprojection_error: own.reprojection_error,
-            covariance_w2c: (f == 0).then_some(own.covariance_w2c).flatten(),
+            covariance_w2c,
             single_frame: Some(f),
         }));
     }

@@ -188,6 +188,8 @@ fn never_worse_than_the_best_frame() {
         .unwrap();
     let alone = frames.iter().map(|f| f.own.as_ref().map_or(0, |p| p.inliers.len())).max().unwrap();
     assert!(t.inlier_count() >= alone, "{} < {alone}", t.inlier_count());
+    // Whichever frame it rests on, frame 0's covariance comes with it.
+    assert!(t.covariance_w2c.is_some(), "answer from frame {:?}", t.single_frame);
     // The frame the answer rests on is where it truly is, whatever its relative pose said.
     let (anchor, _) = t.frames.iter().enumerate().max_by_key(|(_, f)| f.inliers.len()).unwrap();
     let c = t.camera_to_map(&frames[anchor].camera_to_track);
