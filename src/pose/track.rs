@@ -25,7 +25,7 @@
 
 use levenberg_marquardt::{LeastSquaresProblem, LevenbergMarquardt};
 use nalgebra::{
-    DMatrix, DVector, Dyn, Isometry3, Matrix6, Owned, Point3, Rotation3, Similarity3, UnitQuaternion, Vector3,
+    DMatrix, DVector, Dyn, Isometry3, Matrix3, Matrix6, Owned, Point3, Rotation3, Similarity3, UnitQuaternion, Vector3,
 };
 use opencv::core::{Mat, Point2f, Point3f, Vector};
 use opencv::prelude::*;
@@ -164,7 +164,16 @@ pub fn track_pose(
     let mut hypotheses = own_hypotheses(frames, scale);
     hypotheses.extend(minimal_hypotheses(frames, scale, seed)?);
     let keep: Vec<bool> = vec![true; frames.len()];
-    let Some(best) = hypotheses.into_iter().max_by_key(|h| inliers(frames, h, params.threshold_px, &keep).1) else {
+    // The hypothesis with the most inliers over every frame (the last of equals); one that can no longer reach
+    // the best so far stops counting.
+    let mut best: Option<(usize, Similarity3<f64>)> = None;
+    for h in hypotheses {
+        let floor = best.as_ref().map_or(0, |b| b.0);
+        if let Some(n) = inlier_count_reaching(frames, &h, params.threshold_px, floor) {
+            best = Some((n, h));
+        }
+    }
+    let Some((_, best)) = best else {
         return Ok(None);
     };
     let mut estimate = refine(frames, best, scale, params.threshold_px, &keep, tracker);
@@ -230,24 +239,46 @@ pub fn track_pose(
     }))
 }
 
-/// Where frame `frame` sees map point `x` under `s`, in pixels; `None` behind the camera.
-fn project(s: &Similarity3<f64>, frame: &TrackFrame, x: &[f64; 3]) -> Option<(f64, f64)> {
-    project_from(s, &frame.camera_to_track, &frame.camera, x)
+/// How one frame sees map points under a transform `S`: camera coordinates `A x + b` (`Q⁻¹ S⁻¹` as one affine
+/// map, made once per transform and frame), then the pinhole. Scoring and refinement project every match of
+/// every frame many times; this is their inner loop.
+struct Projector {
+    a: Matrix3<f64>,
+    b: Vector3<f64>,
+    camera: Camera,
 }
 
-/// [`project`] with the frame's pose in the track given.
-fn project_from(
-    s: &Similarity3<f64>,
-    camera_to_track: &Isometry3<f64>,
-    cam: &Camera,
-    x: &[f64; 3],
-) -> Option<(f64, f64)> {
-    let in_track = s.inverse_transform_point(&Point3::new(x[0], x[1], x[2]));
-    let c = camera_to_track.inverse_transform_point(&in_track);
-    if c.z <= 1e-9 {
-        return None;
+impl Projector {
+    fn new(s: &Similarity3<f64>, camera_to_track: &Isometry3<f64>, camera: &Camera) -> Self {
+        // Q⁻¹ S⁻¹ x = Rqᵀ (Rsᵀ (x - ts) / s - tq).
+        let rs = s.isometry.rotation.to_rotation_matrix().into_inner();
+        let rq = camera_to_track.rotation.to_rotation_matrix().into_inner();
+        let a = rq.transpose() * rs.transpose() / s.scaling();
+        let b = -(a * s.isometry.translation.vector) - rq.transpose() * camera_to_track.translation.vector;
+        Self { a, b, camera: *camera }
     }
-    Some((cam.fx * c.x / c.z + cam.cx, cam.fy * c.y / c.z + cam.cy))
+
+    fn of(s: &Similarity3<f64>, frame: &TrackFrame) -> Self {
+        Self::new(s, &frame.camera_to_track, &frame.camera)
+    }
+
+    /// Where the frame sees map point `x`, in pixels; `None` behind the camera.
+    fn project(&self, x: &[f64; 3]) -> Option<(f64, f64)> {
+        let c = self.a * Vector3::new(x[0], x[1], x[2]) + self.b;
+        if c.z <= 1e-9 {
+            return None;
+        }
+        let cam = &self.camera;
+        Some((cam.fx * c.x / c.z + cam.cx, cam.fy * c.y / c.z + cam.cy))
+    }
+
+    /// Whether match `i` of `frame` is within `threshold` pixels.
+    fn fits(&self, frame: &TrackFrame, i: usize, threshold: f64) -> bool {
+        self.project(&frame.points3d[i]).is_some_and(|(u, v)| {
+            let (du, dv) = (u - frame.points2d[i].0 as f64, v - frame.points2d[i].1 as f64);
+            du * du + dv * dv <= threshold * threshold
+        })
+    }
 }
 
 /// Each kept frame's inliers of `s` within `threshold` pixels, and their total.
@@ -259,25 +290,39 @@ fn inliers(frames: &[TrackFrame], s: &Similarity3<f64>, threshold: f64, keep: &[
             if !k {
                 return Vec::new();
             }
-            (0..f.points3d.len())
-                .filter(|&i| {
-                    project(s, f, &f.points3d[i]).is_some_and(|(u, v)| {
-                        (u - f.points2d[i].0 as f64).hypot(v - f.points2d[i].1 as f64) <= threshold
-                    })
-                })
-                .collect()
+            let p = Projector::of(s, f);
+            (0..f.points3d.len()).filter(|&i| p.fits(f, i, threshold)).collect()
         })
         .collect();
     let total = per.iter().map(Vec::len).sum();
     (per, total)
 }
 
+/// [`inliers`]' total over every frame, without the lists (the score of a hypothesis), when it reaches `floor`;
+/// `None` as soon as the matches left cannot bring it there.
+fn inlier_count_reaching(frames: &[TrackFrame], s: &Similarity3<f64>, threshold: f64, floor: usize) -> Option<usize> {
+    let mut left: usize = frames.iter().map(|f| f.points3d.len()).sum();
+    let mut count = 0;
+    for f in frames {
+        let p = Projector::of(s, f);
+        for i in 0..f.points3d.len() {
+            if count + left < floor {
+                return None;
+            }
+            left -= 1;
+            count += usize::from(p.fits(f, i, threshold));
+        }
+    }
+    (count >= floor).then_some(count)
+}
+
 fn mean_error(frames: &[TrackFrame], s: &Similarity3<f64>, per_frame: &[Vec<usize>]) -> f64 {
     let mut sum = 0.0;
     let mut n = 0usize;
     for (f, ids) in frames.iter().zip(per_frame) {
+        let p = Projector::of(s, f);
         for &i in ids {
-            if let Some((u, v)) = project(s, f, &f.points3d[i]) {
+            if let Some((u, v)) = p.project(&f.points3d[i]) {
                 sum += (u - f.points2d[i].0 as f64).hypot(v - f.points2d[i].1 as f64);
                 n += 1;
             }
@@ -448,10 +493,11 @@ impl Residuals<'_> {
 
     fn at(&self, p: &DVector<f64>) -> Option<DVector<f64>> {
         let s = self.transform(p);
+        let projectors: Vec<Projector> = self.frames.iter().map(|f| Projector::of(&s, f)).collect();
         let mut r = DVector::zeros(2 * self.terms.len());
         for (k, &(f, i)) in self.terms.iter().enumerate() {
             let frame = &self.frames[f];
-            let (u, v) = project(&s, frame, &frame.points3d[i])?;
+            let (u, v) = projectors[f].project(&frame.points3d[i])?;
             r[2 * k] = u - frame.points2d[i].0 as f64;
             r[2 * k + 1] = v - frame.points2d[i].1 as f64;
         }
@@ -553,11 +599,11 @@ fn frame_error_jacobian(p: &Residuals, f: usize, rows: &[usize]) -> Option<DMatr
     let s = p.transform(&p.params);
     let residuals = |e: &nalgebra::Vector6<f64>| -> Option<DVector<f64>> {
         let error = Isometry3::new(Vector3::new(e[3], e[4], e[5]), Vector3::new(e[0], e[1], e[2]));
-        let pose = frame.camera_to_track * error;
+        let projector = Projector::new(&s, &(frame.camera_to_track * error), &frame.camera);
         let mut out = DVector::zeros(2 * rows.len());
         for (k, &row) in rows.iter().enumerate() {
             let i = p.terms[row].1;
-            let (u, v) = project_from(&s, &pose, &frame.camera, &frame.points3d[i])?;
+            let (u, v) = projector.project(&frame.points3d[i])?;
             out[2 * k] = u - frame.points2d[i].0 as f64;
             out[2 * k + 1] = v - frame.points2d[i].1 as f64;
         }
