@@ -18,6 +18,7 @@ mod pipeline;
 mod raw;
 mod replicas;
 mod restarts;
+mod ring;
 mod service;
 mod storage_faults;
 #[path = "../../src/test_dir.rs"]

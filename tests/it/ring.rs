@@ -1,0 +1,90 @@
+//! The ring-context model (`models/scone-ring-e1-real.onnx`, issue 39) served end to end at the extraction it was
+//! trained for (8 levels, 2,000 keypoints): Describe answers the context with the embeddings, a map built with it
+//! localises a held-out frame of the rendered fixture, MatchPair's `union` finds the relative pose, and a keypoint
+//! set sent back with its context embeds as the image did.
+
+use std::path::PathBuf;
+
+use scone::offline::scene::Scene;
+use scone::server::proto;
+
+use crate::common::{fixture, temp_dir};
+use crate::service::{add_keyframes, clients, image_frame, intrinsics, keyframe_requests, serve, settings};
+
+fn ring_model() -> PathBuf {
+    PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("models/scone-ring-e1-real.onnx")
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn the_ring_model_describes_maps_localises_and_matches() {
+    let data = temp_dir("ring");
+    let mut s = settings(&data);
+    s.model.model = ring_model();
+    s.extractor.levels = 8;
+    s.extractor.max_keypoints = 2000;
+    let server = serve(s).await;
+    let (mut maps, mut matching) = clients(&server).await;
+    let scene = Scene::load(&fixture("rendered")).unwrap();
+
+    // Describe: the context comes with the embeddings, 113 bytes per keypoint.
+    let d = matching
+        .describe(proto::DescribeRequest { frame: Some(image_frame(&scene.frames[3].rgb, &scene.camera)) })
+        .await
+        .unwrap()
+        .into_inner();
+    let n = d.keypoints.len();
+    assert!(n > 100, "{n} keypoints");
+    assert_eq!(d.context.len(), 113 * n);
+    assert_eq!(d.embeddings.len(), 48 * n);
+    assert!(d.model_id.starts_with("sha256:e9270f56"), "{}", d.model_id);
+
+    // The same keypoints sent back as a keypoint set, with their context: the same embeddings.
+    let set = proto::KeypointSet {
+        keypoints: d.keypoints.clone(),
+        descriptors: d.descriptors.clone(),
+        context: d.context.clone(),
+        width: scene.camera.width,
+        height: scene.camera.height,
+        ..Default::default()
+    };
+    let frame = proto::Frame {
+        intrinsics: Some(intrinsics(&scene.camera)),
+        source: Some(proto::frame::Source::Keypoints(set)),
+    };
+    let again = matching.describe(proto::DescribeRequest { frame: Some(frame) }).await.unwrap().into_inner();
+    let worst = d.embeddings.iter().zip(&again.embeddings).map(|(a, b)| (a - b).abs()).fold(0.0f32, f32::max);
+    assert!(worst < 1e-5, "embeddings of the keypoint set differ by {worst}");
+
+    // A map of every other frame; a held-out frame localises where the truth is.
+    maps.create_map(proto::CreateMapRequest { map_id: "ring".into() }).await.unwrap();
+    add_keyframes(&mut maps, keyframe_requests("ring", &scene, &[0, 2, 4, 6, 8, 9]), None).await;
+    let r = matching
+        .localize(proto::LocalizeRequest {
+            map_id: "ring".into(),
+            frame: Some(image_frame(&scene.frames[5].rgb, &scene.camera)),
+            prior: None,
+            pose_convention: 0,
+        })
+        .await
+        .unwrap()
+        .into_inner();
+    assert!(r.localized, "{r:?}");
+    let p = r.pose.unwrap();
+    let truth = scene.frames[5].pose.unwrap();
+    let dt = (nalgebra::Vector3::new(p.tx, p.ty, p.tz) - truth.translation.vector).norm();
+    assert!(dt < 0.05, "{dt} from the truth");
+
+    // MatchPair with the matcher it ships with.
+    let pair = matching
+        .match_pair(proto::MatchPairRequest {
+            frame1: Some(image_frame(&scene.frames[3].rgb, &scene.camera)),
+            frame2: Some(image_frame(&scene.frames[5].rgb, &scene.camera)),
+            matcher: proto::PairMatcher::Union as i32,
+            ..Default::default()
+        })
+        .await
+        .unwrap()
+        .into_inner();
+    assert!(pair.pose.is_some() && pair.inliers > 50, "{} inliers", pair.inliers);
+    server.shutdown().await.unwrap();
+}
