@@ -4,7 +4,8 @@
 //! plain and the same-corner ratio test, and MatchPair's matchers (freak, rerank, scale-aware) between the
 //! photograph and a mild and a 2x zoomed view of it. Also the relative-pose estimators (plain RANSAC against USAC_ACCURATE)
 //! on 300 synthetic correspondences, 25 % outliers.
-//! Model: `models/scone-freak-k20.onnx`, or `$SCONE_MODEL`.
+//! Model: `models/scone-freak-k20.onnx`, or `$SCONE_MODEL`; extraction: 6 levels and 1,000 keypoints, or
+//! `$SCONE_BENCH_LEVELS` and `$SCONE_BENCH_KEYPOINTS` (e.g. 8 and 2000 for `models/scone-ring-e1-real.onnx`).
 //! Run: `cargo bench --bench embedding`.
 
 use std::hint::black_box;
@@ -26,7 +27,14 @@ fn bench(c: &mut Criterion) {
     let path = concat!(env!("CARGO_MANIFEST_DIR"), "/tests/fixtures/coffee-640x480.jpg");
     let bytes = std::fs::read(path).unwrap();
     let img = decode_grey(&bytes, &ImageLimitSettings::default()).unwrap();
-    let cfg = ExtractorSettings { max_keypoints: 1000, ..ExtractorSettings::default() };
+    // `SCONE_BENCH_LEVELS` / `SCONE_BENCH_KEYPOINTS`: another extraction (a model trained for it), the same for
+    // FAST + FREAK in the run; the group keeps its name.
+    let env = |name: &str, default: usize| std::env::var(name).ok().and_then(|v| v.parse().ok()).unwrap_or(default);
+    let cfg = ExtractorSettings {
+        max_keypoints: env("SCONE_BENCH_KEYPOINTS", 1000),
+        levels: env("SCONE_BENCH_LEVELS", ExtractorSettings::default().levels as usize) as u32,
+        ..ExtractorSettings::default()
+    };
     let f = features::extract(&img, &cfg).unwrap();
     eprintln!("{} keypoints, model {}", f.len(), model.display());
     let mut g = c.benchmark_group("scone_640x480_1000kp");
