@@ -2,7 +2,9 @@
 precision of SConE against FREAK on the same keypoints with geometry-only ground truth, and drawings of the
 ground-truth landmark matches of one pair per scene.
 
-`python -m scone_train.validate --model ../models/scone-freak-k20.pt --out DIR`
+`python -m scone_train.validate --checkpoint CHECKPOINT [--out DIR]`: the features come from the extraction the
+checkpoint was trained at (its config's `data.extractor`, a feature cache of its own per setting, with the ring
+context for a ring-context model), FREAK on the same keypoints.
 """
 
 from __future__ import annotations
@@ -20,7 +22,7 @@ from . import evaluate as E
 from .data import shared_data
 from .dataset import Unit, build_unit
 from .model import SconeNet
-from .train import build_model, prefix
+from .train import build_model, extractor_args, prefix
 
 # Scene, link window (0 = all pairs). KITTI: links within 3 frames, as the issue's FREAK reference figures.
 # TUM: depth links in its 30 Hz burst, epipolar links (mocap poses) elsewhere; dino48: calibrated, all pairs.
@@ -28,12 +30,15 @@ VALIDATION = [("strecha-fountain-P11", 0), ("kitti-clip2", 3), ("rgbd-slambook-5
               ("middlebury-dino48", 0)]
 
 
-def validation_units() -> list[tuple[Unit, int]]:
-    cache = prefix() / "data" / "cache" / "real"
+def validation_units(extractor: dict | None = None) -> list[tuple[Unit, int]]:
+    """The validation scenes' units, features at `extractor` (a config's `data.extractor`; None: the defaults)."""
+    args = extractor_args(extractor)
+    cache = prefix() / "data" / ("cache" if not args else "cache-" + "".join(a.strip("-") for a in args)) / "real"
     out = []
     for name, window in VALIDATION:
         scene = shared_data() / "scenes" / name
-        out.append((build_unit(scene, cache, None, C.GeometryParams(window=window), name), window))
+        unit = build_unit(scene, cache, None, C.GeometryParams(window=window), name, extractor_args=args)
+        out.append((unit, window))
     return out
 
 
@@ -69,9 +74,9 @@ def draw_landmark_matches(unit: Unit, scene_dir: Path, out: Path, a: int = 0, b:
     return path
 
 
-def validate(model: SconeNet, out: Path | None = None) -> dict:
+def validate(model: SconeNet, out: Path | None = None, extractor: dict | None = None) -> dict:
     results = {}
-    for unit, window in validation_units():
+    for unit, window in validation_units(extractor):
         f = E.freak_precision(unit.frames, unit.ids, window)
         s = E.scone_precision(model, unit.frames, unit.ids, window)
         results[unit.name] = {
@@ -105,7 +110,8 @@ def main() -> None:
     ap.add_argument("--threads", type=int, default=2)
     a = ap.parse_args()
     torch.set_num_threads(a.threads)
-    res = validate(load_checkpoint(Path(a.checkpoint)), Path(a.out) if a.out else None)
+    extractor = torch.load(Path(a.checkpoint), weights_only=False)["config"]["data"].get("extractor")
+    res = validate(load_checkpoint(Path(a.checkpoint)), Path(a.out) if a.out else None, extractor)
     print(json.dumps(res, indent=2))
 
 
