@@ -126,6 +126,8 @@ async fn regression_compressed_bodies_are_refused_not_read_as_images() {
             .send()
             .await
             .unwrap();
+        // The body stays unread, so the connection is not offered for another request.
+        assert_eq!(r.headers().get("connection").map(|v| v.as_bytes()), Some(&b"close"[..]), "{url}");
         let (status, msg) = error_of(r).await;
         assert_eq!(status, 415, "{url}: {msg}");
         assert!(msg.contains("content-encoding 'gzip'"), "{msg}");

@@ -132,6 +132,12 @@ fn service_status(kind: ErrorKind) -> StatusCode {
 
 impl IntoResponse for ApiError {
     fn into_response(self) -> Response {
+        // Refused on its headers, the body is left unread: the connection cannot carry another request, and a
+        // client that reused it would meet it closing.
+        let unread = matches!(
+            self,
+            Self::UnsupportedMediaType { .. } | Self::UnsupportedEncoding { .. } | Self::ForeignOrigin { .. }
+        );
         let (status, code, message, retry_after) = match self {
             Self::Service(e) => {
                 let kind = e.kind();
@@ -174,6 +180,9 @@ impl IntoResponse for ApiError {
         let mut resp = (status, Json(body)).into_response();
         if let Some(s) = retry_after {
             resp.headers_mut().insert(header::RETRY_AFTER, HeaderValue::from(s));
+        }
+        if unread {
+            resp.headers_mut().insert(header::CONNECTION, HeaderValue::from_static("close"));
         }
         resp
     }
