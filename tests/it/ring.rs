@@ -9,7 +9,7 @@ use scone::offline::scene::Scene;
 use scone::server::proto;
 
 use crate::common::{fixture, temp_dir};
-use crate::service::{add_keyframes, clients, image_frame, intrinsics, keyframe_requests, serve, settings};
+use crate::service::{add_keyframes, clients, image_frame, intrinsics, keyframe_requests, pose_error, serve, settings};
 
 fn ring_model() -> PathBuf {
     PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("models/scone-ring-e1-real.onnx")
@@ -69,10 +69,8 @@ async fn the_ring_model_describes_maps_localises_and_matches() {
         .unwrap()
         .into_inner();
     assert!(r.localized, "{r:?}");
-    let p = r.pose.unwrap();
-    let truth = scene.frames[5].pose.unwrap();
-    let dt = (nalgebra::Vector3::new(p.tx, p.ty, p.tz) - truth.translation.vector).norm();
-    assert!(dt < 0.05, "{dt} from the truth");
+    let (dt, dr) = pose_error(r.pose.as_ref().unwrap(), &scene.frames[5].pose.unwrap());
+    assert!(dt < 0.05 && dr < 1.0, "{dt} m, {dr} deg from the truth");
 
     // MatchPair with the matcher it ships with.
     let pair = matching

@@ -79,7 +79,7 @@ pub(crate) fn keyframe_requests(map: &str, scene: &Scene, frames: &[usize]) -> V
 }
 
 /// Translation (map units) and rotation (degrees) between an estimated and a true camera-to-world pose.
-fn pose_error(p: &proto::Pose, truth: &Isometry3<f64>) -> (f64, f64) {
+pub(crate) fn pose_error(p: &proto::Pose, truth: &Isometry3<f64>) -> (f64, f64) {
     let t = nalgebra::Vector3::new(p.tx, p.ty, p.tz);
     let q = nalgebra::UnitQuaternion::from_quaternion(nalgebra::Quaternion::new(p.qw, p.qx, p.qy, p.qz));
     let dt = (t - truth.translation.vector).norm();

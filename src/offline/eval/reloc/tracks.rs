@@ -18,11 +18,17 @@ use crate::offline::eval::reloc::report::QueryRecord;
 use crate::offline::eval::reloc::stages::{distance_to_map, features_of, vectors, BuiltMap, MethodView};
 use crate::offline::scene::Scene;
 use crate::pose::{
-    pose_covariance, pose_difference, rotation_error_deg, track_pose, AbsolutePose, TrackFrame, TrackScale,
+    pose_covariance, pose_difference, rotation_error_deg, track_pose, AbsolutePose, TrackFrame, TrackPose, TrackScale,
 };
 use crate::progress::Progress;
 
 type BoxError = Box<dyn std::error::Error + Send + Sync>;
+
+/// The service's track estimator as the protocol runs it: rigid, its seed, told of the error it added.
+fn locate(frames: &[TrackFrame], loc: &LocalizeSettings, cfg: &RelocConfig) -> Result<Option<TrackPose>, BoxError> {
+    let told = cfg.track_noise.told();
+    Ok(track_pose(frames, TrackScale::Rigid, &loc.ransac, loc.min_inliers, cfg.track_noise.seed, &told)?)
+}
 
 /// The track of query `query`: it and its `n - 1` nearest frames of `queries` by sequence position.
 pub(super) fn track_of(query: usize, queries: &[usize], n: usize) -> Vec<usize> {
@@ -108,14 +114,7 @@ impl MethodView<'_> {
                 seconds += s;
             }
             let t = Instant::now();
-            let estimate = track_pose(
-                &frames,
-                TrackScale::Rigid,
-                &loc.ransac,
-                loc.min_inliers,
-                cfg.track_noise.seed,
-                &cfg.track_noise.told(),
-            )?;
+            let estimate = locate(&frames, loc, cfg)?;
             seconds += t.elapsed().as_secs_f64();
             let gt = truth[0];
             let (baseline_to_map, angle_to_map_deg) = distance_to_map(scene, map_frames, &gt);
@@ -219,14 +218,7 @@ pub(super) fn foreign_tracks(
                 });
             }
             tracks += 1;
-            let t = track_pose(
-                &frames,
-                TrackScale::Rigid,
-                &loc.ransac,
-                loc.min_inliers,
-                cfg.track_noise.seed,
-                &cfg.track_noise.told(),
-            )?;
+            let t = locate(&frames, loc, cfg)?;
             localised += usize::from(t.is_some());
         }
     }
