@@ -18,7 +18,7 @@ use scone::camera::Camera;
 use scone::camera::Pose;
 use scone::decode::ImageLimitSettings;
 use scone::embedding::{Embedder, EmbedderSettings};
-use scone::features::{ExtractorSettings, Keypoint, DESCRIPTOR_BYTES};
+use scone::features::{Keypoint, DESCRIPTOR_BYTES};
 use scone::map::index::{exact_search, EmbeddingIndex, IndexSettings};
 use scone::map::model::{Keyframe, MapData, MapMeta, NewObservation, Record};
 use scone::pipeline::Describer;
@@ -84,7 +84,7 @@ fn main() {
         return;
     }
     let embedder = Arc::new(Embedder::load(&EmbedderSettings::default()).unwrap());
-    let d = Describer { extractor: ExtractorSettings::default(), limits: ImageLimitSettings::default(), embedder };
+    let d = Describer { extractor: embedder.extraction(), limits: ImageLimitSettings::default(), embedder };
     let dim = d.embedder.dim();
     // Queries: HPatches graffiti, a scene left out of the indexed set (the kitchen's neighbouring frames would
     // be near copies of each other); every other image is indexed.

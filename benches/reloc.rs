@@ -37,7 +37,7 @@ use rayon::prelude::*;
 use scone::camera::Camera;
 use scone::decode::{decode_depth_png, ImageLimitSettings, TUM_DEPTH_SCALE};
 use scone::embedding::{Embedder, EmbedderSettings};
-use scone::features::{ExtractorSettings, KeypointLimitSettings};
+use scone::features::KeypointLimitSettings;
 use scone::map::builder::{plan, BuildSettings, Depth, KeyframeInput};
 use scone::map::index::{exact_search, EmbeddingIndex, IndexPoints, IndexSettings};
 use scone::map::localize::{localize, LocalizeSettings};
@@ -240,7 +240,7 @@ fn main() {
     let embedder = Arc::new(Embedder::load(&EmbedderSettings::default()).unwrap());
     let info = ModelInfo { model_id: embedder.model_id().to_string(), k: embedder.k(), dim: embedder.dim() };
     let describer =
-        Describer { extractor: ExtractorSettings::default(), limits: ImageLimitSettings::default(), embedder };
+        Describer { extractor: embedder.extraction(), limits: ImageLimitSettings::default(), embedder };
     let frames = map_frames(&scenes);
     let kitchen = &scenes[0];
     let camera: Camera = kitchen.camera;
@@ -373,7 +373,7 @@ fn main() {
             } else {
                 "-".into()
             };
-            let service = Service::new(describer.clone(), KeypointLimitSettings::default(), Default::default());
+            let service = Service::new(describer.clone(), KeypointLimitSettings::default(), Default::default()).unwrap();
             let store = Arc::new(store);
             service.attach_store(store.clone());
             let runs = match (label, target) {

@@ -18,7 +18,6 @@ use object_store::path::Path as ObjectPath;
 use object_store::{ObjectStore, ObjectStoreExt};
 use scone::decode::{decode_depth_png, ImageLimitSettings, TUM_DEPTH_SCALE};
 use scone::embedding::{Embedder, EmbedderSettings};
-use scone::features::ExtractorSettings;
 use scone::map::builder::{Depth, KeyframeInput};
 use scone::map::storage::s3::S3Settings;
 use scone::map::storage::BackendSettings;
@@ -108,7 +107,7 @@ fn main() {
     let embedder = Arc::new(Embedder::load(&EmbedderSettings::default()).unwrap());
     let model = ModelInfo { model_id: embedder.model_id().to_string(), k: embedder.k(), dim: embedder.dim() };
     let describer =
-        Describer { extractor: ExtractorSettings::default(), limits: ImageLimitSettings::default(), embedder };
+        Describer { extractor: embedder.extraction(), limits: ImageLimitSettings::default(), embedder };
     let limits = ImageLimitSettings::default();
     let tmp = std::env::temp_dir().join(format!("scone-bench-replica-{}", std::process::id()));
     let _ = std::fs::remove_dir_all(&tmp);

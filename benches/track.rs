@@ -14,7 +14,7 @@ use std::time::Instant;
 
 use scone::decode::ImageLimitSettings;
 use scone::embedding::{Embedder, EmbedderSettings};
-use scone::features::{ExtractorSettings, KeypointLimitSettings};
+use scone::features::KeypointLimitSettings;
 use scone::map::store::{MapStore, ModelInfo, StoreSettings};
 use scone::offline::scene::Scene;
 use scone::pipeline::Describer;
@@ -47,14 +47,14 @@ fn main() {
     let scene = Scene::load(&dir).unwrap();
     let embedder = Arc::new(Embedder::load(&EmbedderSettings::default()).unwrap());
     let describer =
-        Describer { extractor: ExtractorSettings::default(), limits: ImageLimitSettings::default(), embedder };
+        Describer { extractor: embedder.extraction(), limits: ImageLimitSettings::default(), embedder };
     let data = std::env::temp_dir().join(format!("scone-bench-track-{}", std::process::id()));
     let config = StoreSettings { data_dir: data.clone(), ..StoreSettings::default() };
     let e = &describer.embedder;
     let info = ModelInfo { model_id: e.model_id().to_string(), k: e.k(), dim: e.dim() };
     let store = Arc::new(MapStore::open(config, info).unwrap());
     store.create("m").unwrap();
-    let service = Service::new(describer, KeypointLimitSettings::default(), Default::default());
+    let service = Service::new(describer, KeypointLimitSettings::default(), Default::default()).unwrap();
     service.attach_store(store);
     let map = service.map("m").unwrap();
     let frame = |i: usize| FrameInput {

@@ -15,6 +15,13 @@
 //! Output `embeddings`, float32 [N, D] (D = 48 for the shipped models), L2-normalised. All normalisation of
 //! the raw values happens inside the graph.
 //!
+//! What a model declares (its ONNX metadata, written by `scone_train.export`): `scone.extraction`, the
+//! [`ExtractorSettings`] it was trained at, as JSON with every field; `scone.matcher`, the MatchPair matcher it
+//! ships with (a `SconeMatcher` name). The service runs the declared extraction unless `[extractor]` is set,
+//! and answers MatchPair's default with the declared matcher. A model that declares neither was made before
+//! models declared them (`scone-freak-k20`): it is served at the client contract's revision 2
+//! ([`ExtractorSettings::revision_2`]) and `scale-aware`. A declaration that does not parse fails the load.
+//!
 //! Concurrency: `Session::run` needs exclusive access, so the embedder owns a small pool of sessions, one per
 //! CPU worker of the service, each with its own intra-op thread count. Workers take a free session without
 //! waiting when one exists; otherwise they wait for one. Sessions x intra-op threads should not exceed the
@@ -33,7 +40,7 @@ use sha2::{Digest, Sha256};
 use crate::constellation::{self, Constellations, GEOMETRY_DIM};
 use crate::context::SAMPLES;
 use crate::error::EmbeddingError;
-use crate::features::{Features, DESCRIPTOR_BYTES};
+use crate::features::{ExtractorSettings, Features, DESCRIPTOR_BYTES};
 
 /// Settings of the embedding runtime.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -65,15 +72,25 @@ impl Default for EmbedderSettings {
     }
 }
 
-/// The committed model, next to the sources.
+/// The committed model, next to the sources: the ring-context model of issue 39.
 pub fn default_model_path() -> PathBuf {
+    PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("models/scone-ring-e1-real.onnx")
+}
+
+/// The model the service embedded before issue 39 (the paper's constellation), kept for maps built with it.
+pub fn constellation_model_path() -> PathBuf {
     PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("models/scone-freak-k20.onnx")
 }
 
 /// The committed model's bytes, compiled into the binary. [`Embedder::load`] uses them when the configured model
 /// is [`default_model_path`] and that file is gone (the checkout that built the binary was moved or removed), so
 /// the built-in default keeps working; any other missing model is an error.
-pub static BUILT_IN_MODEL: &[u8] = include_bytes!(concat!(env!("CARGO_MANIFEST_DIR"), "/models/scone-freak-k20.onnx"));
+pub static BUILT_IN_MODEL: &[u8] = include_bytes!(concat!(env!("CARGO_MANIFEST_DIR"), "/models/scone-ring-e1-real.onnx"));
+
+/// The metadata key of a model's extraction.
+pub const EXTRACTION_KEY: &str = "scone.extraction";
+/// The metadata key of a model's MatchPair matcher.
+pub const MATCHER_KEY: &str = "scone.matcher";
 
 /// The model file's bytes, or the built-in copy when `path` is `default_path` and does not exist.
 fn model_bytes(path: &Path, default_path: &Path) -> Result<std::borrow::Cow<'static, [u8]>, EmbeddingError> {
@@ -112,6 +129,8 @@ pub enum ModelInputs {
 pub struct Embedder {
     sessions: Vec<Mutex<Session>>,
     inputs: ModelInputs,
+    extraction: Option<ExtractorSettings>,
+    matcher: Option<String>,
     dim: usize,
     model_id: String,
     path: PathBuf,
@@ -123,6 +142,8 @@ impl std::fmt::Debug for Embedder {
             .field("path", &self.path)
             .field("model_id", &self.model_id)
             .field("inputs", &self.inputs)
+            .field("extraction", &self.extraction)
+            .field("matcher", &self.matcher)
             .field("dim", &self.dim)
             .field("sessions", &self.sessions.len())
             .finish()
@@ -210,6 +231,23 @@ fn check_contract(path: &Path, session: &Session) -> Result<(ModelInputs, usize)
     Ok((kind, shape[1] as usize))
 }
 
+/// The model's declared extraction and matcher ([`EXTRACTION_KEY`], [`MATCHER_KEY`]); an extraction that does
+/// not parse or validate is a contract error.
+fn declaration(path: &Path, session: &Session) -> Result<(Option<ExtractorSettings>, Option<String>), EmbeddingError> {
+    let err = |reason: String| EmbeddingError::Contract { path: path.into(), reason };
+    let meta = session.metadata().map_err(|e| err(format!("reading the model's metadata: {e}")))?;
+    let extraction = match meta.custom(EXTRACTION_KEY) {
+        None => None,
+        Some(text) => {
+            let e: ExtractorSettings = serde_json::from_str(&text)
+                .map_err(|e| err(format!("metadata '{EXTRACTION_KEY}' is not an extraction ({e}): {text}")))?;
+            e.validate().map_err(|e| err(format!("metadata '{EXTRACTION_KEY}': {e}")))?;
+            Some(e)
+        }
+    };
+    Ok((extraction, meta.custom(MATCHER_KEY)))
+}
+
 impl Embedder {
     /// Loads the runtime and the model, checks the contract and runs one warm-up inference per session.
     pub fn load(config: &EmbedderSettings) -> Result<Self, EmbeddingError> {
@@ -220,6 +258,7 @@ impl Embedder {
         let model_err = |e: ort::Error| EmbeddingError::Model { path: path.clone(), reason: e.to_string() };
         let mut sessions = Vec::new();
         let mut dims = None;
+        let mut declared = (None, None);
         for _ in 0..config.sessions.max(1) {
             let session = Session::builder(env)
                 .map_err(model_err)?
@@ -234,10 +273,12 @@ impl Embedder {
                 .commit_from_memory(&bytes)
                 .map_err(model_err)?;
             dims = Some(check_contract(&path, &session)?);
+            declared = declaration(&path, &session)?;
             sessions.push(Mutex::new(session));
         }
         let (inputs, dim) = dims.expect("at least one session");
-        let embedder = Self { sessions, inputs, dim, model_id, path };
+        let (extraction, matcher) = declared;
+        let embedder = Self { sessions, inputs, extraction, matcher, dim, model_id, path };
         embedder.warm_up()?;
         Ok(embedder)
     }
@@ -271,6 +312,21 @@ impl Embedder {
     /// What the model reads besides the FREAK bytes.
     pub fn inputs(&self) -> ModelInputs {
         self.inputs
+    }
+
+    /// The extraction the model declares it was trained at, if it declares one.
+    pub fn declared_extraction(&self) -> Option<&ExtractorSettings> {
+        self.extraction.as_ref()
+    }
+
+    /// The extraction to run for this model: the declared one, or revision 2's for a model that declares none.
+    pub fn extraction(&self) -> ExtractorSettings {
+        self.extraction.clone().unwrap_or_else(ExtractorSettings::revision_2)
+    }
+
+    /// The MatchPair matcher the model declares it ships with (a `SconeMatcher` name), if any.
+    pub fn declared_matcher(&self) -> Option<&str> {
+        self.matcher.as_deref()
     }
 
     /// Whether the model reads the ring context ([`crate::context`]), which then must come with the features.

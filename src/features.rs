@@ -42,7 +42,9 @@ const FREAK_PATTERN_SCALE: f32 = 22.0;
 /// FREAK's octave count (OpenCV's default).
 const FREAK_OCTAVES: i32 = 4;
 
-/// Settings of detection and description. Defaults suit a 640x480 image.
+/// Settings of detection and description. Defaults suit a 640x480 image: they are the client contract's
+/// revision 3 (E1 of issue 39, what the embedded model declares); [`ExtractorSettings::revision_2`] is what
+/// models before it were trained at.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields, default)]
 pub struct ExtractorSettings {
@@ -60,11 +62,17 @@ pub struct ExtractorSettings {
 
 impl Default for ExtractorSettings {
     fn default() -> Self {
-        Self { fast_threshold: 20, max_keypoints: 1500, levels: 6, scale_factor: 1.2, grid_cell: 32 }
+        Self { fast_threshold: 20, max_keypoints: 2000, levels: 8, scale_factor: 1.2, grid_cell: 32 }
     }
 }
 
 impl ExtractorSettings {
+    /// The client contract's revision 2: 6 levels and 1,500 keypoints, the extraction of every model made before
+    /// models declared theirs (`scone-freak-k20`).
+    pub fn revision_2() -> Self {
+        Self { max_keypoints: 1500, levels: 6, ..Self::default() }
+    }
+
     /// Single-scale FAST, strongest `max_keypoints`, no bucketing: the paper's and OpenCV's pipeline.
     pub fn single_scale(fast_threshold: i32, max_keypoints: usize) -> Self {
         Self { fast_threshold, max_keypoints, levels: 1, scale_factor: 1.2, grid_cell: 0 }

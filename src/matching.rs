@@ -189,6 +189,17 @@ pub enum SconeMatcher {
 }
 
 impl SconeMatcher {
+    /// The matcher a model declares (`scone.matcher` in its metadata, `crate::embedding`); a model that
+    /// declares none ships with `scale-aware`, the default of the models made before they declared one.
+    pub fn declared(name: Option<&str>) -> Result<Self, String> {
+        match name {
+            None => Ok(Self::default()),
+            Some(n) => <Self as clap::ValueEnum>::from_str(n, false).map_err(|_| {
+                format!("metadata 'scone.matcher' names no matcher: '{n}' (plain, union, rerank, scale-aware, freak)")
+            }),
+        }
+    }
+
     pub fn name(&self) -> &'static str {
         match self {
             SconeMatcher::Plain => "plain",

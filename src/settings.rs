@@ -139,7 +139,10 @@ pub struct Settings {
     pub limits: LimitSettings,
     pub workers: WorkerSettings,
     pub model: EmbedderSettings,
-    pub extractor: ExtractorSettings,
+    /// Detection and description. Unset (no `[extractor]` section and no `SCONE_EXTRACTOR__*`): the extraction
+    /// the model declares ([`crate::embedding::Embedder::extraction`]). Set: these values, each field that is
+    /// left out at revision 3's default; a value other than the model's declaration is served with a warning.
+    pub extractor: Option<ExtractorSettings>,
     pub store: StoreSettings,
     /// MatchPair's essential-matrix search (`[relative_pose]`: threshold_px, confidence, max_iters, essential,
     /// duplicate_px). The defaults favour accuracy; a smaller `max_iters` bounds the time a hard pair can take.
@@ -253,7 +256,7 @@ impl Settings {
         if self.limits.image.max_bytes > self.server.max_request_bytes {
             return bad("limits.image.max_bytes", "must not exceed server.max_request_bytes");
         }
-        self.extractor.validate().map_err(|e| SettingsError::Invalid { field: "extractor", reason: e.to_string() })?;
+        self.extractor.as_ref().map_or(Ok(()), ExtractorSettings::validate).map_err(|e| SettingsError::Invalid { field: "extractor", reason: e.to_string() })?;
         self.relative_pose.validate().map_err(|reason| SettingsError::Invalid { field: "relative_pose", reason })?;
         self.store.backend.validate().map_err(|reason| SettingsError::Invalid { field: "store.backend", reason })?;
         self.store.build.validate().map_err(|reason| SettingsError::Invalid { field: "store.build", reason })?;

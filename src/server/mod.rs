@@ -100,12 +100,22 @@ pub async fn start(settings: Settings) -> anyhow::Result<Running> {
     let embedder = tokio::task::spawn_blocking(move || Embedder::load(&model_cfg)).await??;
     let embedder = Arc::new(embedder);
     tracing::info!(model = %embedder.model_id(), path = %embedder.path().display(), "model loaded");
+    let extractor = settings.extractor.clone().unwrap_or_else(|| embedder.extraction());
+    if extractor != embedder.extraction() {
+        tracing::warn!(
+            configured = ?extractor,
+            trained_at = ?embedder.extraction(),
+            "[extractor] differs from the extraction the model was trained at: its answers will be worse, and \
+             clients that send keypoint sets must extract as configured"
+        );
+    }
+    tracing::info!(extractor = ?extractor, "extraction");
     let describer = Describer {
-        extractor: settings.extractor.clone(),
+        extractor,
         limits: settings.limits.image,
         embedder: Arc::clone(&embedder),
     };
-    let service = Service::new(describer, settings.limits.keypoints, settings.relative_pose);
+    let service = Service::new(describer, settings.limits.keypoints, settings.relative_pose)?;
     let grpc_listener = TcpListener::bind(settings.server.grpc_addr)
         .await
         .with_context(|| format!("binding gRPC to {}", settings.server.grpc_addr))?;

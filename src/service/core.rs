@@ -7,9 +7,10 @@ use serde::Serialize;
 
 use super::error::ServiceError;
 use crate::decode::ImageLimitSettings;
-use crate::error::MapError;
+use crate::error::{EmbeddingError, MapError};
 use crate::features::KeypointLimitSettings;
 use crate::map::store::{Map, MapStore, ModelInfo, StoreSettings};
+use crate::matching::SconeMatcher;
 use crate::pipeline::Describer;
 use crate::pose::RansacSettings;
 
@@ -36,13 +37,29 @@ pub struct Service {
     pub(super) describer: Describer,
     pub(super) keypoint_limits: KeypointLimitSettings,
     pub(super) ransac: RansacSettings,
+    /// MatchPair's matcher when the request names none: the model's declared one.
+    pub(super) default_matcher: SconeMatcher,
     store: OnceLock<Arc<MapStore>>,
 }
 
 impl Service {
     /// `ransac`: MatchPair's essential-matrix search (`Settings::relative_pose`).
-    pub fn new(describer: Describer, keypoint_limits: KeypointLimitSettings, ransac: RansacSettings) -> Self {
-        Self { describer, keypoint_limits, ransac, store: OnceLock::new() }
+    /// Fails when the model declares a matcher that does not exist.
+    pub fn new(
+        describer: Describer,
+        keypoint_limits: KeypointLimitSettings,
+        ransac: RansacSettings,
+    ) -> Result<Self, ServiceError> {
+        let e = &describer.embedder;
+        let default_matcher = SconeMatcher::declared(e.declared_matcher()).map_err(|reason| {
+            ServiceError::Embedding(EmbeddingError::Contract { path: e.path().to_path_buf(), reason })
+        })?;
+        Ok(Self { describer, keypoint_limits, ransac, default_matcher, store: OnceLock::new() })
+    }
+
+    /// MatchPair's matcher when a request names none (the model's declaration, `scale-aware` without one).
+    pub fn default_matcher(&self) -> SconeMatcher {
+        self.default_matcher
     }
 
     /// Makes maps available (once, after they loaded).

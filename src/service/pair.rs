@@ -13,19 +13,22 @@ use crate::pose::{relative_pose, RelativePose};
 pub struct PairOptions {
     pub ratio: f32,
     pub mutual: bool,
-    /// How the matches are picked (`matching::SconeMatcher`).
-    pub matcher: SconeMatcher,
+    /// How the matches are picked (`matching::SconeMatcher`); `None`: the model's declared matcher
+    /// ([`Service::default_matcher`]).
+    pub matcher: Option<SconeMatcher>,
 }
 
 impl Default for PairOptions {
     fn default() -> Self {
-        Self { ratio: DEFAULT_RATIO, mutual: false, matcher: SconeMatcher::default() }
+        Self { ratio: DEFAULT_RATIO, mutual: false, matcher: None }
     }
 }
 
 /// Matches between two frames and their relative pose.
 #[derive(Debug, Clone)]
 pub struct PairOutcome {
+    /// The matcher that picked the matches (the request's, or the model's default).
+    pub matcher: SconeMatcher,
     pub matches: Vec<Match>,
     /// Keypoint positions of each frame (the matches index into them), for pictures.
     pub points1: Vec<(f32, f32)>,
@@ -65,6 +68,7 @@ impl Service {
         Self::check_frame_size(&d2, &cam2, "frame2.intrinsics")?;
         let mut times = d1.times.clone();
         times.add(&d2.times);
+        let matcher = options.matcher.unwrap_or(self.default_matcher);
         let test = RatioTest { ratio: options.ratio, mutual: options.mutual, same_corner_px: SAME_CORNER_PX };
         let (points1, points2) = (d1.features.points(), d2.features.points());
         let matches = times.time("match", || {
@@ -85,12 +89,12 @@ impl Service {
                 points: &points2,
                 sizes: &sizes2,
             };
-            match_scone(options.matcher, &f1, &f2, &test)
+            match_scone(matcher, &f1, &f2, &test)
         })?;
         let p1: Vec<(f32, f32)> = matches.iter().map(|m| d1.features.keypoints[m.query]).map(|k| (k.x, k.y)).collect();
         let p2: Vec<(f32, f32)> = matches.iter().map(|m| d2.features.keypoints[m.train]).map(|k| (k.x, k.y)).collect();
         let pose = times.time("pose", || relative_pose(&p1, &p2, &cam1, &cam2, &self.ransac))?;
-        Ok(PairOutcome { matches, pose, times, points1, points2 })
+        Ok(PairOutcome { matcher, matches, pose, times, points1, points2 })
     }
 }
 
@@ -102,6 +106,7 @@ mod tests {
     fn a_pair_outcome_flags_each_match_once_and_none_without_a_pose() {
         let m = |i| Match { query: i, train: i, distance: 0.1 };
         let mut o = PairOutcome {
+            matcher: SconeMatcher::Union,
             matches: vec![m(0), m(1), m(2)],
             pose: None,
             times: StageTimes::default(),

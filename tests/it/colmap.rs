@@ -151,7 +151,7 @@ fn open(dir: &Path) -> (MapStore, Describer) {
     let info = ModelInfo { model_id: embedder.model_id().into(), k: embedder.k(), dim: embedder.dim() };
     let store =
         MapStore::open(StoreSettings { data_dir: dir.to_path_buf(), ..StoreSettings::default() }, info).unwrap();
-    (store, Describer { extractor: ExtractorSettings::default(), limits: ImageLimitSettings::default(), embedder })
+    (store, Describer { extractor: embedder.extraction(), limits: ImageLimitSettings::default(), embedder })
 }
 
 /// The frames of the map (even) and a held-out one; frame 9 is seen by the model but written later.

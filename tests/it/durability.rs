@@ -8,7 +8,6 @@ use std::sync::Arc;
 
 use scone::decode::ImageLimitSettings;
 use scone::embedding::{Embedder, EmbedderSettings};
-use scone::features::ExtractorSettings;
 use scone::map::store::{MapStore, ModelInfo, StoreSettings};
 use scone::offline::scene::Scene;
 use scone::pipeline::Describer;
@@ -22,7 +21,7 @@ pub(crate) fn open(dir: &std::path::Path) -> (MapStore, Describer) {
     let info = ModelInfo { model_id: embedder.model_id().into(), k: embedder.k(), dim: embedder.dim() };
     let store =
         MapStore::open(StoreSettings { data_dir: dir.to_path_buf(), ..StoreSettings::default() }, info).unwrap();
-    (store, Describer { extractor: ExtractorSettings::default(), limits: ImageLimitSettings::default(), embedder })
+    (store, Describer { extractor: embedder.extraction(), limits: ImageLimitSettings::default(), embedder })
 }
 
 #[test]

@@ -16,7 +16,6 @@ use object_store::path::Path as ObjectPath;
 use object_store::{ObjectStore, ObjectStoreExt};
 use scone::decode::{decode_depth_png, ImageLimitSettings};
 use scone::embedding::{Embedder, EmbedderSettings};
-use scone::features::ExtractorSettings;
 use scone::map::builder::{Depth, KeyframeInput};
 use scone::map::model::{MapData, Record};
 use scone::map::storage::backend::MapBackend;
@@ -154,7 +153,7 @@ fn frames() -> Frames {
     let embedder = Arc::new(Embedder::load(&EmbedderSettings::default()).unwrap());
     let model = ModelInfo { model_id: embedder.model_id().into(), k: embedder.k(), dim: embedder.dim() };
     let describer =
-        Describer { extractor: ExtractorSettings::default(), limits: ImageLimitSettings::default(), embedder };
+        Describer { extractor: embedder.extraction(), limits: ImageLimitSettings::default(), embedder };
     let scene = Scene::load(&fixture("rendered")).unwrap();
     let described =
         scene.frames.iter().map(|f| describer.describe_image(&std::fs::read(&f.rgb).unwrap()).unwrap()).collect();

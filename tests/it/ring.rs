@@ -1,9 +1,9 @@
-//! The ring-context model (`models/scone-ring-e1-real.onnx`, issue 39) served end to end at the extraction it was
-//! trained for (8 levels, 2,000 keypoints): Describe answers the context with the embeddings, a map built with it
-//! localises a held-out frame of the rendered fixture, MatchPair's `union` finds the relative pose, and a keypoint
-//! set sent back with its context embeds as the image did.
-
-use std::path::PathBuf;
+//! The embedded model, the ring-context model of issue 39 (`models/scone-ring-e1-real.onnx`), served end to end
+//! with no `[extractor]` and no matcher set: the service runs the extraction the model declares (8 levels,
+//! 2,000 keypoints), Describe answers the context with the embeddings, a map built with it localises a held-out
+//! frame of the rendered fixture, MatchPair's default is the model's `union` and finds the relative pose, and a
+//! keypoint set sent back with its context embeds as the image did. The model made before it (the paper's
+//! constellation, kept for maps built with it) is served at revision 2's extraction when it is configured.
 
 use scone::offline::scene::Scene;
 use scone::server::proto;
@@ -11,17 +11,12 @@ use scone::server::proto;
 use crate::common::{fixture, temp_dir};
 use crate::service::{add_keyframes, clients, image_frame, intrinsics, keyframe_requests, pose_error, serve, settings};
 
-fn ring_model() -> PathBuf {
-    PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("models/scone-ring-e1-real.onnx")
-}
-
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn the_ring_model_describes_maps_localises_and_matches() {
     let data = temp_dir("ring");
-    let mut s = settings(&data);
-    s.model.model = ring_model();
-    s.extractor.levels = 8;
-    s.extractor.max_keypoints = 2000;
+    let s = settings(&data);
+    assert_eq!(s.model.model, scone::embedding::default_model_path());
+    assert!(s.extractor.is_none());
     let server = serve(s).await;
     let (mut maps, mut matching) = clients(&server).await;
     let scene = Scene::load(&fixture("rendered")).unwrap();
@@ -34,9 +29,11 @@ async fn the_ring_model_describes_maps_localises_and_matches() {
         .into_inner();
     let n = d.keypoints.len();
     assert!(n > 100, "{n} keypoints");
+    // Eight levels ran (the declared extraction; revision 2's has six).
+    assert_eq!(d.keypoints.iter().map(|k| k.octave).max(), Some(7));
     assert_eq!(d.context.len(), 113 * n);
     assert_eq!(d.embeddings.len(), 48 * n);
-    assert!(d.model_id.starts_with("sha256:e9270f56"), "{}", d.model_id);
+    assert!(d.model_id.starts_with("sha256:8cace533"), "{}", d.model_id);
 
     // The same keypoints sent back as a keypoint set, with their context: the same embeddings.
     let set = proto::KeypointSet {
@@ -72,17 +69,45 @@ async fn the_ring_model_describes_maps_localises_and_matches() {
     let (dt, dr) = pose_error(r.pose.as_ref().unwrap(), &scene.frames[5].pose.unwrap());
     assert!(dt < 0.05 && dr < 1.0, "{dt} m, {dr} deg from the truth");
 
-    // MatchPair with the matcher it ships with.
+    // MatchPair with no matcher named: the model's.
     let pair = matching
         .match_pair(proto::MatchPairRequest {
             frame1: Some(image_frame(&scene.frames[3].rgb, &scene.camera)),
             frame2: Some(image_frame(&scene.frames[5].rgb, &scene.camera)),
-            matcher: proto::PairMatcher::Union as i32,
             ..Default::default()
         })
         .await
         .unwrap()
         .into_inner();
     assert!(pair.pose.is_some() && pair.inliers > 50, "{} inliers", pair.inliers);
+    assert_eq!(pair.matcher, proto::PairMatcher::Union as i32);
+    server.shutdown().await.unwrap();
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn the_constellation_model_is_served_at_revision_2_with_scale_aware() {
+    let data = temp_dir("constellation-model");
+    let mut s = settings(&data);
+    s.model.model = scone::embedding::constellation_model_path();
+    let server = serve(s).await;
+    let (_, mut matching) = clients(&server).await;
+    let scene = Scene::load(&fixture("rendered")).unwrap();
+    let d = matching
+        .describe(proto::DescribeRequest { frame: Some(image_frame(&scene.frames[3].rgb, &scene.camera)) })
+        .await
+        .unwrap()
+        .into_inner();
+    assert_eq!(d.keypoints.iter().map(|k| k.octave).max(), Some(5), "six levels");
+    assert!(d.context.is_empty());
+    let pair = matching
+        .match_pair(proto::MatchPairRequest {
+            frame1: Some(image_frame(&scene.frames[3].rgb, &scene.camera)),
+            frame2: Some(image_frame(&scene.frames[5].rgb, &scene.camera)),
+            ..Default::default()
+        })
+        .await
+        .unwrap()
+        .into_inner();
+    assert_eq!(pair.matcher, proto::PairMatcher::ScaleAware as i32);
     server.shutdown().await.unwrap();
 }

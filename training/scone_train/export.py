@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import hashlib
+import json
 from pathlib import Path
 
 import numpy as np
@@ -47,6 +48,33 @@ def export_onnx(model: torch.nn.Module, path: Path, opset: int = 18) -> Path:
     return path
 
 
+# The extraction every model was trained at unless its config's `data.extractor` says otherwise: the client
+# contract's revision 2 (the Rust extractor's defaults until issue 39). A model that declares nothing is served
+# at it.
+REVISION_2_EXTRACTION = {"fast_threshold": 20, "max_keypoints": 1500, "levels": 6, "scale_factor": 1.2, "grid_cell": 32}
+# The metadata keys the service reads (src/embedding.rs, "What a model declares").
+EXTRACTION_KEY = "scone.extraction"
+MATCHER_KEY = "scone.matcher"
+
+
+def declaration(cfg: dict, matcher: str) -> dict[str, str]:
+    """What a model trained under `cfg` declares: its full extraction (revision 2 with the config's
+    `data.extractor` over it) and the MatchPair matcher it ships with."""
+    extraction = {**REVISION_2_EXTRACTION, **(cfg["data"].get("extractor") or {})}
+    return {EXTRACTION_KEY: json.dumps(extraction, sort_keys=True), MATCHER_KEY: matcher}
+
+
+def declare(path: Path, props: dict[str, str]) -> None:
+    """Writes `props` into the ONNX file's metadata (the graph and its weights are untouched)."""
+    model = onnx.load(str(path))
+    del model.metadata_props[:]
+    for key, value in sorted(props.items()):
+        entry = model.metadata_props.add()
+        entry.key, entry.value = key, value
+    onnx.checker.check_model(model, full_check=True)
+    onnx.save(model, str(path))
+
+
 def session(path: Path, threads: int = 2) -> ort.InferenceSession:
     so = ort.SessionOptions()
     so.intra_op_num_threads = threads
@@ -80,20 +108,23 @@ def sha256(path: Path) -> str:
 def main() -> None:
     """`python -m scone_train.export --checkpoint RUN/best.pt --out CANDIDATE.onnx`: a candidate checkpoint as
     ONNX for scoring (`scone eval pairs --model`), with the parity check; the shipped model goes through
-    scone_train.release instead."""
+    scone_train.release instead. `--matcher` names the MatchPair matcher the model ships with; the model
+    declares it and its extraction in its metadata."""
     import argparse
-    import json
 
     from .validate import load_checkpoint
 
     ap = argparse.ArgumentParser()
     ap.add_argument("--checkpoint", required=True)
     ap.add_argument("--out", required=True)
+    ap.add_argument("--matcher", default="scale-aware", choices=["plain", "union", "rerank", "scale-aware", "freak"])
     a = ap.parse_args()
     torch.set_num_threads(1)
     model = load_checkpoint(Path(a.checkpoint))
     export_onnx(model, Path(a.out))
-    step = torch.load(a.checkpoint, weights_only=False)["step"]
+    ckpt = torch.load(a.checkpoint, weights_only=False)
+    step = ckpt["step"]
+    declare(Path(a.out), declaration(ckpt["config"], a.matcher))
     print(json.dumps({"step": step, "parity": check_parity(model, Path(a.out)), "sha256": sha256(Path(a.out))}))
 
 

@@ -25,6 +25,7 @@ from . import correspondences as C
 from . import evaluate as E
 from .data import FrameFeatures, shared_data
 from .dataset import GroupSampler, PairSampler, Unit, build_unit, shared_anchors
+from .export import REVISION_2_EXTRACTION
 from .model import RingNet, SconeNet
 
 
@@ -32,11 +33,20 @@ def prefix() -> Path:
     return Path(os.environ.get("SCONE_PREFIX", Path.home() / ".cache" / "scone"))
 
 
+# The Rust extractor's defaults: the client contract's revision 3 (E1 of issue 39, src/features.rs).
+REVISION_3_EXTRACTION = {**REVISION_2_EXTRACTION, "levels": 8, "max_keypoints": 2000}
+
+
 def extractor_args(settings: dict | None) -> list[str]:
-    """`scone features` flags for the config's `data.extractor` settings (none: the extractor's defaults)."""
+    """`scone features` flags for the config's `data.extractor` settings, which are relative to revision 2 (the
+    extractor's defaults when every config before issue 39 was written): a flag for each setting given and each
+    where revision 2 differs from the extractor's defaults (revision 3), so a config means what it meant."""
+    settings = settings or {}
+    full = {**REVISION_2_EXTRACTION, **settings}
     out: list[str] = []
-    for key, value in sorted((settings or {}).items()):
-        out += [f"--{key.replace('_', '-')}", str(value)]
+    for key, value in sorted(full.items()):
+        if key in settings or value != REVISION_3_EXTRACTION[key]:
+            out += [f"--{key.replace('_', '-')}", str(value)]
     return out
 
 

@@ -27,13 +27,20 @@ _F32_TWO = np.float32(2.0)
 
 @dataclass(frozen=True)
 class ExtractorConfig:
-    """The server's ``[extractor]`` settings; the defaults are the contract (and what the model was trained on)."""
+    """The server's ``[extractor]`` settings; the defaults are the contract's revision 3 (what the embedded model
+    was trained on and declares). ``ExtractorConfig.revision_2()`` is the extraction of a server that runs a
+    model made before models declared theirs (``scone-freak-k20``)."""
 
     fast_threshold: int = 20
-    max_keypoints: int = 1500
-    levels: int = 6
+    max_keypoints: int = 2000
+    levels: int = 8
     scale_factor: float = 1.2
     grid_cell: int = 32
+
+    @classmethod
+    def revision_2(cls) -> ExtractorConfig:
+        """6 levels and 1,500 keypoints: the contract's revision 2."""
+        return cls(max_keypoints=1500, levels=6)
 
 
 @dataclass
@@ -343,15 +350,16 @@ def ring_context(grey: np.ndarray, features: Features) -> np.ndarray:
     return ((total + area // 2) // area).astype(np.uint8)
 
 
-def extract(grey: np.ndarray, config: ExtractorConfig = ExtractorConfig(), context: bool = False) -> Features:
-    """The whole contract on an 8-bit grey image: what the server does with an image it receives (with the
-    ring context, step 9, when ``context``: a server whose model reads it needs it)."""
+def extract(grey: np.ndarray, config: ExtractorConfig = ExtractorConfig(), context: bool = True) -> Features:
+    """The whole contract on an 8-bit grey image: what the server does with an image it receives, with the
+    ring context (step 9) unless ``context`` is false: the embedded model reads it, a server that runs the
+    constellation model ignores it."""
     features = describe(grey, detect(grey, config))
     if context:
         features.context = ring_context(grey, features)
     return features
 
 
-def extract_encoded(data: bytes, config: ExtractorConfig = ExtractorConfig(), context: bool = False) -> Features:
+def extract_encoded(data: bytes, config: ExtractorConfig = ExtractorConfig(), context: bool = True) -> Features:
     """``extract(decode_grey(data))``: the server's result for an encoded PNG or JPEG."""
     return extract(decode_grey(data), config, context)

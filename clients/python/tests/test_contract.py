@@ -59,18 +59,31 @@ def test_client_extraction_reproduces_the_servers(client, name):
 
 
 def test_a_blurred_frame_leaves_the_unused_quota_unspent(client):
-    """Unused quota moves to the coarsest level only, which cannot use it either: fewer than 1,500 keypoints."""
+    """Unused quota moves to the coarsest level only, which cannot use it either: fewer than 2,000 keypoints."""
     server, grey = _server_features(client, _blurred_png())
     ours = extract(grey)
-    assert len(ours) == len(server) < 1500
+    assert len(ours) == len(server) < contract.ExtractorConfig().max_keypoints
+
+
+def _fields(f) -> np.ndarray:
+    return np.column_stack([f.xy, f.size, f.angle, f.response, f.octave.astype(np.float32)])
 
 
 def test_golden_features_are_reproduced():
-    """The committed golden features (made by the server's extractor) equal the client's, bit for bit."""
-    golden = np.load(FIXTURES / "golden" / "astronaut.features.npz")
+    """The committed golden features of the embedded model (made by the server's extractor at revision 3) equal
+    the client's, ring contexts included, bit for bit."""
+    golden = np.load(FIXTURES / "golden-ring" / "astronaut.ring.npz")
     ours = extract_encoded((FIXTURES / "astronaut.jpg").read_bytes())
-    fields = np.column_stack([ours.xy, ours.size, ours.angle, ours.response, ours.octave.astype(np.float32)])
-    np.testing.assert_array_equal(fields, golden["f0000_keypoints"])
+    np.testing.assert_array_equal(_fields(ours), golden["keypoints"])
+    np.testing.assert_array_equal(ours.descriptors, golden["descriptors"])
+    np.testing.assert_array_equal(ours.context, golden["context"])
+
+
+def test_revision_2_golden_features_are_reproduced():
+    """The constellation model's golden features (revision 2: 6 levels, 1,500 keypoints), bit for bit."""
+    golden = np.load(FIXTURES / "golden" / "astronaut.features.npz")
+    ours = extract_encoded((FIXTURES / "astronaut.jpg").read_bytes(), contract.ExtractorConfig.revision_2(), False)
+    np.testing.assert_array_equal(_fields(ours), golden["f0000_keypoints"])
     np.testing.assert_array_equal(ours.descriptors, golden["f0000_descriptors"])
 
 

@@ -7,7 +7,6 @@ use clap::Subcommand;
 
 use scone::decode::ImageLimitSettings;
 use scone::embedding::EmbedderSettings;
-use scone::features::ExtractorSettings;
 use scone::map::builder::{BuildSettings, Depth, KeyframeInput};
 use scone::map::store::{MapStore, ModelInfo, StoreSettings};
 use scone::offline::scene::Scene;
@@ -99,7 +98,7 @@ fn open_store_with(config: StoreSettings, model: Option<PathBuf>) -> anyhow::Res
     let info = ModelInfo { model_id: embedder.model_id().to_string(), k: embedder.k(), dim: embedder.dim() };
     let store = MapStore::open(config, info)?;
     let describer =
-        Describer { extractor: ExtractorSettings::default(), limits: ImageLimitSettings::default(), embedder };
+        Describer { extractor: embedder.extraction(), limits: ImageLimitSettings::default(), embedder };
     Ok((store, describer))
 }
 

@@ -48,12 +48,12 @@ impl proto::matching_server::Matching for GrpcApi {
         let out = self
             .call(authorized, NoMap, move |a, ()| {
                 let matcher = match proto::PairMatcher::try_from(r.matcher) {
-                    Ok(proto::PairMatcher::Default) => SconeMatcher::default(),
-                    Ok(proto::PairMatcher::Plain) => SconeMatcher::Plain,
-                    Ok(proto::PairMatcher::Union) => SconeMatcher::Union,
-                    Ok(proto::PairMatcher::Rerank) => SconeMatcher::Rerank,
-                    Ok(proto::PairMatcher::Freak) => SconeMatcher::Freak,
-                    Ok(proto::PairMatcher::ScaleAware) => SconeMatcher::ScaleAware,
+                    Ok(proto::PairMatcher::Default) => None,
+                    Ok(proto::PairMatcher::Plain) => Some(SconeMatcher::Plain),
+                    Ok(proto::PairMatcher::Union) => Some(SconeMatcher::Union),
+                    Ok(proto::PairMatcher::Rerank) => Some(SconeMatcher::Rerank),
+                    Ok(proto::PairMatcher::Freak) => Some(SconeMatcher::Freak),
+                    Ok(proto::PairMatcher::ScaleAware) => Some(SconeMatcher::ScaleAware),
                     Err(_) => return Err(invalid("matcher", &format!("{} is not a PairMatcher", r.matcher))),
                 };
                 let conv = convention(r.pose_convention)?;
@@ -68,7 +68,15 @@ impl proto::matching_server::Matching for GrpcApi {
                     options,
                 )?;
                 a.metrics.stages(&o.times);
+                let ran = match o.matcher {
+                    SconeMatcher::Plain => proto::PairMatcher::Plain,
+                    SconeMatcher::Union => proto::PairMatcher::Union,
+                    SconeMatcher::Rerank => proto::PairMatcher::Rerank,
+                    SconeMatcher::Freak => proto::PairMatcher::Freak,
+                    SconeMatcher::ScaleAware => proto::PairMatcher::ScaleAware,
+                };
                 Ok(proto::MatchPairResponse {
+                    matcher: ran as i32,
                     matches: o
                         .matches
                         .iter()

@@ -116,7 +116,7 @@ pub async fn match_pair(
         let options = PairOptions {
             ratio: j.ratio.unwrap_or(DEFAULT_RATIO),
             mutual: j.mutual,
-            matcher: j.matcher.map(Into::into).unwrap_or_default(),
+            matcher: j.matcher.map(Into::into),
         };
         let o = a.service.match_pair(f1, f2, options)?;
         a.metrics.stages(&o.times);
@@ -124,7 +124,7 @@ pub async fn match_pair(
             let pairs: Vec<(usize, usize)> = o.matches.iter().map(|m| (m.query, m.train)).collect();
             let pose = o.pose.as_ref().map(|p| (p.rotation.angle().to_degrees(), p.translation.into()));
             let caption =
-                render::pair_caption(options.matcher.name(), options.ratio, pairs.len(), o.inlier_count(), pose);
+                render::pair_caption(o.matcher.name(), options.ratio, pairs.len(), o.inlier_count(), pose);
             let drawn = render::pair(
                 &backdrop(&f1),
                 &backdrop(&f2),
@@ -149,7 +149,7 @@ pub async fn match_pair(
             let [qx, qy, qz, qw] = quaternion_xyzw(&r);
             wire::RelativePose { qx, qy, qz, qw, tx: t.x, ty: t.y, tz: t.z }
         });
-        Ok(Json(wire::MatchResponse { matches, pose, inliers: o.inlier_count() }).into_response())
+        Ok(Json(wire::MatchResponse { matcher: o.matcher.into(), matches, pose, inliers: o.inlier_count() }).into_response())
     })
     .await
 }

@@ -24,11 +24,25 @@ pub enum Matcher {
     Union,
     /// FREAK's nearest candidates re-ranked by the SConE embedding.
     Rerank,
-    /// `rerank`, or `union` when the two images differ in scale by 1.6x or more (the default).
+    /// `rerank`, or `union` when the two images differ in scale by 1.6x or more (the default of models that
+    /// declare none).
     #[serde(rename = "scale-aware")]
     ScaleAware,
     /// FREAK alone (Hamming + ratio test): the baseline, for comparison on the same keypoints.
     Freak,
+}
+
+impl From<crate::matching::SconeMatcher> for Matcher {
+    fn from(m: crate::matching::SconeMatcher) -> Self {
+        use crate::matching::SconeMatcher as S;
+        match m {
+            S::Plain => Self::Plain,
+            S::Union => Self::Union,
+            S::Rerank => Self::Rerank,
+            S::ScaleAware => Self::ScaleAware,
+            S::Freak => Self::Freak,
+        }
+    }
 }
 
 impl From<Matcher> for crate::matching::SconeMatcher {
@@ -59,7 +73,7 @@ pub struct MatchRequest {
     /// Keep only mutual nearest neighbours.
     #[serde(default)]
     pub mutual: bool,
-    /// Absent: the server's default (`scale-aware`).
+    /// Absent: the model's (`union` for the embedded model; `matcher` in the answer names it).
     #[serde(default)]
     pub matcher: Option<Matcher>,
     /// The camera axes of the answer's relative pose (OpenGL: y up, z backward); it maps camera 1 into camera 2
@@ -126,6 +140,8 @@ pub struct RelativePose {
 /// Matches and the relative pose (null when too few matches support one).
 #[derive(Debug, Serialize, ToSchema)]
 pub struct MatchResponse {
+    /// The matcher that picked the matches: the request's, or the model's default.
+    pub matcher: Matcher,
     pub matches: Vec<PairMatch>,
     pub pose: Option<RelativePose>,
     pub inliers: usize,
