@@ -239,8 +239,7 @@ fn main() {
     scone::features::set_opencv_threads(1).unwrap();
     let embedder = Arc::new(Embedder::load(&EmbedderSettings::default()).unwrap());
     let info = ModelInfo { model_id: embedder.model_id().to_string(), k: embedder.k(), dim: embedder.dim() };
-    let describer =
-        Describer { extractor: embedder.extraction(), limits: ImageLimitSettings::default(), embedder };
+    let describer = Describer { extractor: embedder.extraction(), limits: ImageLimitSettings::default(), embedder };
     let frames = map_frames(&scenes);
     let kitchen = &scenes[0];
     let camera: Camera = kitchen.camera;
@@ -373,7 +372,8 @@ fn main() {
             } else {
                 "-".into()
             };
-            let service = Service::new(describer.clone(), KeypointLimitSettings::default(), Default::default()).unwrap();
+            let service =
+                Service::new(describer.clone(), KeypointLimitSettings::default(), Default::default()).unwrap();
             let store = Arc::new(store);
             service.attach_store(store.clone());
             let runs = match (label, target) {

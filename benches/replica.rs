@@ -106,8 +106,7 @@ fn main() {
 
     let embedder = Arc::new(Embedder::load(&EmbedderSettings::default()).unwrap());
     let model = ModelInfo { model_id: embedder.model_id().to_string(), k: embedder.k(), dim: embedder.dim() };
-    let describer =
-        Describer { extractor: embedder.extraction(), limits: ImageLimitSettings::default(), embedder };
+    let describer = Describer { extractor: embedder.extraction(), limits: ImageLimitSettings::default(), embedder };
     let limits = ImageLimitSettings::default();
     let tmp = std::env::temp_dir().join(format!("scone-bench-replica-{}", std::process::id()));
     let _ = std::fs::remove_dir_all(&tmp);

@@ -46,8 +46,7 @@ fn main() {
     let dir = scene_dir();
     let scene = Scene::load(&dir).unwrap();
     let embedder = Arc::new(Embedder::load(&EmbedderSettings::default()).unwrap());
-    let describer =
-        Describer { extractor: embedder.extraction(), limits: ImageLimitSettings::default(), embedder };
+    let describer = Describer { extractor: embedder.extraction(), limits: ImageLimitSettings::default(), embedder };
     let data = std::env::temp_dir().join(format!("scone-bench-track-{}", std::process::id()));
     let config = StoreSettings { data_dir: data.clone(), ..StoreSettings::default() };
     let e = &describer.embedder;

@@ -85,7 +85,8 @@ pub fn constellation_model_path() -> PathBuf {
 /// The committed model's bytes, compiled into the binary. [`Embedder::load`] uses them when the configured model
 /// is [`default_model_path`] and that file is gone (the checkout that built the binary was moved or removed), so
 /// the built-in default keeps working; any other missing model is an error.
-pub static BUILT_IN_MODEL: &[u8] = include_bytes!(concat!(env!("CARGO_MANIFEST_DIR"), "/models/scone-ring-e1-real.onnx"));
+pub static BUILT_IN_MODEL: &[u8] =
+    include_bytes!(concat!(env!("CARGO_MANIFEST_DIR"), "/models/scone-ring-e1-real.onnx"));
 
 /// The metadata key of a model's extraction.
 pub const EXTRACTION_KEY: &str = "scone.extraction";

@@ -256,7 +256,10 @@ impl Settings {
         if self.limits.image.max_bytes > self.server.max_request_bytes {
             return bad("limits.image.max_bytes", "must not exceed server.max_request_bytes");
         }
-        self.extractor.as_ref().map_or(Ok(()), ExtractorSettings::validate).map_err(|e| SettingsError::Invalid { field: "extractor", reason: e.to_string() })?;
+        self.extractor
+            .as_ref()
+            .map_or(Ok(()), ExtractorSettings::validate)
+            .map_err(|e| SettingsError::Invalid { field: "extractor", reason: e.to_string() })?;
         self.relative_pose.validate().map_err(|reason| SettingsError::Invalid { field: "relative_pose", reason })?;
         self.store.backend.validate().map_err(|reason| SettingsError::Invalid { field: "store.backend", reason })?;
         self.store.build.validate().map_err(|reason| SettingsError::Invalid { field: "store.build", reason })?;

@@ -393,9 +393,12 @@ function pairPage() {
     setStatus("matching…");
     try {
       const columns = [];
-      for (const [matcher, title] of [["scale-aware", "SConE"], ["freak", "FREAK"]]) {
+      // SConE with the model's own matcher (the request names none), beside FREAK on the same keypoints.
+      for (const [matcher, title] of [["default", "SConE"], ["freak", "FREAK"]]) {
         const form = new FormData();
-        form.append("request", JSON.stringify({ frame1: { intrinsics }, frame2: { intrinsics }, matcher }));
+        const request = { frame1: { intrinsics }, frame2: { intrinsics } };
+        if (matcher !== "default") request.matcher = matcher;
+        form.append("request", JSON.stringify(request));
         form.append("image1", a);
         form.append("image2", b);
         const r = await api("/v1/match?render=png", { method: "POST", body: form });

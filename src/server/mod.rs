@@ -110,11 +110,7 @@ pub async fn start(settings: Settings) -> anyhow::Result<Running> {
         );
     }
     tracing::info!(extractor = ?extractor, "extraction");
-    let describer = Describer {
-        extractor,
-        limits: settings.limits.image,
-        embedder: Arc::clone(&embedder),
-    };
+    let describer = Describer { extractor, limits: settings.limits.image, embedder: Arc::clone(&embedder) };
     let service = Service::new(describer, settings.limits.keypoints, settings.relative_pose)?;
     let grpc_listener = TcpListener::bind(settings.server.grpc_addr)
         .await

@@ -68,16 +68,6 @@ impl Service {
                     }
                 }
                 let needs_context = self.describer.embedder.needs_context();
-                if needs_context && k.context.is_empty() {
-                    return Err(FeatureError::InvalidContext {
-                        reason: format!(
-                            "model {} reads each keypoint's ring context (client contract revision 3, step 9): \
-                             send the keypoint set's context",
-                            self.model_id()
-                        ),
-                    }
-                    .into());
-                }
                 Ok(times.time("validate", || -> Result<Features, FeatureError> {
                     let f = features::from_precomputed(
                         k.width,
@@ -86,6 +76,15 @@ impl Service {
                         &k.descriptors,
                         &self.keypoint_limits,
                     )?;
+                    if needs_context && k.context.is_empty() {
+                        return Err(FeatureError::InvalidContext {
+                            reason: format!(
+                                "model {} reads each keypoint's ring context (client contract revision 3, step \
+                                 9): send the keypoint set's context",
+                                self.model_id()
+                            ),
+                        });
+                    }
                     if needs_context {
                         features::with_context(f, &k.context)
                     } else {

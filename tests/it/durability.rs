@@ -17,7 +17,12 @@ use crate::common::{fixture, temp_dir};
 
 /// The map store of `dir` with the committed model, and a describer with the service's defaults.
 pub(crate) fn open(dir: &std::path::Path) -> (MapStore, Describer) {
-    let embedder = Arc::new(Embedder::load(&EmbedderSettings::default()).unwrap());
+    open_with(dir, EmbedderSettings::default().model)
+}
+
+/// The map store of `dir` for `model`, and a describer at the extraction the model declares.
+fn open_with(dir: &std::path::Path, model: std::path::PathBuf) -> (MapStore, Describer) {
+    let embedder = Arc::new(Embedder::load(&EmbedderSettings { model, ..EmbedderSettings::default() }).unwrap());
     let info = ModelInfo { model_id: embedder.model_id().into(), k: embedder.k(), dim: embedder.dim() };
     let store =
         MapStore::open(StoreSettings { data_dir: dir.to_path_buf(), ..StoreSettings::default() }, info).unwrap();
@@ -195,6 +200,10 @@ fn reads_of_one_map_go_on_while_another_is_written() {
 /// (re-embedding from the stored keypoints and FREAK descriptors) makes it answer again.
 #[test]
 fn a_map_from_another_model_is_refused_until_re_embedded() {
+    // Re-embedding reads the keyframes' keypoints and descriptors, which is all the constellation model reads;
+    // the embedded ring model also reads the image around each keypoint, which keyframes do not store.
+    let model = scone::embedding::constellation_model_path();
+    let open = |dir: &std::path::Path| open_with(dir, model.clone());
     let dir = temp_dir("reembed");
     let (_, describer) = open(&dir);
     let scene = Scene::load(&fixture("rendered")).unwrap();
@@ -232,15 +241,21 @@ fn a_map_from_another_model_is_refused_until_re_embedded() {
     assert!(err.contains("sha256:older-model") && err.contains("scone map reembed"), "{err}");
     drop(store);
 
-    let reembed = |map: &str| {
+    let reembed_with = |map: &str, model: &std::path::Path| {
         Command::new(env!("CARGO_BIN_EXE_scone"))
             .args(["map", "reembed", "--map", map])
             .arg("--data-dir")
             .arg(&dir)
+            .arg("--model")
+            .arg(model)
             .stderr(Stdio::piped())
             .output()
             .unwrap()
     };
+    let reembed = |map: &str| reembed_with(map, &model);
+    let out = reembed_with("m", &scone::embedding::default_model_path());
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert!(!out.status.success() && stderr.contains("ring context") && stderr.contains("scone-freak-k20"), "{stderr}");
     let out = reembed("nowhere");
     assert!(!out.status.success());
     assert!(String::from_utf8_lossy(&out.stderr).contains("nowhere"), "{}", String::from_utf8_lossy(&out.stderr));

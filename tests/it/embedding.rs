@@ -100,8 +100,8 @@ fn the_embedded_model_matches_its_python_golden_fixture_at_its_declared_extracti
 
 #[test]
 fn a_model_that_declares_nothing_is_served_at_revision_2() {
-    let e = Embedder::load(&EmbedderSettings { model: constellation_model_path(), ..EmbedderSettings::default() })
-        .unwrap();
+    let e =
+        Embedder::load(&EmbedderSettings { model: constellation_model_path(), ..EmbedderSettings::default() }).unwrap();
     assert_eq!((e.declared_extraction(), e.declared_matcher()), (None, None));
     assert_eq!(e.extraction(), ExtractorSettings::revision_2());
     assert_eq!((e.extraction().levels, e.extraction().max_keypoints), (6, 1500));

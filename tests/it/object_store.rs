@@ -152,8 +152,7 @@ struct Frames {
 fn frames() -> Frames {
     let embedder = Arc::new(Embedder::load(&EmbedderSettings::default()).unwrap());
     let model = ModelInfo { model_id: embedder.model_id().into(), k: embedder.k(), dim: embedder.dim() };
-    let describer =
-        Describer { extractor: embedder.extraction(), limits: ImageLimitSettings::default(), embedder };
+    let describer = Describer { extractor: embedder.extraction(), limits: ImageLimitSettings::default(), embedder };
     let scene = Scene::load(&fixture("rendered")).unwrap();
     let described =
         scene.frames.iter().map(|f| describer.describe_image(&std::fs::read(&f.rgb).unwrap()).unwrap()).collect();

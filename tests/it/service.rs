@@ -214,7 +214,8 @@ async fn describe_of_an_image_equals_describe_of_its_keypoints() {
         .unwrap();
     let body = serde_json::json!({"frame": {"keypoints": {
         "width": raw["width"], "height": raw["height"], "keypoints": raw["keypoints"],
-        "descriptors_base64": raw["descriptors_base64"], "model_id": raw["model_id"]}}});
+        "descriptors_base64": raw["descriptors_base64"], "context_base64": raw["context_base64"],
+        "model_id": raw["model_id"]}}});
     let via_keypoints: serde_json::Value = http.post(&url).json(&body).send().await.unwrap().json().await.unwrap();
     assert_eq!(raw["embeddings"], via_keypoints["embeddings"]);
     assert_eq!(raw["embeddings"].as_array().unwrap().len(), a.embeddings.len());
@@ -819,14 +820,16 @@ async fn match_pair_matchers_are_selectable_and_unknown_ones_refused() {
         proto::PairMatcher::ScaleAware,
     ] {
         let r = matching.match_pair(request(m as i32)).await.unwrap().into_inner();
+        let ran = if m == proto::PairMatcher::Default { proto::PairMatcher::Union } else { m };
+        assert_eq!(r.matcher, ran as i32, "the answer names the matcher that ran");
         let dr = rotation_error(r.pose.as_ref().expect("a pose"));
         assert!(dr < 2.0, "{m:?}: relative rotation off by {dr} deg");
         counts.push(r.matches.len());
     }
-    // The default is the scale-aware matcher, which re-ranks between these two frames of one scale: the same
-    // matches as rerank.
-    assert_eq!(counts[0], counts[4]);
-    assert_eq!(counts[0], counts[3]);
+    // The default is the embedded model's declared matcher, union.
+    assert_eq!(counts[0], counts[2]);
+    // Scale-aware re-ranks between these two frames of one scale: the same matches as rerank.
+    assert_eq!(counts[4], counts[3]);
     let err = matching.match_pair(request(99)).await.unwrap_err();
     assert_eq!(err.code(), Code::InvalidArgument);
     assert!(err.message().contains("matcher"), "{}", err.message());
@@ -847,6 +850,7 @@ async fn match_pair_matchers_are_selectable_and_unknown_ones_refused() {
     };
     let plain: serde_json::Value = post("plain").await.unwrap().json().await.unwrap();
     assert_eq!(plain["matches"].as_array().unwrap().len(), counts[1]);
+    assert_eq!(plain["matcher"], "plain");
     let scale_aware: serde_json::Value = post("scale-aware").await.unwrap().json().await.unwrap();
     assert_eq!(scale_aware["matches"].as_array().unwrap().len(), counts[4]);
     let r = post("nearest").await.unwrap();

@@ -99,18 +99,22 @@ def test_the_agreement_check_detects_a_wrong_rule(client, wrong_rule):
 
 
 def test_level_geometry_matches_the_contract_table():
-    assert contract.level_quotas() == [516, 358, 249, 173, 120, 83]
-    assert [contract.level_size(640, 480, lvl) for lvl in range(6)] == [
+    """The numbers the proto's contract text states: revision 3's quotas and level sizes, and revision 2's quotas."""
+    assert contract.level_quotas() == [646, 449, 312, 216, 150, 104, 72, 50]
+    assert contract.level_quotas(contract.ExtractorConfig.revision_2()) == [516, 358, 249, 173, 120, 83]
+    assert [contract.level_size(640, 480, lvl) for lvl in range(8)] == [
         (640, 480),
         (533, 400),
         (444, 333),
         (370, 278),
         (309, 231),
         (257, 193),
+        (214, 161),
+        (179, 134),
     ]
     assert contract.round_half_away(2.5) == 3 and contract.round_half_away(-2.5) == -3
-    sizes = [float(contract.keypoint_size(lvl)) for lvl in range(6)]
-    assert sizes == [float(np.float32(7 * np.float32(contract.powi(1.2, lvl)))) for lvl in range(6)]
+    sizes = [float(contract.keypoint_size(lvl)) for lvl in range(8)]
+    assert sizes == [float(np.float32(7 * np.float32(contract.powi(1.2, lvl)))) for lvl in range(8)]
 
 
 def test_grey_formula_equals_cvtcolor_on_every_colour():

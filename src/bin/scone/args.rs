@@ -34,7 +34,8 @@ impl ReportArgs {
     }
 }
 
-/// Extraction settings on the command line; unset flags keep [`ExtractorSettings::default`].
+/// Extraction settings on the command line; unset flags keep [`ExtractorSettings::default`] (revision 3), or
+/// with a model, the extraction it declares ([`ExtractorArgs::config_for`]).
 #[derive(Args, Clone)]
 pub struct ExtractorArgs {
     /// FAST threshold.
@@ -62,7 +63,16 @@ pub struct ExtractorArgs {
 
 impl ExtractorArgs {
     pub fn config(&self) -> anyhow::Result<ExtractorSettings> {
-        let d = ExtractorSettings::default();
+        self.config_over(ExtractorSettings::default())
+    }
+
+    /// The flags over the extraction `embedder` declares (revision 2's for a model that declares none); over
+    /// the default without a model.
+    pub fn config_for(&self, embedder: Option<&Embedder>) -> anyhow::Result<ExtractorSettings> {
+        self.config_over(embedder.map_or_else(ExtractorSettings::default, Embedder::extraction))
+    }
+
+    fn config_over(&self, d: ExtractorSettings) -> anyhow::Result<ExtractorSettings> {
         let cfg = ExtractorSettings {
             fast_threshold: self.fast_threshold.unwrap_or(d.fast_threshold),
             max_keypoints: self.max_keypoints.unwrap_or(d.max_keypoints),

@@ -39,9 +39,10 @@ pub enum EvalCommand {
         /// corner, not competitors (0 = OpenCV's plain test). Default 2, or 0 with --single-scale.
         #[arg(long)]
         same_corner_px: Option<f32>,
-        /// How the scone method picks its matches (scone-plain is always the plain embedding).
-        #[arg(long, value_enum, default_value_t = scone::matching::SconeMatcher::default())]
-        scone_matcher: scone::matching::SconeMatcher,
+        /// How the scone method picks its matches (scone-plain is always the plain embedding). Default: the
+        /// model's declared matcher, as MatchPair (union for the embedded model).
+        #[arg(long, value_enum)]
+        scone_matcher: Option<scone::matching::SconeMatcher>,
         /// RANSAC inlier threshold in pixels.
         #[arg(long, default_value_t = 1.0)]
         ransac_px: f64,
@@ -157,9 +158,10 @@ pub enum EvalCommand {
         /// Ratio test's same-corner radius in pixels (0 = OpenCV's plain test).
         #[arg(long, default_value_t = scone::matching::SAME_CORNER_PX)]
         same_corner_px: f32,
-        /// How the scone method picks its matches (scone-plain is always the plain embedding).
-        #[arg(long, value_enum, default_value_t = scone::matching::SconeMatcher::default())]
-        scone_matcher: scone::matching::SconeMatcher,
+        /// How the scone method picks its matches (scone-plain is always the plain embedding). Default: the
+        /// model's declared matcher, as MatchPair (union for the embedded model).
+        #[arg(long, value_enum)]
+        scone_matcher: Option<scone::matching::SconeMatcher>,
         /// MAGSAC++ inlier threshold of the fitted homography, pixels.
         #[arg(long, default_value_t = 3.0)]
         ransac_px: f64,
@@ -234,13 +236,14 @@ pub fn run(cmd: EvalCommand) -> anyhow::Result<()> {
             ransac.validate().map_err(|e| {
                 anyhow::anyhow!("--ransac-px / --ransac-iters / --ransac-confidence / --duplicate-px: {e}")
             })?;
-            let mut cfg = extractor.config()?;
+            let embedder =
+                load_embedder(methods.iter().any(|m| matches!(m, Method::Scone | Method::SconePlain)), &out)?;
+            let mut cfg = extractor.config_for(embedder.as_ref())?;
             if single_scale {
                 cfg = ExtractorSettings::single_scale(20, 2000);
             }
+            let scone_matcher = matcher_for(scone_matcher, embedder.as_ref())?;
             let s = Scene::load(&scene)?;
-            let embedder =
-                load_embedder(methods.iter().any(|m| matches!(m, Method::Scone | Method::SconePlain)), &out)?;
             let pc = PairsConfig {
                 methods,
                 window,
@@ -273,20 +276,20 @@ pub fn run(cmd: EvalCommand) -> anyhow::Result<()> {
         } => {
             check_same_corner(same_corner_px)?;
             anyhow::ensure!(ransac_px > 0.0 && correct_px > 0.0, "--ransac-px and --correct-px must be > 0");
+            let embedder =
+                load_embedder(methods.iter().any(|m| matches!(m, Method::Scone | Method::SconePlain)), &out)?;
             let cfg = homography::HomographyConfig {
                 methods,
                 ratio,
                 same_corner_px,
-                scone_matcher,
+                scone_matcher: matcher_for(scone_matcher, embedder.as_ref())?,
                 ransac_px,
                 correct_px,
                 k: extractor.k,
                 neighbour_rules,
-                extractor: extractor.config()?,
+                extractor: extractor.config_for(embedder.as_ref())?,
             };
             let dirs = homography::find_sequences(&data).map_err(|e| anyhow::anyhow!("{e}"))?;
-            let embedder =
-                load_embedder(cfg.methods.iter().any(|m| matches!(m, Method::Scone | Method::SconePlain)), &out)?;
             let report = homography::evaluate(&dirs, &cfg, embedder.as_ref()).map_err(|e| anyhow::anyhow!("{e}"))?;
             print!("{}", homography::markdown(&report));
             out.write_json(&report)?;
@@ -315,15 +318,15 @@ pub fn run(cmd: EvalCommand) -> anyhow::Result<()> {
         } => {
             anyhow::ensure!(unit_scale.is_finite() && unit_scale > 0.0, "--unit-scale must be positive");
             anyhow::ensure!(track <= 10, "--track: a track holds at most 10 frames");
-            let cfg = extractor.config()?;
             for m in &methods {
                 anyhow::ensure!(
                     matches!(m, Method::Scone | Method::Freak | Method::Sift),
                     "eval reloc compares scone, freak and sift"
                 );
             }
-            let s = Scene::load(&scene)?;
             let embedder = load_embedder(methods.contains(&Method::Scone), &out)?;
+            let cfg = extractor.config_for(embedder.as_ref())?;
+            let s = Scene::load(&scene)?;
             let mut rc = reloc::RelocConfig {
                 methods,
                 stride: map_stride,
@@ -389,6 +392,18 @@ fn run_merge(
 fn check_same_corner(px: f32) -> anyhow::Result<()> {
     anyhow::ensure!(px.is_finite() && px >= 0.0, "--same-corner-px must be a finite number >= 0");
     Ok(())
+}
+
+/// `--scone-matcher`, or the model's declared matcher.
+fn matcher_for(
+    flag: Option<scone::matching::SconeMatcher>,
+    embedder: Option<&scone::embedding::Embedder>,
+) -> anyhow::Result<scone::matching::SconeMatcher> {
+    match flag {
+        Some(m) => Ok(m),
+        None => scone::matching::SconeMatcher::declared(embedder.and_then(|e| e.declared_matcher()))
+            .map_err(|e| anyhow::anyhow!(e)),
+    }
 }
 
 fn parse_block(s: &str) -> Result<(f64, f64), String> {

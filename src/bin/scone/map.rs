@@ -97,8 +97,7 @@ fn open_store_with(config: StoreSettings, model: Option<PathBuf>) -> anyhow::Res
     let embedder = std::sync::Arc::new(load_embedder(true, &report)?.expect("requested"));
     let info = ModelInfo { model_id: embedder.model_id().to_string(), k: embedder.k(), dim: embedder.dim() };
     let store = MapStore::open(config, info)?;
-    let describer =
-        Describer { extractor: embedder.extraction(), limits: ImageLimitSettings::default(), embedder };
+    let describer = Describer { extractor: embedder.extraction(), limits: ImageLimitSettings::default(), embedder };
     Ok((store, describer))
 }
 
@@ -192,6 +191,16 @@ pub fn run(cmd: MapCommand) -> anyhow::Result<()> {
         }
         MapCommand::Reembed { data_dir, map, model } => {
             let (store, describer) = open_store(data_dir, model)?;
+            let e = &describer.embedder;
+            anyhow::ensure!(
+                !e.needs_context(),
+                "model {} ({}) reads each keypoint's ring context, which keyframes do not store, so map '{map}' \
+                 cannot be re-embedded for it: build the map again from its images (scone map write-scene, or \
+                 AddKeyframes), or serve the model the map was built with (--model / SCONE_MODEL__MODEL; the \
+                 constellation model is models/scone-freak-k20.onnx)",
+                e.model_id(),
+                e.path().display()
+            );
             let progress = RefCell::new(Progress::new(format!("reembed {map}"), store.summary(&map)?.keyframes));
             let summary = store.reembed(&map, &|keyframe| {
                 progress.borrow_mut().step();

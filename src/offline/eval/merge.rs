@@ -18,7 +18,7 @@ use rand::{Rng, SeedableRng};
 
 use crate::decode::{decode_grey, ImageLimitSettings};
 use crate::embedding::Embedder;
-use crate::features::{ExtractorSettings, Features};
+use crate::features::Features;
 use crate::map::builder::{plan_keyframe, BuildSettings, KeyframeInput};
 use crate::map::index::{EmbeddingIndex, IndexSettings};
 use crate::map::localize::{localize, LocalizeSettings};
@@ -80,7 +80,7 @@ fn moved(s: &Similarity3<f64>, p: &Isometry3<f64>) -> Isometry3<f64> {
 
 pub fn evaluate(scene: &Scene, split: Split, seed: u64, embedder: &Embedder) -> Result<MergeReport, BoxError> {
     let limits = ImageLimitSettings::default();
-    let extractor = ExtractorSettings::default();
+    let extractor = embedder.extraction();
     let posed: Vec<usize> = (0..scene.frames.len()).filter(|&i| scene.frames[i].pose.is_some()).collect();
     let queries: Vec<usize> = posed.iter().copied().filter(|i| i % 5 == 4).collect();
     let mapped: Vec<usize> = posed.iter().copied().filter(|i| i % 5 != 4).collect();

@@ -123,8 +123,7 @@ pub async fn match_pair(
         if let (Some(f1), Some(f2)) = (keep1, keep2) {
             let pairs: Vec<(usize, usize)> = o.matches.iter().map(|m| (m.query, m.train)).collect();
             let pose = o.pose.as_ref().map(|p| (p.rotation.angle().to_degrees(), p.translation.into()));
-            let caption =
-                render::pair_caption(o.matcher.name(), options.ratio, pairs.len(), o.inlier_count(), pose);
+            let caption = render::pair_caption(o.matcher.name(), options.ratio, pairs.len(), o.inlier_count(), pose);
             let drawn = render::pair(
                 &backdrop(&f1),
                 &backdrop(&f2),
@@ -149,7 +148,8 @@ pub async fn match_pair(
             let [qx, qy, qz, qw] = quaternion_xyzw(&r);
             wire::RelativePose { qx, qy, qz, qw, tx: t.x, ty: t.y, tz: t.z }
         });
-        Ok(Json(wire::MatchResponse { matcher: o.matcher.into(), matches, pose, inliers: o.inlier_count() }).into_response())
+        Ok(Json(wire::MatchResponse { matcher: o.matcher.into(), matches, pose, inliers: o.inlier_count() })
+            .into_response())
     })
     .await
 }

@@ -4,7 +4,8 @@
 use base64::Engine;
 use serde_json::{json, Value};
 
-/// Twelve keypoints of a 640x480 frame on a 4x3 grid, shifted by `dx` pixels, with made-up descriptors.
+/// Twelve keypoints of a 640x480 frame on a 4x3 grid, shifted by `dx` pixels, with made-up descriptors and ring
+/// contexts (113 bytes each; the embedded model reads them, a constellation model ignores them).
 pub fn keypoint_set(dx: f32) -> Value {
     let keypoints: Vec<Value> = (0..12)
         .map(|i| {
@@ -14,8 +15,10 @@ pub fn keypoint_set(dx: f32) -> Value {
         })
         .collect();
     let descriptors: Vec<u8> = (0..12 * 64).map(|i: u32| (i.wrapping_mul(2_654_435_761) >> 24) as u8).collect();
+    let context: Vec<u8> = (0..12 * 113).map(|i: u32| (i.wrapping_mul(2_246_822_519) >> 24) as u8).collect();
+    let b64 = |bytes: Vec<u8>| base64::engine::general_purpose::STANDARD.encode(bytes);
     json!({"width": 640, "height": 480, "keypoints": keypoints,
-           "descriptors_base64": base64::engine::general_purpose::STANDARD.encode(descriptors)})
+           "descriptors_base64": b64(descriptors), "context_base64": b64(context)})
 }
 
 fn intrinsics() -> Value {

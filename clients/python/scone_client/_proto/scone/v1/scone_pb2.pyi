@@ -393,14 +393,16 @@ class RelativePose(_message.Message):
     def __init__(self, qx: _Optional[float] = ..., qy: _Optional[float] = ..., qz: _Optional[float] = ..., qw: _Optional[float] = ..., tx: _Optional[float] = ..., ty: _Optional[float] = ..., tz: _Optional[float] = ...) -> None: ...
 
 class MatchPairResponse(_message.Message):
-    __slots__ = ("matches", "pose", "inliers")
+    __slots__ = ("matches", "pose", "inliers", "matcher")
     MATCHES_FIELD_NUMBER: _ClassVar[int]
     POSE_FIELD_NUMBER: _ClassVar[int]
     INLIERS_FIELD_NUMBER: _ClassVar[int]
+    MATCHER_FIELD_NUMBER: _ClassVar[int]
     matches: _containers.RepeatedCompositeFieldContainer[Match]
     pose: RelativePose
     inliers: int
-    def __init__(self, matches: _Optional[_Iterable[_Union[Match, _Mapping]]] = ..., pose: _Optional[_Union[RelativePose, _Mapping]] = ..., inliers: _Optional[int] = ...) -> None: ...
+    matcher: PairMatcher
+    def __init__(self, matches: _Optional[_Iterable[_Union[Match, _Mapping]]] = ..., pose: _Optional[_Union[RelativePose, _Mapping]] = ..., inliers: _Optional[int] = ..., matcher: _Optional[_Union[PairMatcher, str]] = ...) -> None: ...
 
 class PosePrior(_message.Message):
     __slots__ = ("x", "y", "z", "radius")
