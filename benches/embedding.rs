@@ -7,7 +7,8 @@
 //! USAC_ACCURATE) on 300 synthetic correspondences, 25 % outliers.
 //! Model: the embedded one (`models/scone-ring-e1-real.onnx`), or `$SCONE_MODEL`; extraction: the one the
 //! model declares (8 levels and 2,000 keypoints for the embedded model; revision 2's 6 and 1,500 for
-//! `models/scone-freak-k20.onnx`), with `$SCONE_BENCH_LEVELS` and `$SCONE_BENCH_KEYPOINTS` over it. The group's
+//! `models/scone-freak-k20.onnx`), with `$SCONE_BENCH_LEVELS` and `$SCONE_BENCH_KEYPOINTS` over it;
+//! `SCONE_BENCH_SPINNING=1` lets ONNX Runtime's idle threads spin (`[model] spinning`, off by default). The group's
 //! name (`scone_640x480_1000kp`) predates both: it was 1,000 keypoints once, and stays for the commands in
 //! BENCHMARKS.md. Run: `cargo bench --bench embedding`.
 
@@ -54,8 +55,13 @@ fn bench(c: &mut Criterion) {
     });
     for threads in [1usize, 2] {
         let e =
-            Embedder::load(&EmbedderSettings { model: model.clone(), intra_threads: threads, ..Default::default() })
-                .unwrap();
+            Embedder::load(&EmbedderSettings {
+                model: model.clone(),
+                intra_threads: threads,
+                spinning: std::env::var_os("SCONE_BENCH_SPINNING").is_some_and(|v| v == "1"),
+                ..Default::default()
+            })
+            .unwrap();
         let f = pipeline::extract_for(&img, &cfg, &e).unwrap();
         g.bench_function(format!("inference_{threads}thread"), |b| b.iter(|| e.embed(black_box(&f)).unwrap()));
         // The name predates ring-context models: the whole SConE path, whichever context the model reads.
