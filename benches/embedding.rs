@@ -54,14 +54,13 @@ fn bench(c: &mut Criterion) {
         })
     });
     for threads in [1usize, 2] {
-        let e =
-            Embedder::load(&EmbedderSettings {
-                model: model.clone(),
-                intra_threads: threads,
-                spinning: std::env::var_os("SCONE_BENCH_SPINNING").is_some_and(|v| v == "1"),
-                ..Default::default()
-            })
-            .unwrap();
+        let e = Embedder::load(&EmbedderSettings {
+            model: model.clone(),
+            intra_threads: threads,
+            spinning: std::env::var_os("SCONE_BENCH_SPINNING").is_some_and(|v| v == "1"),
+            ..Default::default()
+        })
+        .unwrap();
         let f = pipeline::extract_for(&img, &cfg, &e).unwrap();
         g.bench_function(format!("inference_{threads}thread"), |b| b.iter(|| e.embed(black_box(&f)).unwrap()));
         // The name predates ring-context models: the whole SConE path, whichever context the model reads.

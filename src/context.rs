@@ -173,11 +173,22 @@ fn sample_sums<T: Copy + Into<f64> + Sync>(
             })
             .collect()
     };
-    let two = keypoints.len() >= PARALLEL_FROM && std::thread::available_parallelism().is_ok_and(|n| n.get() > 1);
+    static CORES: LazyLock<usize> = LazyLock::new(|| std::thread::available_parallelism().map_or(1, |n| n.get()));
+    let two = keypoints.len() >= PARALLEL_FROM && *CORES > 1;
     let (upper, lower) = order.split_at(if two { order.len() / 2 } else { order.len() });
     let (a, b) = std::thread::scope(|scope| {
-        let other = (!lower.is_empty()).then(|| scope.spawn(|| band(lower)));
-        (band(upper), other.map(|t| t.join().expect("a ring-context thread panicked")).unwrap_or_default())
+        // A thread the system refuses (a process limit) leaves the lower band to this one.
+        let other = (!lower.is_empty()).then(|| std::thread::Builder::new().spawn_scoped(scope, || band(lower)));
+        let a = band(upper);
+        let b = match other {
+            None => Vec::new(),
+            Some(Ok(t)) => t.join().expect("a ring-context thread panicked"),
+            Some(Err(e)) => {
+                tracing::debug!(error = %e, "no second thread for the ring contexts");
+                band(lower)
+            }
+        };
+        (a, b)
     });
     let mut contexts = vec![[0u8; SAMPLES]; keypoints.len()];
     for (&i, c) in order.iter().zip(a.into_iter().chain(b)) {

@@ -240,8 +240,16 @@ fn declaration(path: &Path, session: &Session) -> Result<(Option<ExtractorSettin
     let extraction = match meta.custom(EXTRACTION_KEY) {
         None => None,
         Some(text) => {
-            let e: ExtractorSettings = serde_json::from_str(&text)
-                .map_err(|e| err(format!("metadata '{EXTRACTION_KEY}' is not an extraction ({e}): {text}")))?;
+            let bad = |why: String| err(format!("metadata '{EXTRACTION_KEY}' is not an extraction ({why}): {text}"));
+            // Every field, so that a default of this build cannot stand in for what the model was trained at.
+            let value: serde_json::Value = serde_json::from_str(&text).map_err(|e| bad(e.to_string()))?;
+            let fields = |v: &serde_json::Value| v.as_object().map_or(0, |o| o.len());
+            let given = fields(&value);
+            let all = serde_json::to_value(ExtractorSettings::default()).map_or(0, |v| fields(&v));
+            if given != all {
+                return Err(bad(format!("{given} fields, every field of the extraction is needed")));
+            }
+            let e: ExtractorSettings = serde_json::from_value(value).map_err(|e| bad(e.to_string()))?;
             e.validate().map_err(|e| err(format!("metadata '{EXTRACTION_KEY}': {e}")))?;
             Some(e)
         }

@@ -31,7 +31,7 @@ pub const SAME_CORNER_PX: f32 = 2.0;
 pub const DEFAULT_RATIO: f32 = 0.8;
 
 /// Candidates examined for a competitor beyond the same-corner radius. FAST's non-maximum suppression leaves
-/// a corner about one keypoint per pyramid level, so 10 covers the default six levels with room to spare; when
+/// a corner about one keypoint per pyramid level, so 10 covers the default eight levels with room to spare; when
 /// all of them are the same corner the last one's distance stands in, which can only make the test stricter.
 const SAME_CORNER_CANDIDATES: i32 = 10;
 

@@ -139,14 +139,38 @@ pub struct Settings {
     pub limits: LimitSettings,
     pub workers: WorkerSettings,
     pub model: EmbedderSettings,
-    /// Detection and description. Unset (no `[extractor]` section and no `SCONE_EXTRACTOR__*`): the extraction
-    /// the model declares ([`crate::embedding::Embedder::extraction`]). Set: these values, each field that is
-    /// left out at revision 3's default; a value other than the model's declaration is served with a warning.
-    pub extractor: Option<ExtractorSettings>,
+    /// Detection and description: the extraction the model declares
+    /// ([`crate::embedding::Embedder::extraction`]), with each field given here (`[extractor]`,
+    /// `SCONE_EXTRACTOR__*`) over it; an extraction other than the model's is served with a warning.
+    pub extractor: ExtractorOverrides,
     pub store: StoreSettings,
     /// MatchPair's essential-matrix search (`[relative_pose]`: threshold_px, confidence, max_iters, essential,
     /// duplicate_px). The defaults favour accuracy; a smaller `max_iters` bounds the time a hard pair can take.
     pub relative_pose: RansacSettings,
+}
+
+/// `[extractor]`: the fields of [`ExtractorSettings`] that are set, each over the model's declared extraction.
+#[derive(Debug, Clone, Copy, PartialEq, Default, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct ExtractorOverrides {
+    pub fast_threshold: Option<i32>,
+    pub max_keypoints: Option<usize>,
+    pub levels: Option<u32>,
+    pub scale_factor: Option<f64>,
+    pub grid_cell: Option<u32>,
+}
+
+impl ExtractorOverrides {
+    /// `base` with every field set here replaced.
+    pub fn over(&self, base: ExtractorSettings) -> ExtractorSettings {
+        ExtractorSettings {
+            fast_threshold: self.fast_threshold.unwrap_or(base.fast_threshold),
+            max_keypoints: self.max_keypoints.unwrap_or(base.max_keypoints),
+            levels: self.levels.unwrap_or(base.levels),
+            scale_factor: self.scale_factor.unwrap_or(base.scale_factor),
+            grid_cell: self.grid_cell.unwrap_or(base.grid_cell),
+        }
+    }
 }
 
 /// Flags that override everything else.
@@ -257,8 +281,8 @@ impl Settings {
             return bad("limits.image.max_bytes", "must not exceed server.max_request_bytes");
         }
         self.extractor
-            .as_ref()
-            .map_or(Ok(()), ExtractorSettings::validate)
+            .over(ExtractorSettings::default())
+            .validate()
             .map_err(|e| SettingsError::Invalid { field: "extractor", reason: e.to_string() })?;
         self.relative_pose.validate().map_err(|reason| SettingsError::Invalid { field: "relative_pose", reason })?;
         self.store.backend.validate().map_err(|reason| SettingsError::Invalid { field: "store.backend", reason })?;
@@ -373,6 +397,28 @@ mod tests {
             assert_eq!(s.server.request_timeout_ms, 1234, "file over defaults");
             assert_eq!(s.workers.queue, 5, "environment over file");
             assert_eq!(s.server.http_addr.port(), 9100, "flags over everything");
+            Ok(())
+        });
+    }
+
+    #[test]
+    fn the_extractor_is_the_models_with_each_field_given_over_it() {
+        let dir = crate::test_dir::temp_dir("settings-extractor");
+        assert_eq!(Settings::default().extractor, ExtractorOverrides::default(), "unset: the model's declaration");
+        let file = dir.join("scone.toml");
+        std::fs::write(&file, "[extractor]\nmax_keypoints = 1000\n").unwrap();
+        figment::Jail::expect_with(|jail| {
+            let s = Settings::load(Some(&file), &Overrides::default()).map_err(|e| e.to_string())?;
+            // Over a model that declares revision 2, only the keypoint budget changes.
+            let want = ExtractorSettings { max_keypoints: 1000, ..ExtractorSettings::revision_2() };
+            assert_eq!(s.extractor.over(ExtractorSettings::revision_2()), want);
+            jail.set_env("SCONE_EXTRACTOR__LEVELS", "5");
+            let s = Settings::load(Some(&file), &Overrides::default()).map_err(|e| e.to_string())?;
+            let want = ExtractorSettings { levels: 5, max_keypoints: 1000, ..ExtractorSettings::default() };
+            assert_eq!(s.extractor.over(ExtractorSettings::default()), want);
+            jail.set_env("SCONE_EXTRACTOR__LEVELS", "0");
+            let err = Settings::load(None, &Overrides::default()).and_then(|s| s.validate()).unwrap_err().to_string();
+            assert!(err.contains("extractor") && err.contains("levels"), "{err}");
             Ok(())
         });
     }

@@ -191,7 +191,7 @@ def markdown(results):
            "included); generator CPU = the load generator's own CPU time / wall time (100 % = its whole core); "
            "server CPU = the server's (100 % = its whole core); other CPU = what every other process on the machine "
            "used meanwhile (a build or test run elsewhere: figures with more than a few % are distorted).", ""]
-    for op, title in (("describe", "Describe (640x480 JPEG, 1,500 keypoints)"),
+    for op, title in (("describe", "Describe (640x480 JPEG, the model's extraction: 2,000 keypoints for the embedded one)"),
                       ("localize", "Localize (640x480 JPEG against a map of ~100k observations)"),
                       ("match", "MatchPair (two 640x480 JPEGs: every pair of the scene's frames in turn)")):
         s = sc.get(op)

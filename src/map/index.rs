@@ -400,7 +400,7 @@ impl EmbeddingIndex {
     }
 
     /// [`EmbeddingIndex::search`] for every row of `queries` (`[n, dim]`), spread over rayon's threads: the
-    /// searches are independent, and a relocalisation has ~1,500 of them.
+    /// searches are independent, and a relocalisation has ~2,000 of them.
     pub fn search_many(&self, data: &MapData, queries: &[f32], k: usize, accept: Accept) -> Vec<Vec<Hit>> {
         let dim = data.meta.dim;
         queries.par_chunks_exact(dim).with_min_len(64).map(|q| self.search(data, q, k, accept)).collect()

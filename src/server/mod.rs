@@ -100,7 +100,7 @@ pub async fn start(settings: Settings) -> anyhow::Result<Running> {
     let embedder = tokio::task::spawn_blocking(move || Embedder::load(&model_cfg)).await??;
     let embedder = Arc::new(embedder);
     tracing::info!(model = %embedder.model_id(), path = %embedder.path().display(), "model loaded");
-    let extractor = settings.extractor.clone().unwrap_or_else(|| embedder.extraction());
+    let extractor = settings.extractor.over(embedder.extraction());
     if extractor != embedder.extraction() {
         tracing::warn!(
             configured = ?extractor,

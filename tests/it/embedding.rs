@@ -107,12 +107,17 @@ fn a_model_that_declares_nothing_is_served_at_revision_2() {
     assert_eq!((e.extraction().levels, e.extraction().max_keypoints), (6, 1500));
 }
 
-/// `bad-declaration.onnx` declares an extraction of 0 levels; `bad-matcher.onnx` a matcher that does not exist.
+/// `bad-declaration.onnx` declares an extraction of 0 levels; `partial-declaration.onnx` only two of its five
+/// fields (a default of this build would stand in for the rest); `bad-matcher.onnx` a matcher that does not
+/// exist.
 #[test]
 fn a_declaration_that_cannot_be_served_is_refused_naming_it() {
     let cfg = EmbedderSettings { model: fixture("bad-declaration.onnx"), ..EmbedderSettings::default() };
     let err = Embedder::load(&cfg).unwrap_err().to_string();
     assert!(err.contains("scone.extraction") && err.contains("levels") && err.contains("bad-declaration"), "{err}");
+    let cfg = EmbedderSettings { model: fixture("partial-declaration.onnx"), ..EmbedderSettings::default() };
+    let err = Embedder::load(&cfg).unwrap_err().to_string();
+    assert!(err.contains("scone.extraction") && err.contains("2 fields"), "{err}");
 
     let cfg = EmbedderSettings { model: fixture("bad-matcher.onnx"), ..EmbedderSettings::default() };
     let embedder = std::sync::Arc::new(Embedder::load(&cfg).unwrap());

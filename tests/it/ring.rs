@@ -16,7 +16,7 @@ async fn the_ring_model_describes_maps_localises_and_matches() {
     let data = temp_dir("ring");
     let s = settings(&data);
     assert_eq!(s.model.model, scone::embedding::default_model_path());
-    assert!(s.extractor.is_none());
+    assert_eq!(s.extractor, scone::settings::ExtractorOverrides::default());
     let server = serve(s).await;
     let (mut maps, mut matching) = clients(&server).await;
     let scene = Scene::load(&fixture("rendered")).unwrap();

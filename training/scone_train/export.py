@@ -60,7 +60,8 @@ MATCHER_KEY = "scone.matcher"
 def declaration(cfg: dict, matcher: str) -> dict[str, str]:
     """What a model trained under `cfg` declares: its full extraction (revision 2 with the config's
     `data.extractor` over it) and the MatchPair matcher it ships with."""
-    extraction = {**REVISION_2_EXTRACTION, **(cfg["data"].get("extractor") or {})}
+    given = cfg["data"].get("extractor") or {}
+    extraction = {key: given.get(key, value) for key, value in REVISION_2_EXTRACTION.items()}
     return {EXTRACTION_KEY: json.dumps(extraction, sort_keys=True), MATCHER_KEY: matcher}
 
 
@@ -107,8 +108,8 @@ def sha256(path: Path) -> str:
 
 def main() -> None:
     """`python -m scone_train.export --checkpoint RUN/best.pt --out CANDIDATE.onnx`: a candidate checkpoint as
-    ONNX for scoring (`scone eval pairs --model`), with the parity check; the shipped model goes through
-    scone_train.release instead. `--matcher` names the MatchPair matcher the model ships with; the model
+    ONNX for scoring (`scone eval pairs --model`), with the parity check. The embedded ring model was exported
+    with it (`--matcher union`); scone_train.release is the constellation model's recipe. `--matcher` names the MatchPair matcher the model ships with; the model
     declares it and its extraction in its metadata."""
     import argparse
 

@@ -87,8 +87,10 @@ impl ExtractorArgs {
     }
 }
 
+/// The model, when a method needs it or `--model` names one (whose declared extraction the evaluation then
+/// runs, for every method alike).
 pub fn load_embedder(needed: bool, report: &ReportArgs) -> anyhow::Result<Option<Embedder>> {
-    if !needed {
+    if !needed && report.model.is_none() {
         return Ok(None);
     }
     let mut ec = EmbedderSettings { intra_threads: report.embed_threads.max(1), ..EmbedderSettings::default() };

@@ -21,8 +21,8 @@ pub struct BuildSettings {
     /// External landmarks: an observation takes the nearest keypoint within this many pixels. 2 px: the
     /// SfM's feature (COLMAP: SIFT, sub-pixel) and our FAST corner of the same image structure lie within
     /// about 1-2 px (FAST positions on pyramid level l are quantised to 1.2^l px, 1.7 px on level 3), while a
-    /// wrong keypoint that close is rare (1,500 keypoints in 640 x 480 leave one keypoint per ~200 px^2 on
-    /// average, so about 6 % of a 2 px disc holds one by chance) and would still be a pixel of the same spot.
+    /// wrong keypoint that close is rare (2,000 keypoints in 640 x 480 leave one keypoint per ~150 px^2 on
+    /// average, so about 8 % of a 2 px disc holds one by chance) and would still be a pixel of the same spot.
     pub external_radius_px: f64,
     /// External landmarks: largest reprojection error, with the given pose and intrinsics, of an accepted
     /// observation. 4 px is COLMAP's own `filter_max_reproj_error`, so every observation COLMAP keeps passes
