@@ -8,7 +8,7 @@ use serde::Serialize;
 use super::error::ServiceError;
 use crate::decode::ImageLimitSettings;
 use crate::error::{EmbeddingError, MapError};
-use crate::features::KeypointLimitSettings;
+use crate::features::{ExtractorSettings, KeypointLimitSettings};
 use crate::map::store::{Map, MapStore, ModelInfo, StoreSettings};
 use crate::matching::SconeMatcher;
 use crate::pipeline::Describer;
@@ -55,6 +55,12 @@ impl Service {
             ServiceError::Embedding(EmbeddingError::Contract { path: e.path().to_path_buf(), reason })
         })?;
         Ok(Self { describer, keypoint_limits, ransac, default_matcher, store: OnceLock::new() })
+    }
+
+    /// The extraction every image is described with (the model's declaration, `[extractor]` over it): what a
+    /// client that sends keypoint sets must extract with.
+    pub fn extraction(&self) -> &ExtractorSettings {
+        &self.describer.extractor
     }
 
     /// MatchPair's matcher when a request names none (the model's declaration, `scale-aware` without one).

@@ -29,8 +29,10 @@ async fn the_ring_model_describes_maps_localises_and_matches() {
         .into_inner();
     let n = d.keypoints.len();
     assert!(n > 100, "{n} keypoints");
-    // Eight levels ran (the declared extraction; revision 2's has six).
+    // Eight levels ran (the declared extraction; revision 2's has six), and the answer says so.
     assert_eq!(d.keypoints.iter().map(|k| k.octave).max(), Some(7));
+    let e = d.extraction.as_ref().expect("the extraction");
+    assert_eq!((e.levels, e.max_keypoints, e.fast_threshold, e.grid_cell), (8, 2000, 20, 32));
     assert_eq!(d.context.len(), 113 * n);
     assert_eq!(d.embeddings.len(), 48 * n);
     assert!(d.model_id.starts_with("sha256:8cace533"), "{}", d.model_id);
@@ -98,6 +100,7 @@ async fn the_constellation_model_is_served_at_revision_2_with_scale_aware() {
         .unwrap()
         .into_inner();
     assert_eq!(d.keypoints.iter().map(|k| k.octave).max(), Some(5), "six levels");
+    assert_eq!(d.extraction.as_ref().map(|e| (e.levels, e.max_keypoints)), Some((6, 1500)));
     assert!(d.context.is_empty());
     let pair = matching
         .match_pair(proto::MatchPairRequest {

@@ -218,6 +218,10 @@ async fn describe_of_an_image_equals_describe_of_its_keypoints() {
         "model_id": raw["model_id"]}}});
     let via_keypoints: serde_json::Value = http.post(&url).json(&body).send().await.unwrap().json().await.unwrap();
     assert_eq!(raw["embeddings"], via_keypoints["embeddings"]);
+    assert_eq!(
+        (raw["extraction"]["levels"].as_u64(), raw["extraction"]["max_keypoints"].as_u64()),
+        (Some(8), Some(2000))
+    );
     assert_eq!(raw["embeddings"].as_array().unwrap().len(), a.embeddings.len());
     server.shutdown().await.unwrap();
 }

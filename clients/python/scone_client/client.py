@@ -11,7 +11,7 @@ import numpy as np
 
 from scone_client._proto.scone.v1 import scone_pb2 as pb
 from scone_client._proto.scone.v1 import scone_pb2_grpc as pb_grpc
-from scone_client.contract import DESCRIPTOR_BYTES, RING_SAMPLES, Features
+from scone_client.contract import DESCRIPTOR_BYTES, RING_SAMPLES, ExtractorConfig, Features
 
 __all__ = [
     "Camera",
@@ -224,6 +224,13 @@ class SconeClient:
         if not ok:
             raise RuntimeError("could not encode a blank PNG")
         return self.describe(image_frame(png.tobytes())).model_id
+
+
+def extractor_config(response: pb.DescribeResponse) -> ExtractorConfig:
+    """The extraction the server runs (any Describe answer carries it): pass it to ``extract`` so that keypoint
+    sets match what the server would compute from the image."""
+    e = response.extraction
+    return ExtractorConfig(e.fast_threshold, e.max_keypoints, e.levels, e.scale_factor, e.grid_cell)
 
 
 def features_from_describe(response: pb.DescribeResponse, width: int, height: int) -> Features:

@@ -16,7 +16,15 @@ from conftest import FIXTURES, REPO
 
 from scone_client import contract, extract, extract_encoded, tum
 from scone_client.agreement import compare, deviation, grey_for
-from scone_client.client import Camera, covariance, features_from_describe, image_frame, keypoint_frame, pb
+from scone_client.client import (
+    Camera,
+    covariance,
+    extractor_config,
+    features_from_describe,
+    image_frame,
+    keypoint_frame,
+    pb,
+)
 
 #: The contract's acceptance figure: server keypoints with a client keypoint within 1 px and identical bytes.
 MIN_AGREEMENT = 0.999
@@ -46,6 +54,12 @@ def _server_features(client, data: bytes):
     grey = contract.decode_grey(data)
     response = client.describe(image_frame(data))
     return features_from_describe(response, grey.shape[1], grey.shape[0]), grey
+
+
+def test_the_server_says_which_extraction_it_runs(client):
+    """Describe names the server's extraction: the embedded model's, the contract's revision 3."""
+    response = client.describe(image_frame((FIXTURES / "coffee-640x480.jpg").read_bytes()))
+    assert extractor_config(response) == contract.ExtractorConfig()
 
 
 @pytest.mark.parametrize("name", sorted(IMAGES))

@@ -33,6 +33,7 @@ impl proto::matching_server::Matching for GrpcApi {
                     dim: d.dim as u32,
                     model_id: d.model_id,
                     context: d.features.context.concat(),
+                    extraction: Some(extraction_out(a.service.extraction())),
                 })
             })
             .await?;
@@ -184,5 +185,16 @@ impl proto::matching_server::Matching for GrpcApi {
             })
             .await?;
         Ok(Response::new(out))
+    }
+}
+
+/// The extraction a server runs, on the wire.
+fn extraction_out(e: &crate::features::ExtractorSettings) -> proto::Extraction {
+    proto::Extraction {
+        fast_threshold: e.fast_threshold,
+        max_keypoints: e.max_keypoints as u32,
+        levels: e.levels,
+        scale_factor: e.scale_factor,
+        grid_cell: e.grid_cell,
     }
 }

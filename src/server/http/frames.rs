@@ -81,6 +81,7 @@ pub async fn describe(
             dim: d.dim,
             model_id: d.model_id,
             context_base64: base64::engine::general_purpose::STANDARD.encode(d.features.context.concat()),
+            extraction: a.service.extraction().into(),
         })
     })
     .await?;

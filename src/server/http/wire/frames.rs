@@ -113,6 +113,32 @@ pub struct DescribeResponse {
     pub model_id: String,
     /// The ring context, 113 bytes per keypoint, base64; empty when the model does not read it.
     pub context_base64: String,
+    /// The extraction this server runs: what a keypoint set must be extracted with.
+    pub extraction: Extraction,
+}
+
+/// The numbers of the client contract a server runs: the model's declared extraction with the server's
+/// `[extractor]` over it (revision 3: 20, 2000, 8, 1.2, 32; revision 2, the constellation model's: 20, 1500, 6,
+/// 1.2, 32).
+#[derive(Debug, Serialize, ToSchema)]
+pub struct Extraction {
+    pub fast_threshold: i32,
+    pub max_keypoints: usize,
+    pub levels: u32,
+    pub scale_factor: f64,
+    pub grid_cell: u32,
+}
+
+impl From<&crate::features::ExtractorSettings> for Extraction {
+    fn from(e: &crate::features::ExtractorSettings) -> Self {
+        Self {
+            fast_threshold: e.fast_threshold,
+            max_keypoints: e.max_keypoints,
+            levels: e.levels,
+            scale_factor: e.scale_factor,
+            grid_cell: e.grid_cell,
+        }
+    }
 }
 
 /// One putative match: keypoint `index1` of frame 1 and `index2` of frame 2.

@@ -331,20 +331,36 @@ class DescribeRequest(_message.Message):
     def __init__(self, frame: _Optional[_Union[Frame, _Mapping]] = ...) -> None: ...
 
 class DescribeResponse(_message.Message):
-    __slots__ = ("keypoints", "descriptors", "embeddings", "dim", "model_id", "context")
+    __slots__ = ("keypoints", "descriptors", "embeddings", "dim", "model_id", "context", "extraction")
     KEYPOINTS_FIELD_NUMBER: _ClassVar[int]
     DESCRIPTORS_FIELD_NUMBER: _ClassVar[int]
     EMBEDDINGS_FIELD_NUMBER: _ClassVar[int]
     DIM_FIELD_NUMBER: _ClassVar[int]
     MODEL_ID_FIELD_NUMBER: _ClassVar[int]
     CONTEXT_FIELD_NUMBER: _ClassVar[int]
+    EXTRACTION_FIELD_NUMBER: _ClassVar[int]
     keypoints: _containers.RepeatedCompositeFieldContainer[Keypoint]
     descriptors: bytes
     embeddings: _containers.RepeatedScalarFieldContainer[float]
     dim: int
     model_id: str
     context: bytes
-    def __init__(self, keypoints: _Optional[_Iterable[_Union[Keypoint, _Mapping]]] = ..., descriptors: _Optional[bytes] = ..., embeddings: _Optional[_Iterable[float]] = ..., dim: _Optional[int] = ..., model_id: _Optional[str] = ..., context: _Optional[bytes] = ...) -> None: ...
+    extraction: Extraction
+    def __init__(self, keypoints: _Optional[_Iterable[_Union[Keypoint, _Mapping]]] = ..., descriptors: _Optional[bytes] = ..., embeddings: _Optional[_Iterable[float]] = ..., dim: _Optional[int] = ..., model_id: _Optional[str] = ..., context: _Optional[bytes] = ..., extraction: _Optional[_Union[Extraction, _Mapping]] = ...) -> None: ...
+
+class Extraction(_message.Message):
+    __slots__ = ("fast_threshold", "max_keypoints", "levels", "scale_factor", "grid_cell")
+    FAST_THRESHOLD_FIELD_NUMBER: _ClassVar[int]
+    MAX_KEYPOINTS_FIELD_NUMBER: _ClassVar[int]
+    LEVELS_FIELD_NUMBER: _ClassVar[int]
+    SCALE_FACTOR_FIELD_NUMBER: _ClassVar[int]
+    GRID_CELL_FIELD_NUMBER: _ClassVar[int]
+    fast_threshold: int
+    max_keypoints: int
+    levels: int
+    scale_factor: float
+    grid_cell: int
+    def __init__(self, fast_threshold: _Optional[int] = ..., max_keypoints: _Optional[int] = ..., levels: _Optional[int] = ..., scale_factor: _Optional[float] = ..., grid_cell: _Optional[int] = ...) -> None: ...
 
 class Match(_message.Message):
     __slots__ = ("index1", "index2", "distance", "inlier")
