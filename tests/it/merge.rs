@@ -180,7 +180,8 @@ async fn two_maps_in_their_own_frames_merge_into_one_that_agrees_with_the_truth(
             let want = moved(&sa, &scene.frames[id].pose.unwrap());
             let dt = (got.translation.vector - want.translation.vector).norm() / sa.scaling();
             let dr = got.rotation.angle_to(&want.rotation).to_degrees();
-            assert!(dt < 0.02 * size && dr < 1.0, "{} keyframe {id}: {dt} / {dr}°", scene.name);
+            // Moved by the estimated transform, so within its rotation bound above.
+            assert!(dt < 0.02 * size && dr < 1.5, "{} keyframe {id}: {dt} / {dr}°", scene.name);
         }
 
         let after = successes(a.clone(), sa).await;
