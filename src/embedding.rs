@@ -267,7 +267,6 @@ impl Embedder {
         let model_err = |e: ort::Error| EmbeddingError::Model { path: path.clone(), reason: e.to_string() };
         let mut sessions = Vec::new();
         let mut dims = None;
-        let mut declared = (None, None);
         for _ in 0..config.sessions.max(1) {
             let session = Session::builder(env)
                 .map_err(model_err)?
@@ -282,11 +281,11 @@ impl Embedder {
                 .commit_from_memory(&bytes)
                 .map_err(model_err)?;
             dims = Some(check_contract(&path, &session)?);
-            declared = declaration(&path, &session)?;
             sessions.push(Mutex::new(session));
         }
         let (inputs, dim) = dims.expect("at least one session");
-        let (extraction, matcher) = declared;
+        // One read of the metadata: every session holds the same model.
+        let (extraction, matcher) = declaration(&path, &sessions[0].lock())?;
         let embedder = Self { sessions, inputs, extraction, matcher, dim, model_id, path };
         embedder.warm_up()?;
         Ok(embedder)

@@ -28,6 +28,15 @@ fn golden_model() -> PathBuf {
         .unwrap_or_else(|| PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("models").join(name))
 }
 
+/// The model's embeddings of `features` are the golden ones (Python onnxruntime) within 1e-4.
+fn embeddings_match(embedder: &Embedder, features: &scone::features::Features, golden: &Array2<f32>) {
+    let ours = embedder.embed(features).unwrap();
+    assert_eq!(golden.shape(), &[features.len(), embedder.dim()]);
+    let max_diff = ours.iter().zip(golden.iter()).map(|(a, b)| (a - b).abs()).fold(0.0f32, f32::max);
+    eprintln!("max |rust - python| = {max_diff:e} over {} values", ours.len());
+    assert!(max_diff <= 1e-4, "embeddings differ from Python onnxruntime by {max_diff}");
+}
+
 #[test]
 fn rust_features_and_embeddings_match_the_python_golden_fixture() {
     let dir = golden_dir();
@@ -57,12 +66,8 @@ fn rust_features_and_embeddings_match_the_python_golden_fixture() {
     assert!(max_rel <= 1e-5, "relative geometry differs by {max_rel}");
 
     let embedder = Embedder::load(&EmbedderSettings { model: golden_model(), ..EmbedderSettings::default() }).unwrap();
-    let ours = embedder.embed(&features).unwrap();
     let golden = Array2::<f32>::read_npy(std::fs::File::open(dir.join("astronaut.embeddings.npy")).unwrap()).unwrap();
-    assert_eq!(golden.shape(), &[features.len(), embedder.dim()]);
-    let max_diff = ours.iter().zip(golden.iter()).map(|(a, b)| (a - b).abs()).fold(0.0f32, f32::max);
-    eprintln!("max |rust - python| = {max_diff:e} over {} values", ours.len());
-    assert!(max_diff <= 1e-4, "embeddings differ from Python onnxruntime by {max_diff}");
+    embeddings_match(&embedder, &features, &golden);
 }
 
 #[test]
@@ -91,11 +96,7 @@ fn the_embedded_model_matches_its_python_golden_fixture_at_its_declared_extracti
         assert_eq!(&features.descriptors[i][..], desc.row(i).as_slice().unwrap(), "descriptor {i}");
         assert_eq!(&features.context[i][..], context.row(i).as_slice().unwrap(), "ring context {i}");
     }
-    let ours = embedder.embed(&features).unwrap();
-    assert_eq!(golden.shape(), &[features.len(), embedder.dim()]);
-    let max_diff = ours.iter().zip(golden.iter()).map(|(a, b)| (a - b).abs()).fold(0.0f32, f32::max);
-    eprintln!("max |rust - python| = {max_diff:e} over {} values", ours.len());
-    assert!(max_diff <= 1e-4, "embeddings differ from Python onnxruntime by {max_diff}");
+    embeddings_match(&embedder, &features, &golden);
 }
 
 #[test]

@@ -11,6 +11,24 @@ use scone::server::proto;
 use crate::common::{fixture, temp_dir};
 use crate::service::{add_keyframes, clients, image_frame, intrinsics, keyframe_requests, pose_error, serve, settings};
 
+type Matching = proto::matching_client::MatchingClient<tonic::transport::Channel>;
+
+/// Describe of the fixture's frame 3, as an image.
+async fn describe_3(matching: &mut Matching, scene: &Scene) -> proto::DescribeResponse {
+    let frame = Some(image_frame(&scene.frames[3].rgb, &scene.camera));
+    matching.describe(proto::DescribeRequest { frame }).await.unwrap().into_inner()
+}
+
+/// MatchPair of the fixture's frames 3 and 5 with no matcher named (the model's).
+async fn match_3_and_5(matching: &mut Matching, scene: &Scene) -> proto::MatchPairResponse {
+    let request = proto::MatchPairRequest {
+        frame1: Some(image_frame(&scene.frames[3].rgb, &scene.camera)),
+        frame2: Some(image_frame(&scene.frames[5].rgb, &scene.camera)),
+        ..Default::default()
+    };
+    matching.match_pair(request).await.unwrap().into_inner()
+}
+
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn the_ring_model_describes_maps_localises_and_matches() {
     let data = temp_dir("ring");
@@ -22,11 +40,7 @@ async fn the_ring_model_describes_maps_localises_and_matches() {
     let scene = Scene::load(&fixture("rendered")).unwrap();
 
     // Describe: the context comes with the embeddings, 113 bytes per keypoint.
-    let d = matching
-        .describe(proto::DescribeRequest { frame: Some(image_frame(&scene.frames[3].rgb, &scene.camera)) })
-        .await
-        .unwrap()
-        .into_inner();
+    let d = describe_3(&mut matching, &scene).await;
     let n = d.keypoints.len();
     assert!(n > 100, "{n} keypoints");
     // Eight levels ran (the declared extraction; revision 2's has six), and the answer says so.
@@ -72,15 +86,7 @@ async fn the_ring_model_describes_maps_localises_and_matches() {
     assert!(dt < 0.05 && dr < 1.0, "{dt} m, {dr} deg from the truth");
 
     // MatchPair with no matcher named: the model's.
-    let pair = matching
-        .match_pair(proto::MatchPairRequest {
-            frame1: Some(image_frame(&scene.frames[3].rgb, &scene.camera)),
-            frame2: Some(image_frame(&scene.frames[5].rgb, &scene.camera)),
-            ..Default::default()
-        })
-        .await
-        .unwrap()
-        .into_inner();
+    let pair = match_3_and_5(&mut matching, &scene).await;
     assert!(pair.pose.is_some() && pair.inliers > 50, "{} inliers", pair.inliers);
     assert_eq!(pair.matcher, proto::PairMatcher::Union as i32);
     server.shutdown().await.unwrap();
@@ -94,23 +100,11 @@ async fn the_constellation_model_is_served_at_revision_2_with_scale_aware() {
     let server = serve(s).await;
     let (_, mut matching) = clients(&server).await;
     let scene = Scene::load(&fixture("rendered")).unwrap();
-    let d = matching
-        .describe(proto::DescribeRequest { frame: Some(image_frame(&scene.frames[3].rgb, &scene.camera)) })
-        .await
-        .unwrap()
-        .into_inner();
+    let d = describe_3(&mut matching, &scene).await;
     assert_eq!(d.keypoints.iter().map(|k| k.octave).max(), Some(5), "six levels");
     assert_eq!(d.extraction.as_ref().map(|e| (e.levels, e.max_keypoints)), Some((6, 1500)));
     assert!(d.context.is_empty());
-    let pair = matching
-        .match_pair(proto::MatchPairRequest {
-            frame1: Some(image_frame(&scene.frames[3].rgb, &scene.camera)),
-            frame2: Some(image_frame(&scene.frames[5].rgb, &scene.camera)),
-            ..Default::default()
-        })
-        .await
-        .unwrap()
-        .into_inner();
+    let pair = match_3_and_5(&mut matching, &scene).await;
     assert_eq!(pair.matcher, proto::PairMatcher::ScaleAware as i32);
     server.shutdown().await.unwrap();
 }

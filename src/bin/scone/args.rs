@@ -8,6 +8,7 @@ use clap::Args;
 use scone::constellation::DEFAULT_K;
 use scone::embedding::{Embedder, EmbedderSettings};
 use scone::features::{self, ExtractorSettings};
+use scone::settings::ExtractorOverrides;
 
 /// Model and output of an evaluation.
 #[derive(Args, Clone)]
@@ -73,13 +74,14 @@ impl ExtractorArgs {
     }
 
     fn config_over(&self, d: ExtractorSettings) -> anyhow::Result<ExtractorSettings> {
-        let cfg = ExtractorSettings {
-            fast_threshold: self.fast_threshold.unwrap_or(d.fast_threshold),
-            max_keypoints: self.max_keypoints.unwrap_or(d.max_keypoints),
-            levels: self.levels.unwrap_or(d.levels),
-            scale_factor: self.scale_factor.unwrap_or(d.scale_factor),
-            grid_cell: self.grid_cell.unwrap_or(d.grid_cell),
-        };
+        let cfg = ExtractorOverrides {
+            fast_threshold: self.fast_threshold,
+            max_keypoints: self.max_keypoints,
+            levels: self.levels,
+            scale_factor: self.scale_factor,
+            grid_cell: self.grid_cell,
+        }
+        .over(d);
         cfg.validate()?;
         anyhow::ensure!(self.k >= 1 && self.k <= 64, "--k must be in 1..=64");
         features::set_opencv_threads(self.opencv_threads)?;
