@@ -57,13 +57,11 @@ pub struct LocalizeSettings {
     pub ransac: RansacSettings,
     pub min_inliers: usize,
     /// Only this many of the query's keypoints, the strongest by detector response, are searched in the
-    /// index (all of them are still embedded: a constellation is made of all keypoints). The search is the
-    /// largest stage on a large map and grows with the number of queries: on the 479k-observation benchmark
-    /// map, 400 takes a relocalisation from 92 to 48 ms (search 67 -> 25 ms) with 97 of 100 near queries within
-    /// (0.25 m, 2°) against 98. Off by default (every keypoint is searched): on the validation scenes' far
-    /// queries it costs successes (KITTI: SConE 4 -> 1 of 25 within (0.25 m, 2°)), see BENCHMARKS.md.
-    /// Keypoints of equal response keep their order, so client keypoints without responses are searched in
-    /// the order sent.
+    /// index by stage 1 (all of them are still embedded). Stages 2 and 3 read every keypoint: stage 1 only has
+    /// to find the candidate keyframes, and stage 2 matches the whole query against their landmarks, at a
+    /// cost that does not grow with the map. The index search is the largest stage on a large map and grows
+    /// with the number of queries (issue 41 in BENCHMARKS.md: the rule and figures). Keypoints of equal
+    /// response keep their order, so client keypoints without responses are searched in the order sent.
     pub max_query_keypoints: usize,
     /// Multiplies the pose covariance of the refinement (`σ² (JᵀJ)⁻¹`), which counts only the query's pixel
     /// noise: the map's landmarks have errors of their own, so the raw ellipsoid is too small. 26: the 95th
@@ -574,8 +572,8 @@ pub fn localize(
     }
     let t = std::time::Instant::now();
     let dim = data.meta.dim;
-    // Stages 1 and 2 search only the strongest keypoints when capped; stage 3 reads every keypoint (its search is
-    // a window around each projected landmark, not a search of the map).
+    // Stage 1 searches only the strongest keypoints when capped; stages 2 and 3 read every keypoint (their
+    // searches are the candidates' landmarks and windows around projected landmarks, not the whole map).
     let rows: Vec<usize> = strongest(features, params.max_query_keypoints.max(params.min_inliers))
         .unwrap_or_else(|| (0..features.len()).collect());
     let subset: std::borrow::Cow<[f32]> = if rows.len() == features.len() {
@@ -613,7 +611,8 @@ pub fn localize(
         let t = std::time::Instant::now();
         let candidates =
             data.covisible_keyframes(matches.iter().map(|r| r.m.landmark), |_| true, params.candidate_keyframes);
-        let stage2 = candidate_matches(data, &candidates, features, &rows, &subset, prior, params)?;
+        let every: Vec<usize> = (0..features.len()).collect();
+        let stage2 = candidate_matches(data, &candidates, features, &every, embeddings, prior, params)?;
         stages_s += t.elapsed().as_secs_f64();
         let joined = join(matches.iter().copied().chain(stage2));
         if joined.len() > matches.len() {

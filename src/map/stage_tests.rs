@@ -180,14 +180,22 @@ fn stage_three_adds_the_projected_landmarks_and_never_creates_a_pose() {
 }
 
 #[test]
-fn a_query_keypoint_cap_bounds_stages_one_and_two_and_guided_search_reads_every_keypoint() {
+fn a_query_keypoint_cap_bounds_stage_one_and_stages_two_and_three_read_every_keypoint() {
     let data = map_with_look_alikes(0);
     let (features, embeddings) = query(0..0);
     let capped = LocalizeSettings { max_query_keypoints: 50, ..LocalizeSettings::default().stage_one_only() };
     let l = locate(&data, &features, &embeddings, &capped);
     assert_eq!(l.matches.len(), 50);
-    let all = LocalizeSettings { candidate_matching: true, candidate_freak: true, guided_search: true, ..capped };
-    let l = locate(&data, &features, &embeddings, &all);
+    assert!(l.matches.iter().all(|m| m.keypoint < 50), "stage 1 searched only the first 50 (equal responses)");
+    // Stage 2 matches the whole query against the keyframe the 50 voted for (skipped above 100 inliers: 50
+    // give fewer).
+    let staged = LocalizeSettings { candidate_matching: true, ..capped };
+    let l = locate(&data, &features, &embeddings, &staged);
+    assert!(l.matches.len() >= 190, "stage 2 reached {} keypoints", l.matches.len());
+    assert!(l.matches.iter().any(|m| m.keypoint >= 50));
+    assert_eq!(correct(&l), l.matches.len());
+    let guided = LocalizeSettings { guided_search: true, ..capped };
+    let l = locate(&data, &features, &embeddings, &guided);
     assert!(l.matches.len() >= 190, "guided search reached {} keypoints", l.matches.len());
     assert_eq!(correct(&l), l.matches.len());
 }
