@@ -10,7 +10,7 @@
 //! **Which maps are in memory** (`[store.cache]`). Eager (the default with a local directory): start-up
 //! loads every stored map. Lazy (the default with object storage, where several replicas share one bucket):
 //! a map is loaded on its first request and kept while the loaded maps fit `memory_budget_mb` (estimated per
-//! map, [`MapData::memory_bytes`]); beyond it the least recently used map that no request is using is
+//! map's data and its index's graph, [`MapState::memory_bytes`]); beyond it the least recently used map that no request is using is
 //! evicted, and loaded again when asked for. Existence is the backend's, not the cache's: the store asks the
 //! backend on create, import, delete and listings, so a map another replica created or deleted is seen at
 //! this replica's next request for it. The server loads a map before it queues the request's CPU work
@@ -122,6 +122,13 @@ pub(crate) struct MapState {
     pub(crate) index: EmbeddingIndex,
 }
 
+impl MapState {
+    /// Estimated memory of the map's data and its index, for the cache's budget.
+    pub(crate) fn memory_bytes(&self) -> u64 {
+        (self.data.memory_bytes() + self.index.memory_bytes(self.data.meta.dim)) as u64
+    }
+}
+
 /// What to do with a loaded map after a freshness check.
 enum Next {
     Keep,
@@ -139,7 +146,7 @@ pub struct Map {
     pub(crate) last_used: AtomicU64,
     /// The store's clock (ms since it opened) at the map's last freshness check.
     pub(crate) checked: AtomicU64,
-    /// Estimated memory of the map and its index ([`MapData::memory_bytes`]).
+    /// Estimated memory of the map and its index ([`MapState::memory_bytes`]).
     pub(crate) bytes: AtomicU64,
     /// [`MapSummary::load_note`].
     pub(crate) load_note: Option<String>,
@@ -147,10 +154,11 @@ pub struct Map {
 
 impl Map {
     pub(crate) fn new(id: &str, data: MapData, index: EmbeddingIndex, journal: Box<dyn MapJournal>, now: u64) -> Self {
-        let bytes = data.memory_bytes() as u64;
+        let state = MapState { data, index };
+        let bytes = state.memory_bytes();
         Self {
             id: id.to_string(),
-            state: RwLock::new(MapState { data, index }),
+            state: RwLock::new(state),
             journal: Mutex::new(journal),
             last_used: AtomicU64::new(0),
             checked: AtomicU64::new(now),
@@ -400,8 +408,9 @@ impl MapCache {
             index.reset();
         }
         index.sync(data);
-        map.bytes.store(data.memory_bytes() as u64, Ordering::Relaxed);
-        tracing::debug!(map = %map.id, records = records.len(), version = data.version, "applied other writes");
+        let version = data.version;
+        map.bytes.store(s.memory_bytes(), Ordering::Relaxed);
+        tracing::debug!(map = %map.id, records = records.len(), version, "applied other writes");
         Next::Keep
     }
 

@@ -101,6 +101,14 @@ fn live_views(data: &MapData, landmark: &Landmark, limit: usize) -> usize {
 /// replaced representatives) do not force a filtered search.
 const SEARCH_SLACK: usize = 2;
 
+/// Memory of one point of the graph beyond its vector: hnsw_rs's node (16 preallocated layer lists, two `Arc`s)
+/// and its links (each its own `Arc`, ~40 bytes with its pointer, 20-23 per point at m = 16), with what the
+/// allocator keeps of a reload's temporary map. Calibrated on the 479k-observation bench map opened from its
+/// dump, one point per landmark (BENCHMARKS.md, issue 41).
+const GRAPH_POINT_BYTES: usize = 3_300;
+/// A landmark's entry in the representatives' map.
+const REPRESENTATIVE_BYTES: usize = 32;
+
 /// hnsw_rs's dump only reloads with 16 layers.
 const MAX_LAYER: usize = 16;
 
@@ -218,6 +226,19 @@ impl EmbeddingIndex {
             links += p.get_neighborhood_id().iter().map(Vec::len).sum::<usize>();
         }
         Some((points, links))
+    }
+
+    /// An estimate of the graph's memory (0 below the exact threshold, where there is none): per point in the
+    /// graph, tombstones and replaced representatives included, hnsw_rs's node with its links and its copy of
+    /// the embedding, plus the index's own bookkeeping. [`GRAPH_POINT_BYTES`] is calibrated against the RSS of
+    /// a map opened from its dump (`cargo bench --bench reloc`).
+    pub fn memory_bytes(&self, dim: usize) -> usize {
+        if self.hnsw.is_none() {
+            return 0;
+        }
+        self.in_graph * (GRAPH_POINT_BYTES + dim * 4)
+            + self.in_graph_ids.len()
+            + self.representatives.len() * REPRESENTATIVE_BYTES
     }
 
     /// Whether queries go through HNSW.

@@ -154,7 +154,8 @@ pub struct MapStats {
     pub landmarks: usize,
     pub observations: usize,
     pub live_observations: usize,
-    /// Estimated memory of the loaded map ([`MapData::memory_bytes`]).
+    /// Estimated memory of the loaded map's data ([`MapData::memory_bytes`]; a server that loads it adds its
+    /// index's graph, which follows `store.index.points`).
     #[serde(default)]
     pub memory_bytes: u64,
 }
@@ -271,12 +272,9 @@ impl MapData {
         s
     }
 
-    /// Bytes an observation costs beyond its embedding: the observation, its id in the landmark's list, and
-    /// its node of the HNSW graph at the default 16 links (hnsw_rs keeps 32 base-layer neighbours per point,
-    /// each an `Arc` to a small allocation, ~40 bytes a link, plus the point itself; the index copies the
-    /// embedding too). Calibrated against the RSS of a loaded 100k-observation map (`cargo bench --bench
-    /// replica`).
-    const OBSERVATION_BYTES: usize = std::mem::size_of::<Observation>() + 8 + 32 * 40 + 128;
+    /// Bytes an observation costs beyond its embedding: the observation and its id in the landmark's list.
+    /// The index's graph is counted by the index ([`crate::map::index::EmbeddingIndex::memory_bytes`]).
+    const OBSERVATION_BYTES: usize = std::mem::size_of::<Observation>() + 8;
     /// A landmark's point, list header and map node.
     const LANDMARK_BYTES: usize = std::mem::size_of::<Landmark>() + 48;
 
@@ -291,18 +289,19 @@ impl MapData {
     /// What a record adding `keyframes`, `landmarks` and `observations` adds to [`MapData::memory_bytes`].
     fn added_bytes(&self, keyframes: &[Keyframe], landmarks: usize, observations: usize) -> u64 {
         (keyframes.iter().map(Self::keyframe_bytes).sum::<usize>()
-            + observations * (Self::OBSERVATION_BYTES + self.meta.dim * 4 * 2)
+            + observations * (Self::OBSERVATION_BYTES + self.meta.dim * 4)
             + landmarks * Self::LANDMARK_BYTES) as u64
     }
 
-    /// An estimate of the memory the loaded map takes (its data and its index), for the map cache's budget.
+    /// An estimate of the memory the map's data takes when loaded: keyframes with their payload, landmarks,
+    /// observations and their embeddings. The map cache adds its index's graph
+    /// ([`crate::map::index::EmbeddingIndex::memory_bytes`]), which depends on what the graph holds.
     pub fn memory_bytes(&self) -> usize {
         let keyframes: usize = self.keyframes.values().map(Self::keyframe_bytes).sum();
         keyframes
             + self.landmarks.len() * Self::LANDMARK_BYTES
             + self.observations.len() * Self::OBSERVATION_BYTES
-            // The map's embeddings and the index's copy of them.
-            + self.embeddings.len() * 4 * 2
+            + self.embeddings.len() * 4
     }
 
     pub fn embedding(&self, observation: usize) -> &[f32] {

@@ -450,8 +450,8 @@ impl MapStore {
         {
             let MapState { data, index } = &mut *s;
             index.sync(data);
-            map.bytes.store(data.memory_bytes() as u64, Ordering::Relaxed);
         }
+        map.bytes.store(s.memory_bytes(), Ordering::Relaxed);
         map.checked.store(self.cache.now(), Ordering::Relaxed);
         let version = s.data.version;
         if log.wants_compaction() {

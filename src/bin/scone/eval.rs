@@ -114,6 +114,10 @@ pub enum EvalCommand {
         /// Multiplies the pose covariance (default: the service's `store.localize.covariance_scale`).
         #[arg(long)]
         covariance_scale: Option<f64>,
+        /// Stage 1 searches only this many query keypoints, the strongest (default: the service's
+        /// `store.localize.max_query_keypoints`).
+        #[arg(long)]
+        max_query_keypoints: Option<usize>,
         /// Exactly these parts of the staged pipeline on (`none`: today's stage 1 and map building before
         /// issue 27); without the flag, the service's defaults.
         #[arg(long, value_delimiter = ',')]
@@ -306,6 +310,7 @@ pub fn run(cmd: EvalCommand) -> anyhow::Result<()> {
             unknown_focal,
             centre_principal_point,
             covariance_scale,
+            max_query_keypoints,
             stages,
             foreign,
             foreign_stride,
@@ -342,6 +347,9 @@ pub fn run(cmd: EvalCommand) -> anyhow::Result<()> {
             };
             if let Some(c) = covariance_scale {
                 rc.localize.covariance_scale = c;
+            }
+            if let Some(k) = max_query_keypoints {
+                rc.localize.max_query_keypoints = k;
             }
             if let Some(stages) = stages {
                 let on: Vec<reloc::Stage> = stages.iter().filter_map(|s| s.stage()).collect();

@@ -1,0 +1,24 @@
+#!/usr/bin/env bash
+# Issue 41, section 3: the validation scenes once with the cap the selection rule chose (BENCHMARKS.md, "A
+# query whose cost does not grow with the map"): issue 31's far-map protocol (SConE, 100k distractor
+# observations, a foreign scene), every query keypoint searched against stage 1 capped at 800.
+#   docs/results/issue41/val.sh          (reports to $OUT, default $SCONE_PREFIX/work/i41/val)
+set -euo pipefail
+here="$(cd "$(dirname "${BASH_SOURCE[0]}")/../../.." && pwd)"
+# shellcheck source=scripts/env.sh
+. "$here/scripts/env.sh"
+B="$CARGO_TARGET_DIR/release/scone"
+D=${SCONE_DATA:-$here/../shared/data}/scenes
+out="${OUT:-$SCONE_PREFIX/work/i41/val}"
+mkdir -p "$out"
+for scene in kitti-clip2 middlebury-dino48 strecha-fountain-P11 tum-fr3-long-office; do
+  for cap in ${CAPS:-all 800}; do
+    k=$cap; [ "$cap" = all ] && k=1000000000
+    f="$out/$cap--$scene.json"
+    [ -s "$f" ] || "$B" eval reloc --scene "$D/$scene" --map-block 0:0.5 --methods scone \
+      --distractors "$D/7scenes-redkitchen,$D/sun3d-studyroom" --distractor-observations 100000 --distractor-stride 5 \
+      --foreign "$D/strecha-castle-P30" --foreign-stride 3 --max-query-keypoints "$k" --opencv-threads 1 \
+      --embed-threads 1 --json "$f" > "$out/$cap--$scene.md" 2> "$out/$cap--$scene.log" || echo "FAILED $cap $scene"
+  done
+done
+echo "$out"
