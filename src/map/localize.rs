@@ -60,10 +60,10 @@ pub struct LocalizeSettings {
     /// index by stage 1 (all of them are still embedded). Stages 2 and 3 read every keypoint: stage 1 only has
     /// to find the candidate keyframes, and stage 2 matches the whole query against their landmarks, at a
     /// cost that does not grow with the map. The index search is the largest stage on a large map and grows
-    /// with the number of queries. 800 by issue 41's rule (BENCHMARKS.md): on the selection scenes' far-map
-    /// protocol with 100k distractors it lost no query on any scene against every keypoint (and found 3 more).
-    /// Keypoints of equal response keep their order, so client keypoints without responses are searched in
-    /// the order sent.
+    /// with the number of queries. Off by default (every keypoint is searched): 800 passed issue 41's selection
+    /// rule but lost far queries on the validation scenes (KITTI 5 -> 3 of 25 within (0.25 m, 2°) with 100k
+    /// distractors), see BENCHMARKS.md. Keypoints of equal response keep their order, so client keypoints
+    /// without responses are searched in the order sent.
     pub max_query_keypoints: usize,
     /// Multiplies the pose covariance of the refinement (`σ² (JᵀJ)⁻¹`), which counts only the query's pixel
     /// noise: the map's landmarks have errors of their own, so the raw ellipsoid is too small. 26: the 95th
@@ -96,7 +96,7 @@ impl Default for LocalizeSettings {
             knn: 4,
             ransac: RansacSettings { threshold_px: 4.0, confidence: 0.999, max_iters: 2000, ..Default::default() },
             min_inliers: 15,
-            max_query_keypoints: 800,
+            max_query_keypoints: usize::MAX,
             covariance_scale: 26.0,
             candidate_keyframes: 5,
             candidate_matching: true,

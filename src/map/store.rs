@@ -154,7 +154,11 @@ impl MapStore {
     fn load_map(&self, id: &str) -> Result<(Map, LoadReport), MapError> {
         let t = Instant::now();
         let (data, log, report) = self.backend.open(id)?;
+        let data_s = t.elapsed().as_secs_f64();
         let index = EmbeddingIndex::load_or_build(self.config.index, log.index_dir(), &data);
+        // Where the time to ready goes: the map data (snapshot and log), then the index (dump or build).
+        tracing::info!(map = %id, observations = data.observations.len(), data_s,
+            index_s = t.elapsed().as_secs_f64() - data_s, from_dump = index.loaded_from_dump(), "map opened");
         let stats = self.cache.stats();
         stats.loads.fetch_add(1, Ordering::Relaxed);
         stats.load_nanos.fetch_add(t.elapsed().as_nanos() as u64, Ordering::Relaxed);
