@@ -179,13 +179,13 @@ fn a_compaction_elsewhere_reloads_and_within_the_bound_the_copy_is_served() {
 #[test]
 fn maps_beyond_the_memory_budget_are_evicted_least_recently_used_first_and_reload() {
     let bucket = Bucket::new("cache-budget");
-    // Three maps of about 0.46 MiB (estimated; 800 observations, below the exact threshold: no graph) each;
+    // Three maps of about 0.4 MiB (estimated; 1,500 observations, below the exact threshold: no graph) each;
     // a 1 MiB budget holds two.
     let budget = CacheSettings { memory_budget_mb: 1, ..CacheSettings::default() };
     let writer = bucket.replica("w", CacheSettings { memory_budget_mb: 0, ..CacheSettings::default() }, 0, 100_000);
     for (i, id) in ["m1", "m2", "m3"].iter().enumerate() {
         writer.create(id).unwrap();
-        add(&writer, id, 1, &frame(40, 20, 0, i as u64)).unwrap();
+        add(&writer, id, 1, &frame(60, 25, 0, i as u64)).unwrap();
     }
     let r = bucket.replica("r", budget, 0, 100_000);
     let bytes = |store: &MapStore| store.loaded_bytes();
@@ -212,7 +212,7 @@ fn maps_beyond_the_memory_budget_are_evicted_least_recently_used_first_and_reloa
     drop(held);
     // The listing names every stored map, loaded or not.
     let listed: Vec<(String, usize)> = r.list().unwrap().into_iter().map(|m| (m.id, m.observations)).collect();
-    assert_eq!(listed, vec![("m1".into(), 800), ("m2".into(), 800), ("m3".into(), 800)]);
+    assert_eq!(listed, vec![("m1".into(), 1500), ("m2".into(), 1500), ("m3".into(), 1500)]);
 }
 
 #[test]
