@@ -303,7 +303,10 @@ fn main() {
         // The per-landmark process measures the index's default twice: every query keypoint searched (the
         // default), then stage 1 capped at 800 (issue 41's candidate) on the map opened again.
         let row_list = if per_landmark {
-            vec![(PER_LANDMARK, per_landmark_settings(), usize::MAX), (PER_LANDMARK_CAPPED, per_landmark_settings(), 800)]
+            vec![
+                (PER_LANDMARK, per_landmark_settings(), usize::MAX),
+                (PER_LANDMARK_CAPPED, per_landmark_settings(), 800),
+            ]
         } else {
             vec![
                 (PER_OBSERVATION, per_observation_settings(), usize::MAX),
