@@ -10,8 +10,8 @@
 //! **Which maps are in memory** (`[store.cache]`). Eager (the default with a local directory): start-up
 //! loads every stored map. Lazy (the default with object storage, where several replicas share one bucket):
 //! a map is loaded on its first request and kept while the loaded maps fit `memory_budget_mb` (estimated per
-//! map's data and its index's graph, [`MapState::memory_bytes`]); beyond it the least recently used map that no request is using is
-//! evicted, and loaded again when asked for. Existence is the backend's, not the cache's: the store asks the
+//! map: its data, [`MapData::memory_bytes`], and its index's graph); beyond it the least recently used map
+//! that no request is using is evicted, and loaded again when asked for. Existence is the backend's, not the cache's: the store asks the
 //! backend on create, import, delete and listings, so a map another replica created or deleted is seen at
 //! this replica's next request for it. The server loads a map before it queues the request's CPU work
 //! ([`crate::server::app::App::map`]), so a load never holds a CPU worker that

@@ -230,7 +230,7 @@ impl EmbeddingIndex {
 
     /// An estimate of the graph's memory (0 below the exact threshold, where there is none): per point in the
     /// graph, tombstones and replaced representatives included, hnsw_rs's node with its links and its copy of
-    /// the embedding, plus the index's own bookkeeping. [`GRAPH_POINT_BYTES`] is calibrated against the RSS of
+    /// the embedding, plus the index's own bookkeeping. The per-point figure is calibrated against the RSS of
     /// a map opened from its dump (`cargo bench --bench reloc`).
     pub fn memory_bytes(&self, dim: usize) -> usize {
         if self.hnsw.is_none() {
