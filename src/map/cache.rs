@@ -11,11 +11,11 @@
 //! loads every stored map. Lazy (the default with object storage, where several replicas share one bucket):
 //! a map is loaded on its first request and kept while the loaded maps fit `memory_budget_mb` (estimated per
 //! map: its data, [`MapData::memory_bytes`], and its index's graph); beyond it the least recently used map
-//! that no request is using is evicted, and loaded again when asked for. Existence is the backend's, not the cache's: the store asks the
-//! backend on create, import, delete and listings, so a map another replica created or deleted is seen at
-//! this replica's next request for it. The server loads a map before it queues the request's CPU work
-//! ([`crate::server::app::App::map`]), so a load never holds a CPU worker that
-//! queries of loaded maps need.
+//! that no request is using is evicted, and loaded again when asked for. Existence is the backend's, not the
+//! cache's: the store asks the backend on create, import, delete and listings, so a map another replica
+//! created or deleted is seen at this replica's next request for it. The server loads a map before it queues
+//! the request's CPU work ([`crate::server::app::App::map`]), so a load never holds a CPU worker that queries
+//! of loaded maps need.
 //!
 //! **Freshness**: a request for a loaded map whose copy was last checked more than `freshness_ms` ago first
 //! asks the backend whether the stored map moved on ([`MapJournal::refresh`]: a conditional GET of the

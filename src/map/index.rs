@@ -103,8 +103,8 @@ const SEARCH_SLACK: usize = 2;
 
 /// Memory of one point of the graph beyond its vector: hnsw_rs's node (16 preallocated layer lists, two `Arc`s)
 /// and its links (each its own `Arc`, ~40 bytes with its pointer, 20-23 per point at m = 16), with what the
-/// allocator keeps of a reload's temporary map. Calibrated on the 479k-observation bench map opened from its
-/// dump, one point per landmark (BENCHMARKS.md, issue 41).
+/// allocator keeps of a reload's temporary map. Calibrated on issue 31's 479k-observation bench map opened
+/// from its dump, one point per landmark, and within 1 % of the RSS of the 728k one (BENCHMARKS.md, issue 41).
 const GRAPH_POINT_BYTES: usize = 3_300;
 /// A landmark's entry in the representatives' map.
 const REPRESENTATIVE_BYTES: usize = 32;
@@ -495,8 +495,19 @@ impl EmbeddingIndex {
     /// the embeddings it was built from, and, point by point, the observations in the graph); then syncs the
     /// rest. Anything else rebuilds from the map data.
     pub fn load_or_build(params: IndexSettings, dir: &Path, data: &MapData) -> Self {
+        Self::from_dump(params, dir, data, DumpRead::read(dir, params.points))
+    }
+
+    /// [`EmbeddingIndex::load_or_build`] with the dump already read ([`DumpRead::read`], which needs no map
+    /// data, so a load can read the graph while it decodes the snapshot): checked against `data`, then synced.
+    pub fn from_dump(
+        params: IndexSettings,
+        dir: &Path,
+        data: &MapData,
+        read: Result<Option<DumpRead>, String>,
+    ) -> Self {
         let mut index = Self::new(params);
-        match Self::try_load(dir, data, params.points) {
+        match read.and_then(|r| r.map(|r| r.check(data, params.points)).transpose()) {
             Ok(Some(LoadedDump { graph, points, in_graph, representatives, in_graph_ids })) => {
                 index.hnsw = Some(graph);
                 index.indexed = points;
@@ -513,21 +524,24 @@ impl EmbeddingIndex {
         index.sync(data);
         index
     }
+}
 
-    /// The dump in `dir` if it matches `data`; `Ok(None)` when there is none, `Err` with the reason when it
-    /// does not match.
-    fn try_load(dir: &Path, data: &MapData, points: IndexPoints) -> Result<Option<LoadedDump>, String> {
+/// A dump read from disk, not yet checked against its map: the manifest and hnsw_rs's graph, its files
+/// matching the manifest's checksums.
+pub struct DumpRead {
+    manifest: DumpManifest,
+    graph: Hnsw<'static, f32, DistL2>,
+}
+
+impl DumpRead {
+    /// Reads the dump in `dir` for an index of `points`: `Ok(None)` when there is none, `Err` with the reason
+    /// when it cannot be used.
+    pub fn read(dir: &Path, points: IndexPoints) -> Result<Option<Self>, String> {
         let Ok(bytes) = std::fs::read(dir.join(DUMP_MANIFEST)) else { return Ok(None) };
         let manifest: DumpManifest =
             serde_json::from_slice(&bytes).map_err(|e| format!("{DUMP_MANIFEST} does not read: {e}"))?;
-        if manifest.model_id != data.meta.model_id {
-            return Err(format!("dumped for model {}", manifest.model_id));
-        }
         if manifest.index_points != points {
             return Err(format!("dumped with points {:?}, the settings say {points:?}", manifest.index_points));
-        }
-        if manifest.points > data.observations.len() {
-            return Err(format!("holds {} observations, the map {}", manifest.points, data.observations.len()));
         }
         if !valid_base(&manifest.base) {
             return Err(format!("names the files '{}'", manifest.base));
@@ -535,9 +549,6 @@ impl EmbeddingIndex {
         let crc = |suffix: &str| file_crc(&dir.join(format!("{}{suffix}", manifest.base))).ok();
         if crc(GRAPH_SUFFIX) != Some(manifest.graph_crc) || crc(DATA_SUFFIX) != Some(manifest.data_crc) {
             return Err("the files' checksums do not match the manifest".into());
-        }
-        if embeddings_crc(data, manifest.points) != manifest.embeddings_crc {
-            return Err("built from other embeddings than the map's".into());
         }
         let load = || {
             // The loader borrows from its HnswIo for the graph's lifetime; one small HnswIo per load is kept.
@@ -550,6 +561,21 @@ impl EmbeddingIndex {
             Ok(Err(e)) => return Err(format!("hnsw_rs cannot load it: {e}")),
             Err(_) => return Err("hnsw_rs panicked loading it".into()),
         };
+        Ok(Some(Self { manifest, graph }))
+    }
+
+    /// The dump if it holds exactly what `data` says it should, `Err` with the reason otherwise.
+    fn check(self, data: &MapData, points: IndexPoints) -> Result<LoadedDump, String> {
+        let Self { manifest, graph } = self;
+        if manifest.model_id != data.meta.model_id {
+            return Err(format!("dumped for model {}", manifest.model_id));
+        }
+        if manifest.points > data.observations.len() {
+            return Err(format!("holds {} observations, the map {}", manifest.points, data.observations.len()));
+        }
+        if embeddings_crc(data, manifest.points) != manifest.embeddings_crc {
+            return Err("built from other embeddings than the map's".into());
+        }
         let in_graph_ids = check_graph(&graph, data, &manifest)?;
         let representatives = if points == IndexPoints::Landmarks {
             check_representatives(data, &manifest, &in_graph_ids)?
@@ -557,13 +583,7 @@ impl EmbeddingIndex {
             HashMap::new()
         };
         let in_graph_ids = if points == IndexPoints::Landmarks { in_graph_ids } else { Vec::new() };
-        Ok(Some(LoadedDump {
-            graph,
-            points: manifest.points,
-            in_graph: manifest.in_graph,
-            representatives,
-            in_graph_ids,
-        }))
+        Ok(LoadedDump { graph, points: manifest.points, in_graph: manifest.in_graph, representatives, in_graph_ids })
     }
 }
 

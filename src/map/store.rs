@@ -24,7 +24,7 @@ use crate::features::Features;
 use crate::map::builder::{plan, BuildSettings, ExternalCounts, KeyframeInput};
 pub use crate::map::cache::{CacheSettings, CacheStats, Map, MapSummary};
 use crate::map::cache::{MapCache, MapState};
-use crate::map::index::{EmbeddingIndex, IndexSettings};
+use crate::map::index::{DumpRead, EmbeddingIndex, IndexSettings};
 use crate::map::localize::{localize, Localization, LocalizeSettings, Prior};
 use crate::map::merge::plan_merge;
 pub use crate::map::merge::MergePlan;
@@ -153,10 +153,31 @@ impl MapStore {
 
     fn load_map(&self, id: &str) -> Result<(Map, LoadReport), MapError> {
         let t = Instant::now();
-        let (data, log, report) = self.backend.open(id)?;
+        let params = self.config.index;
+        // Where the dump is known beforehand, hnsw_rs reads the graph on a second thread while the snapshot
+        // decodes (the two largest parts of a load); the dump is checked against the map data afterwards.
+        let early_dir = self.backend.index_dir_before_open(id);
+        let (opened, early) = match &early_dir {
+            Some(dir) => std::thread::scope(|s| {
+                let reader = std::thread::Builder::new()
+                    .name("scone-dump-read".into())
+                    .spawn_scoped(s, || DumpRead::read(dir, params.points));
+                let opened = self.backend.open(id);
+                // Without a second thread, the index reads its dump after the open, as it always could.
+                let read = reader.ok().map(|r| r.join().unwrap_or_else(|_| Err("reading it panicked".into())));
+                (opened, read)
+            }),
+            None => (self.backend.open(id), None),
+        };
+        let (data, log, report) = opened?;
         let data_s = t.elapsed().as_secs_f64();
-        let index = EmbeddingIndex::load_or_build(self.config.index, log.index_dir(), &data);
-        // Where the time to ready goes: the map data (snapshot and log), then the index (dump or build).
+        let index = match (early, &early_dir) {
+            (Some(read), Some(dir)) if dir.as_path() == log.index_dir() => {
+                EmbeddingIndex::from_dump(params, dir, &data, read)
+            }
+            _ => EmbeddingIndex::load_or_build(params, log.index_dir(), &data),
+        };
+        // Where the time to ready goes: the map data (snapshot and log), then what the index took beyond it.
         tracing::info!(map = %id, observations = data.observations.len(), data_s,
             index_s = t.elapsed().as_secs_f64() - data_s, from_dump = index.loaded_from_dump(), "map opened");
         let stats = self.cache.stats();

@@ -40,6 +40,12 @@ pub trait MapBackend: Send + Sync {
     /// Removes a map and everything stored for it.
     fn delete(&self, id: &str) -> Result<(), MapError>;
 
+    /// Where the map's index dump is when that is known before [`MapBackend::open`] (a local directory): the
+    /// store then reads the graph while the map data decodes. `None` where the dump comes with the open.
+    fn index_dir_before_open(&self, _id: &str) -> Option<std::path::PathBuf> {
+        None
+    }
+
     /// Every stored map with its counts when the backend records them without loading the map (object
     /// storage keeps them in the manifest); `None` where only loading the map tells.
     fn list_stats(&self) -> Result<Vec<(String, Option<MapStats>)>, MapError> {

@@ -318,6 +318,11 @@ impl MapBackend for LocalBackend {
         Ok((data, Box::new(log), report))
     }
 
+    /// The map's directory, which holds its index dump ([`LocalJournal`]'s `index_dir`).
+    fn index_dir_before_open(&self, id: &str) -> Option<PathBuf> {
+        Some(self.dir(id))
+    }
+
     /// Renames the directory away (atomic), then removes it.
     fn delete(&self, id: &str) -> Result<(), MapError> {
         let dir = self.dir(id);
