@@ -155,8 +155,9 @@ impl MapStore {
         let t = Instant::now();
         let params = self.config.index;
         // Where the dump is known beforehand, hnsw_rs reads the graph on a second thread while the snapshot
-        // decodes (the two largest parts of a load); the dump is checked against the map data afterwards.
-        let early_dir = self.backend.index_dir_before_open(id);
+        // decodes (the two largest parts of a load); the dump is checked against the map data afterwards. Not
+        // for a map held back after a failed load: its next try would read a graph it may not get to use.
+        let early_dir = if self.cache.is_held_back(id) { None } else { self.backend.index_dir_before_open(id) };
         let (opened, early) = match &early_dir {
             Some(dir) => std::thread::scope(|s| {
                 let reader = std::thread::Builder::new()
