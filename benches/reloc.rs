@@ -13,9 +13,7 @@
 //! own on a copy of the level's map with its own dump (made once, in the build process): the same row and
 //! recall (against exact search over the same points), the row again with stage 1 capped at 800 query
 //! keypoints (issue 41's candidate; every keypoint, the default, is the row before), and every query of the
-//! level with both.
-//! `SCONE_BENCH_ADD_ONLY=1`
-//! with `SCONE_BENCH_LEVEL=N` measures AddKeyframe alone at level N.
+//! level with both. `SCONE_BENCH_ADD_ONLY=1` with `SCONE_BENCH_LEVEL=N` measures AddKeyframe alone at level N.
 //!
 //! Map: real, different frames, never repeated. The posed frames of the training scenes of `../shared/data`,
 //! in this order: `7scenes-redkitchen` (every frame but the held-out ones, triangulated with its poses),

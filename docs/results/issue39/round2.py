@@ -92,6 +92,18 @@ def judge(directory, matcher, shipped_mean):
     }
 
 
+def table_header():
+    return ("| model | matcher | " + " | ".join(PARTS) + " | mean AUC@10 | FREAK | warps 5 px (FREAK) "
+            "| zoom 1.6-2.5x (FREAK) | verdict |\n" + "|" + "---|" * (len(PARTS) + 7))
+
+
+def table_row(model, r, verdict):
+    return (f"| {model} | {r['matcher']} | " + " | ".join(f"{p:.3f}" for p in r["parts"])
+            + f" | **{r['mean']:.4f}** | {r['freak_mean']:.4f}"
+            + f" | {r['warps']['scone']:.3f} ({r['warps']['freak']:.3f})"
+            + f" | {r['zoom']['scone']:.3f} ({r['zoom']['freak']:.3f}) | {verdict} |")
+
+
 def main():
     default = Path(os.environ.get("SCONE_PREFIX", Path.home() / ".cache/scone")) / "work/i39"
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
@@ -100,9 +112,7 @@ def main():
     args = parser.parse_args()
     shipped_mean, _, _, _ = pair_means(args.work / "shipped-e1", "scale-aware")
     print(f"shipped model (scale-aware) mean AUC@10 on the same keypoints: {shipped_mean:.4f}\n")
-    print("| model | matcher | " + " | ".join(PARTS) + " | mean AUC@10 | FREAK | warps 5 px (FREAK) "
-          "| zoom 1.6-2.5x (FREAK) | verdict |")
-    print("|" + "---|" * (len(PARTS) + 7))
+    print(table_header())
     passing = []
     for model in args.models:
         for matcher in MATCHERS:
@@ -114,10 +124,7 @@ def main():
             verdict = "passes" if not r["failures"] else "fails: " + "; ".join(r["failures"])
             if not r["failures"]:
                 passing.append((model, r))
-            print(f"| {model} | {matcher} | " + " | ".join(f"{p:.3f}" for p in r["parts"])
-                  + f" | **{r['mean']:.4f}** | {r['freak_mean']:.4f}"
-                  + f" | {r['warps']['scone']:.3f} ({r['warps']['freak']:.3f})"
-                  + f" | {r['zoom']['scone']:.3f} ({r['zoom']['freak']:.3f}) | {verdict} |")
+            print(table_row(model, r, verdict))
     if not passing:
         print("\nNo pair passes: nothing ships.")
         return

@@ -15,7 +15,7 @@ import sys
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from round2 import PARTS, judge  # noqa: E402
+from round2 import judge, table_header, table_row  # noqa: E402
 
 ROUND2_CONSTELLATION_MEAN = 0.2806
 RING_E1_REAL_UNION_MEAN = 0.3110
@@ -31,14 +31,8 @@ def main():
     if r["mean"] < RING_E1_REAL_UNION_MEAN - 0.005:
         r["failures"].append(f"pairs {r['mean']:.4f} < ring-e1-real {RING_E1_REAL_UNION_MEAN:.4f} - 0.005")
     verdict = "passes criteria 1 and 2" if not r["failures"] else "fails: " + "; ".join(r["failures"])
-    print("| model | matcher | " + " | ".join(PARTS) + " | mean AUC@10 | FREAK | warps 5 px (FREAK) "
-          "| zoom 1.6-2.5x (FREAK) | verdict |")
-    print("|" + "---|" * (len(PARTS) + 7))
-    print(f"| {args.model} | union | " + " | ".join(f"{p:.3f}" for p in r["parts"])
-          + f" | **{r['mean']:.4f}** | {r['freak_mean']:.4f}"
-          + f" | {r['warps']['scone']:.3f} ({r['warps']['freak']:.3f})"
-          + f" | {r['zoom']['scone']:.3f} ({r['zoom']['freak']:.3f}) | {verdict} |")
-
+    print(table_header())
+    print(table_row(args.model, r, verdict))
 
 if __name__ == "__main__":
     main()
