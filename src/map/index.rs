@@ -228,6 +228,20 @@ impl EmbeddingIndex {
         Some((points, links))
     }
 
+    /// Every point of the graph with its links, by origin id. For tests that a reloaded graph is the one
+    /// dumped.
+    #[cfg(test)]
+    pub(crate) fn graph_links(&self) -> Vec<(usize, PointLinks)> {
+        let Some(graph) = self.hnsw.as_ref() else { return Vec::new() };
+        let lists = |p: &hnsw_rs::prelude::Point<'_, f32>| {
+            p.get_neighborhood_id().iter().map(|l| l.iter().map(|n| (n.d_id, n.distance)).collect()).collect()
+        };
+        let mut out: Vec<_> =
+            graph.get_point_indexation().into_iter().map(|p| (p.get_origin_id(), lists(&p))).collect();
+        out.sort_by_key(|(o, _)| *o);
+        out
+    }
+
     /// An estimate of the graph's memory (0 below the exact threshold, where there is none): per point in the
     /// graph, tombstones and replaced representatives included, hnsw_rs's node with its links and its copy of
     /// the embedding, plus the index's own bookkeeping. The per-point figure is calibrated against the RSS of
@@ -525,6 +539,10 @@ impl EmbeddingIndex {
         index
     }
 }
+
+/// One graph point's links: per layer, the (origin id, distance) of each neighbour in the list's order.
+#[cfg(test)]
+pub(crate) type PointLinks = Vec<Vec<(usize, f32)>>;
 
 /// A dump read from disk, not yet checked against its map: the manifest and hnsw_rs's graph, its files
 /// matching the manifest's checksums.

@@ -158,17 +158,20 @@ impl MapStore {
         // decodes (the two largest parts of a load); the dump is checked against the map data afterwards. Not
         // for a map held back after a failed load: its next try would read a graph it may not get to use.
         let early_dir = if self.cache.is_held_back(id) { None } else { self.backend.index_dir_before_open(id) };
-        let (opened, early) = match &early_dir {
+        let (opened, early, open_s, graph_s) = match &early_dir {
             Some(dir) => std::thread::scope(|s| {
-                let reader = std::thread::Builder::new()
-                    .name("scone-dump-read".into())
-                    .spawn_scoped(s, || DumpRead::read(dir, params.points));
+                let reader = std::thread::Builder::new().name("scone-dump-read".into()).spawn_scoped(s, || {
+                    let t = Instant::now();
+                    (DumpRead::read(dir, params.points), t.elapsed().as_secs_f64())
+                });
                 let opened = self.backend.open(id);
+                let open_s = t.elapsed().as_secs_f64();
                 // Without a second thread, the index reads its dump after the open, as it always could.
-                let read = reader.ok().map(|r| r.join().unwrap_or_else(|_| Err("reading it panicked".into())));
-                (opened, read)
+                let read = reader.ok().map(|r| r.join().unwrap_or_else(|_| (Err("reading it panicked".into()), 0.0)));
+                let graph_s = read.as_ref().map(|r| r.1);
+                (opened, read.map(|r| r.0), open_s, graph_s)
             }),
-            None => (self.backend.open(id), None),
+            None => (self.backend.open(id), None, t.elapsed().as_secs_f64(), None),
         };
         let (data, log, report) = opened?;
         let data_s = t.elapsed().as_secs_f64();
@@ -178,8 +181,9 @@ impl MapStore {
             }
             _ => EmbeddingIndex::load_or_build(params, log.index_dir(), &data),
         };
-        // Where the time to ready goes: the map data (snapshot and log), then what the index took beyond it.
-        tracing::info!(map = %id, observations = data.observations.len(), data_s,
+        // Where the time to ready goes: the map data (snapshot and log, `open_s` alone; `data_s` until the
+        // graph read beside it, `graph_s` alone, was done too), then what the index took beyond it.
+        tracing::info!(map = %id, observations = data.observations.len(), data_s, open_s, graph_s,
             index_s = t.elapsed().as_secs_f64() - data_s, from_dump = index.loaded_from_dump(), "map opened");
         let stats = self.cache.stats();
         stats.loads.fetch_add(1, Ordering::Relaxed);

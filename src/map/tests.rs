@@ -230,6 +230,36 @@ fn hnsw_index_finds_near_duplicates_and_survives_a_dump() {
     assert_eq!(reloaded.search(&data, &q, 1, None)[0].observation, newest);
 }
 
+/// The reload (hnsw_rs with third_party/hnsw_rs's patch: links built per point, in parallel) gives back the
+/// graph that was dumped: the same points, each layer's links the same, in order of distance.
+#[test]
+fn a_reloaded_graph_has_the_links_it_was_dumped_with() {
+    let dir = temp_dir("hnsw-links");
+    let (data, params, index) = hnsw_map(12, 23);
+    index.dump(&dir, &data).unwrap();
+    let reloaded = EmbeddingIndex::load_or_build(params, &dir, &data);
+    assert!(reloaded.loaded_from_dump());
+    let (built, loaded) = (index.graph_links(), reloaded.graph_links());
+    assert_eq!(built.len(), data.observations.len());
+    assert_eq!(built.len(), loaded.len());
+    let as_set = |l: &[(usize, f32)]| {
+        let mut v: Vec<(usize, u32)> = l.iter().map(|&(o, d)| (o, d.to_bits())).collect();
+        v.sort_unstable();
+        v
+    };
+    let mut links = 0;
+    for ((o1, l1), (o2, l2)) in built.iter().zip(&loaded) {
+        assert_eq!(o1, o2);
+        assert_eq!(l1.len(), l2.len());
+        for (a, b) in l1.iter().zip(l2) {
+            assert_eq!(as_set(a), as_set(b), "point {o1}");
+            assert!(b.windows(2).all(|w| w[0].1 <= w[1].1), "point {o1}: links out of order");
+            links += b.len();
+        }
+    }
+    assert!(links > 10 * built.len(), "{links} links for {} points", built.len());
+}
+
 #[test]
 fn a_dump_from_another_model_or_damaged_is_rebuilt() {
     let dir = temp_dir("hnsw-model");
