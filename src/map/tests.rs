@@ -79,6 +79,53 @@ fn log_replays_to_the_same_map() {
     assert_eq!(loaded.live_observations(), 40);
 }
 
+/// A snapshot file decodes as it is read to what its bytes decode to (format 2 and format 1), and a damaged one
+/// is refused with the reason: the payload's checksum (a bit flipped anywhere, a length prefix included), its
+/// length against the header's, the magic.
+#[test]
+fn a_snapshot_decoded_as_it_is_read_is_its_bytes_decoded_and_damage_is_refused() {
+    use crate::map::storage::format::{frame_snapshot, read_snapshot, MapDataV1};
+    let dir = temp_dir("read-snapshot");
+    let mut data = MapData::new(meta(8));
+    for k in 0..4 {
+        data.apply(&keyframe_record(k, 30, k * 30, 8, k));
+    }
+    data.apply(&Record::RemoveKeyframe { id: 1 });
+    let path = dir.join("snapshot.bin");
+    let bytes = encode_snapshot(&data).unwrap();
+    std::fs::write(&path, &bytes).unwrap();
+    assert_eq!(read_snapshot(&path).unwrap(), data);
+    assert_eq!(read_snapshot(&path).unwrap(), decode_snapshot(&bytes, &path).unwrap());
+    let v1 = MapDataV1 {
+        meta: data.meta.clone(),
+        keyframes: data.keyframes.clone(),
+        landmarks: data.landmarks.clone(),
+        observations: data.observations.clone(),
+        embeddings: data.embeddings.clone(),
+        next_landmark: data.next_landmark,
+        version: data.version,
+    };
+    let old = frame_snapshot(1, &bincode::serialize(&v1).unwrap());
+    std::fs::write(&path, &old).unwrap();
+    assert_eq!(read_snapshot(&path).unwrap(), decode_snapshot(&old, &path).unwrap());
+    let refused = |b: &[u8]| {
+        std::fs::write(&path, b).unwrap();
+        read_snapshot(&path).unwrap_err().to_string()
+    };
+    // Byte 24 is the first of the map id's u64 length prefix: flipped high, a decode that trusted it would
+    // read far past the file.
+    for at in [24, 31, bytes.len() / 2, bytes.len() - 1] {
+        let mut b = bytes.clone();
+        b[at] ^= 0x80;
+        assert!(refused(&b).contains("checksum mismatch"), "byte {at}: {}", refused(&b));
+    }
+    assert!(refused(&bytes[..bytes.len() - 5]).contains("header says"));
+    assert!(refused(&bytes[..20]).contains("bad magic"));
+    let mut b = bytes.clone();
+    b[0] = b'X';
+    assert!(refused(&b).contains("bad magic"));
+}
+
 /// A map directory with two logged keyframe records (10 observations each, dimension 8).
 fn logged_map(name: &str) -> TestDir {
     let dir = temp_dir(name);

@@ -26,7 +26,7 @@
 //! misreading them.
 
 use std::fs::File;
-use std::io::Write;
+use std::io::{BufReader, Read, Write};
 use std::path::Path;
 
 use std::collections::BTreeMap;
@@ -167,6 +167,61 @@ pub fn decode_snapshot(bytes: &[u8], path: &Path) -> Result<MapData, MapError> {
         })
     };
     decoded.map_err(|e| corrupt(path, format!("cannot decode (format {version}): {e}")))
+}
+
+/// [`decode_snapshot`] of the snapshot file at `path`, decoded as it is read: the file's bytes are never all in
+/// memory beside the map they decode to (on a 728k-observation map, 0.8 GB less to allocate while it loads).
+/// The checksum covers the whole payload, as before: a map is returned only once it matched.
+pub fn read_snapshot(path: &Path) -> Result<MapData, MapError> {
+    use bincode::Options;
+    let mut file = File::open(path).map_err(io_err(path))?;
+    let size = file.metadata().map_err(io_err(path))?.len();
+    let mut header = [0u8; 24];
+    if size < 24 || file.read_exact(&mut header).is_err() || &header[..8] != SNAPSHOT_MAGIC {
+        return Err(corrupt(path, "not a scone map file (bad magic)"));
+    }
+    let version = u32::from_le_bytes(header[8..12].try_into().expect("4 bytes"));
+    if !readable_version(version) {
+        return Err(unreadable(path, "map", version));
+    }
+    let len = u64::from_le_bytes(header[12..20].try_into().expect("8 bytes"));
+    let crc = u32::from_le_bytes(header[20..24].try_into().expect("4 bytes"));
+    if size - 24 != len {
+        return Err(corrupt(path, format!("payload is {} bytes, header says {len}", size - 24)));
+    }
+    // The checksum is taken below the buffer, a block at a time; the limit keeps a damaged length inside the file.
+    let mut reader =
+        BufReader::with_capacity(1 << 20, Crc32Reader { inner: file.take(len), hasher: crc32fast::Hasher::new() });
+    let options = bincode::DefaultOptions::new().with_fixint_encoding().allow_trailing_bytes().with_limit(len);
+    let decoded = if version == 1 {
+        options.deserialize_from::<_, MapDataV1>(&mut reader).map(MapData::from)
+    } else {
+        options.deserialize_from::<_, MapData>(&mut reader)
+    };
+    // What the decode did not read (all of it after an error) is in the checksum too.
+    std::io::copy(&mut reader, &mut std::io::sink()).map_err(io_err(path))?;
+    if reader.into_inner().hasher.finalize() != crc {
+        return Err(corrupt(path, "checksum mismatch"));
+    }
+    let mut data = decoded.map_err(|e| corrupt(path, format!("cannot decode (format {version}): {e}")))?;
+    if version != 1 {
+        data.rebuild_derived();
+    }
+    Ok(data)
+}
+
+/// A reader that hashes what passes through it.
+struct Crc32Reader<R> {
+    inner: R,
+    hasher: crc32fast::Hasher,
+}
+
+impl<R: Read> Read for Crc32Reader<R> {
+    fn read(&mut self, buf: &mut [u8]) -> std::io::Result<usize> {
+        let n = self.inner.read(buf)?;
+        self.hasher.update(&buf[..n]);
+        Ok(n)
+    }
 }
 
 /// An index dump as bytes (to upload it, or to carry it in an export): `index.json` and hnsw_rs's two files
@@ -424,9 +479,11 @@ pub(crate) fn valid_base(base: &str) -> bool {
     !base.is_empty() && base.len() <= 64 && base.bytes().all(|b| b.is_ascii_alphanumeric() || b == b'-' || b == b'_')
 }
 
-/// CRC-32 of a whole file.
+/// CRC-32 of a whole file, read a block at a time.
 pub(crate) fn file_crc(path: &Path) -> Result<u32, MapError> {
-    std::fs::read(path).map(|b| crc32fast::hash(&b)).map_err(|e| io_error(path, e))
+    let mut hasher = Crc32Reader { inner: File::open(path).map_err(io_err(path))?, hasher: crc32fast::Hasher::new() };
+    std::io::copy(&mut BufReader::with_capacity(1 << 20, &mut hasher), &mut std::io::sink()).map_err(io_err(path))?;
+    Ok(hasher.hasher.finalize())
 }
 
 /// Removes the two files of the dump `base` in `dir`.

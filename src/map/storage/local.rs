@@ -27,7 +27,7 @@ use crate::error::MapError;
 use crate::map::model::{validate_map_id, MapData, MapStats, Record};
 use crate::map::storage::backend::{LoadReport, MapBackend, MapJournal};
 use crate::map::storage::format::{
-    corrupt, decode_snapshot, encode_record, encode_snapshot, injected, injected_full, io_err, io_error, read_frame,
+    corrupt, encode_record, encode_snapshot, injected, injected_full, io_err, io_error, read_frame, read_snapshot,
     readable_version, sync_dir, unreadable, write_atomic, LogEntry, FORMAT_VERSION, LOG_HEADER, LOG_MAGIC,
 };
 
@@ -82,8 +82,7 @@ impl LocalJournal {
     /// Loads snapshot + log, cutting a torn tail.
     pub fn open(dir: &Path, compact_every: usize) -> Result<(MapData, Self, LoadReport), MapError> {
         let snap_path = Self::snapshot_path(dir);
-        let bytes = std::fs::read(&snap_path).map_err(io_err(&snap_path))?;
-        let mut data = decode_snapshot(&bytes, &snap_path)?;
+        let mut data = read_snapshot(&snap_path)?;
         let log_path = Self::log_path(dir);
         let mut report = LoadReport::default();
         if !log_path.exists() {
