@@ -61,7 +61,10 @@ pub struct Keyframe {
     pub pose: Pose,
     pub camera: Camera,
     pub keypoints: Vec<Keypoint>,
-    /// FREAK descriptors, `keypoints.len() x 64` bytes.
+    /// FREAK descriptors, `keypoints.len() x 64` bytes. Read and written as bytes in one piece: bincode encodes
+    /// bytes exactly as it encodes a `Vec<u8>` (a u64 length, then the bytes), so stored maps are unchanged
+    /// (`map::tests::descriptors_as_bytes_encode_as_before`); only the decode no longer goes a byte at a time.
+    #[serde(with = "serde_bytes")]
     pub descriptors: Vec<u8>,
     /// SConE embeddings of every keypoint, `keypoints.len() x dim` (matching new keyframes against this one).
     pub embeddings: Vec<f32>,

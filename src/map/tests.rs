@@ -126,6 +126,36 @@ fn a_snapshot_decoded_as_it_is_read_is_its_bytes_decoded_and_damage_is_refused()
     assert!(refused(&b).contains("bad magic"));
 }
 
+/// Keyframe descriptors read and written as bytes (`serde_bytes`) encode to the bytes a plain `Vec<u8>` gave,
+/// so maps, logs and exports written before decode the same; JSON keeps its array of numbers.
+#[test]
+fn descriptors_as_bytes_encode_as_before() {
+    #[derive(serde::Serialize)]
+    struct Before<'a> {
+        id: u64,
+        pose: &'a Pose,
+        camera: &'a Camera,
+        keypoints: &'a Vec<Keypoint>,
+        descriptors: &'a Vec<u8>,
+        embeddings: &'a Vec<f32>,
+    }
+    let Record::AddKeyframe { keyframe: k, .. } = keyframe_record(3, 20, 0, 8, 9) else { unreachable!() };
+    let before = Before {
+        id: k.id,
+        pose: &k.pose,
+        camera: &k.camera,
+        keypoints: &k.keypoints,
+        descriptors: &k.descriptors,
+        embeddings: &k.embeddings,
+    };
+    let old = bincode::serialize(&before).unwrap();
+    assert_eq!(bincode::serialize(&k).unwrap(), old);
+    assert_eq!(bincode::deserialize::<Keyframe>(&old).unwrap(), k);
+    assert_eq!(serde_json::to_value(&k).unwrap(), serde_json::to_value(&before).unwrap());
+    let json = serde_json::to_string(&before).unwrap();
+    assert_eq!(serde_json::from_str::<Keyframe>(&json).unwrap(), k);
+}
+
 /// A map directory with two logged keyframe records (10 observations each, dimension 8).
 fn logged_map(name: &str) -> TestDir {
     let dir = temp_dir(name);
