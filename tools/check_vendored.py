@@ -3,8 +3,11 @@
 applied, and nothing else (third_party/hnsw_rs/PATCHED.md).
 
 Takes the published crate from cargo's download cache, or else from crates.io (the registry cargo itself
-downloads from), checks it against the checksum Cargo.lock pinned before the patch, applies the patch with
-`git apply` and compares every vendored file. Exit 1 with the differences listed, 0 when they agree.
+downloads from; with the `[patch]` in place cargo no longer fetches it, so a fresh machine downloads it here),
+checks it against the checksum Cargo.lock pinned before the patch, applies the patch with `git apply` and
+compares every vendored file: `src/`, the licences and notes, and `Cargo.toml` (the published one without its
+example, test and bench targets and dev-dependencies, which are not vendored). Nothing else may be there but
+PATCHED.md. Exit 1 with the differences listed, 0 when they agree.
 
 Usage: python3 tools/check_vendored.py
 """
@@ -13,6 +16,7 @@ import filecmp
 import hashlib
 import io
 import os
+import re
 import subprocess
 import sys
 import tarfile
@@ -24,6 +28,13 @@ CRATE = "hnsw_rs-0.3.5"
 SHA256 = "c9b4dcb9840006fae9964e97dfdb354cd00b7a15d69d143caae7eeca0410af9f"
 URL = f"https://static.crates.io/crates/hnsw_rs/{CRATE}.crate"
 COPIED = ("LICENSE-APACHE", "LICENSE-MIT", "README.md", "Changes.md")
+ROOT_ENTRIES = {"src", "Cargo.toml", "PATCHED.md", *COPIED}
+
+
+def vendored_manifest(published_toml: str) -> str:
+    """The published Cargo.toml without the sections of what is not vendored."""
+    sections = re.split(r"(?m)^(?=\[)", published_toml)
+    return "".join(p for p in sections if not re.match(r"\[\[(example|test|bench)\]\]|\[dev-dependencies", p))
 
 
 def published() -> bytes:
@@ -58,12 +69,15 @@ def main() -> int:
                 mine = vendored / rel
                 if not mine.is_file() or not filecmp.cmp(f, mine, shallow=False):
                     wrong.append(str(rel))
+        if vendored_manifest((upstream / "Cargo.toml").read_text()) != (vendored / "Cargo.toml").read_text():
+            wrong.append("Cargo.toml")
         extra = [str(f.relative_to(vendored)) for f in (vendored / "src").rglob("*") if f.is_file()
                  and not (upstream / f.relative_to(vendored)).is_file()]
+        extra += [e.name for e in vendored.iterdir() if e.name not in ROOT_ENTRIES]
     for w in wrong:
-        print(f"third_party/hnsw_rs/{w}: not the published file with the patch applied")
+        print(f"third_party/hnsw_rs/{w}: not the published file (with the patch, or without the unvendored sections)")
     for e in extra:
-        print(f"third_party/hnsw_rs/{e}: not in the published crate")
+        print(f"third_party/hnsw_rs/{e}: not in the published crate, or not vendored")
     if wrong or extra:
         return 1
     print(f"third_party/hnsw_rs: {CRATE} as published, with docs/patches/{CRATE}-reload.patch")

@@ -167,9 +167,9 @@ impl MapStore {
                 let opened = self.backend.open(id);
                 let open_s = t.elapsed().as_secs_f64();
                 // Without a second thread, the index reads its dump after the open, as it always could.
-                let read = reader.ok().map(|r| r.join().unwrap_or_else(|_| (Err("reading it panicked".into()), 0.0)));
-                let graph_s = read.as_ref().map(|r| r.1);
-                (opened, read.map(|r| r.0), open_s, graph_s)
+                let read = reader.ok().map(|r| r.join().map_err(|_| "reading it panicked".to_string()));
+                let graph_s = read.as_ref().and_then(|r| r.as_ref().ok()).map(|r| r.1);
+                (opened, read.map(|r| r.and_then(|r| r.0)), open_s, graph_s)
             }),
             None => (self.backend.open(id), None, t.elapsed().as_secs_f64(), None),
         };

@@ -112,8 +112,8 @@ fn a_snapshot_decoded_as_it_is_read_is_its_bytes_decoded_and_damage_is_refused()
         std::fs::write(&path, b).unwrap();
         read_snapshot(&path).unwrap_err().to_string()
     };
-    // Byte 24 is the first of the map id's u64 length prefix: flipped high, a decode that trusted it would
-    // read far past the file.
+    // Bytes 24-31 are the map id's u64 length prefix, little-endian: flipped at byte 31, a decode that trusted
+    // it would allocate and read far past the file.
     for at in [24, 31, bytes.len() / 2, bytes.len() - 1] {
         let mut b = bytes.clone();
         b[at] ^= 0x80;

@@ -177,7 +177,11 @@ pub fn read_snapshot(path: &Path) -> Result<MapData, MapError> {
     let mut file = File::open(path).map_err(io_err(path))?;
     let size = file.metadata().map_err(io_err(path))?.len();
     let mut header = [0u8; 24];
-    if size < 24 || file.read_exact(&mut header).is_err() || &header[..8] != SNAPSHOT_MAGIC {
+    if size < 24 {
+        return Err(corrupt(path, "not a scone map file (bad magic)"));
+    }
+    file.read_exact(&mut header).map_err(io_err(path))?;
+    if &header[..8] != SNAPSHOT_MAGIC {
         return Err(corrupt(path, "not a scone map file (bad magic)"));
     }
     let version = u32::from_le_bytes(header[8..12].try_into().expect("4 bytes"));
@@ -193,21 +197,24 @@ pub fn read_snapshot(path: &Path) -> Result<MapData, MapError> {
     let mut reader =
         BufReader::with_capacity(1 << 20, Crc32Reader { inner: file.take(len), hasher: crc32fast::Hasher::new() });
     let options = bincode::DefaultOptions::new().with_fixint_encoding().allow_trailing_bytes().with_limit(len);
+    // Format 1 is converted (which rebuilds what is derived) only once the checksum matched.
     let decoded = if version == 1 {
-        options.deserialize_from::<_, MapDataV1>(&mut reader).map(MapData::from)
+        options.deserialize_from::<_, MapDataV1>(&mut reader).map(Err)
     } else {
-        options.deserialize_from::<_, MapData>(&mut reader)
+        options.deserialize_from::<_, MapData>(&mut reader).map(Ok)
     };
     // What the decode did not read (all of it after an error) is in the checksum too.
     std::io::copy(&mut reader, &mut std::io::sink()).map_err(io_err(path))?;
     if reader.into_inner().hasher.finalize() != crc {
         return Err(corrupt(path, "checksum mismatch"));
     }
-    let mut data = decoded.map_err(|e| corrupt(path, format!("cannot decode (format {version}): {e}")))?;
-    if version != 1 {
-        data.rebuild_derived();
+    match decoded.map_err(|e| corrupt(path, format!("cannot decode (format {version}): {e}")))? {
+        Ok(mut data) => {
+            data.rebuild_derived();
+            Ok(data)
+        }
+        Err(v1) => Ok(MapData::from(v1)),
     }
-    Ok(data)
 }
 
 /// A reader that hashes what passes through it.
