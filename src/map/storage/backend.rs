@@ -40,8 +40,9 @@ pub trait MapBackend: Send + Sync {
     /// Removes a map and everything stored for it.
     fn delete(&self, id: &str) -> Result<(), MapError>;
 
-    /// Where the map's index dump is when that is known before [`MapBackend::open`] (a local directory): the
-    /// store then reads the graph while the map data decodes. `None` where the dump comes with the open.
+    /// Where the map's index dump is before [`MapBackend::open`] (a local map's directory; object storage's
+    /// cache directory, the dump fetched first): the store then reads the graph while the map data loads and
+    /// decodes. `None` where the dump comes with the open.
     fn index_dir_before_open(&self, _id: &str) -> Option<std::path::PathBuf> {
         None
     }

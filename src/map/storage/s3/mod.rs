@@ -326,6 +326,25 @@ impl MapBackend for ObjectStorageBackend {
 
     /// The ids, then every manifest (in parallel) for the counts it records. A manifest that cannot be read
     /// or has no counts gives `None`: the store loads that map to tell (and holds it back if it is corrupt).
+    /// The map's cache directory, once the dump its manifest names is there (downloaded now unless it is there
+    /// already), so that the store reads the graph while the snapshot downloads and decodes. The open then
+    /// finds that dump in place and does not fetch it again. `None` when the map has no dump or a request
+    /// fails: the open fetches it as before. Whatever changes in between (another writer's compaction, the
+    /// map deleted and made again) is caught where the graph is checked against the map data, and rebuilt.
+    fn index_dir_before_open(&self, id: &str) -> Option<PathBuf> {
+        let s = &self.shared;
+        let (manifest, _, _) = s.block_on(s.read_manifest(id)).ok()??;
+        let index = manifest.index.as_ref()?;
+        let cache_dir = s.claim_cache(id, &manifest.map_uid).ok()?;
+        match s.block_on(s.fetch_index(id, index, &cache_dir)) {
+            Ok(()) => Some(cache_dir),
+            Err(e) => {
+                tracing::debug!(map = %id, error = %e, "index dump not fetched before the open");
+                None
+            }
+        }
+    }
+
     fn list_stats(&self) -> Result<Vec<(String, Option<MapStats>)>, MapError> {
         let s = &self.shared;
         let ids = self.list()?;
