@@ -141,19 +141,11 @@ pub fn encode_snapshot(data: &MapData) -> Result<Vec<u8>, MapError> {
 
 /// Decodes the snapshot/export format (format 1 or 2), checking magic, version, length and checksum.
 pub fn decode_snapshot(bytes: &[u8], path: &Path) -> Result<MapData, MapError> {
-    if bytes.len() < 24 || &bytes[..8] != SNAPSHOT_MAGIC {
+    if bytes.len() < 24 {
         return Err(corrupt(path, "not a scone map file (bad magic)"));
     }
-    let version = u32::from_le_bytes(bytes[8..12].try_into().expect("4 bytes"));
-    if !readable_version(version) {
-        return Err(unreadable(path, "map", version));
-    }
-    let len = u64::from_le_bytes(bytes[12..20].try_into().expect("8 bytes")) as usize;
-    let crc = u32::from_le_bytes(bytes[20..24].try_into().expect("4 bytes"));
+    let (version, crc) = snapshot_header(&bytes[..24], bytes.len() as u64 - 24, path)?;
     let payload = &bytes[24..];
-    if payload.len() != len {
-        return Err(corrupt(path, format!("payload is {} bytes, header says {len}", payload.len())));
-    }
     if crc32fast::hash(payload) != crc {
         return Err(corrupt(path, "checksum mismatch"));
     }
@@ -169,6 +161,23 @@ pub fn decode_snapshot(bytes: &[u8], path: &Path) -> Result<MapData, MapError> {
     decoded.map_err(|e| corrupt(path, format!("cannot decode (format {version}): {e}")))
 }
 
+/// The snapshot header's format version and checksum, once its magic, its version and its payload length
+/// (against the `payload_len` bytes that follow it) are checked.
+fn snapshot_header(header: &[u8], payload_len: u64, path: &Path) -> Result<(u32, u32), MapError> {
+    if &header[..8] != SNAPSHOT_MAGIC {
+        return Err(corrupt(path, "not a scone map file (bad magic)"));
+    }
+    let version = u32::from_le_bytes(header[8..12].try_into().expect("4 bytes"));
+    if !readable_version(version) {
+        return Err(unreadable(path, "map", version));
+    }
+    let len = u64::from_le_bytes(header[12..20].try_into().expect("8 bytes"));
+    if payload_len != len {
+        return Err(corrupt(path, format!("payload is {payload_len} bytes, header says {len}")));
+    }
+    Ok((version, u32::from_le_bytes(header[20..24].try_into().expect("4 bytes"))))
+}
+
 /// [`decode_snapshot`] of the snapshot file at `path`, decoded as it is read: the file's bytes are never all in
 /// memory beside the map they decode to (on a 728k-observation map, 0.8 GB less to allocate while it loads).
 /// The checksum covers the whole payload, as before: a map is returned only once it matched.
@@ -181,18 +190,8 @@ pub fn read_snapshot(path: &Path) -> Result<MapData, MapError> {
         return Err(corrupt(path, "not a scone map file (bad magic)"));
     }
     file.read_exact(&mut header).map_err(io_err(path))?;
-    if &header[..8] != SNAPSHOT_MAGIC {
-        return Err(corrupt(path, "not a scone map file (bad magic)"));
-    }
-    let version = u32::from_le_bytes(header[8..12].try_into().expect("4 bytes"));
-    if !readable_version(version) {
-        return Err(unreadable(path, "map", version));
-    }
-    let len = u64::from_le_bytes(header[12..20].try_into().expect("8 bytes"));
-    let crc = u32::from_le_bytes(header[20..24].try_into().expect("4 bytes"));
-    if size - 24 != len {
-        return Err(corrupt(path, format!("payload is {} bytes, header says {len}", size - 24)));
-    }
+    let len = size - 24;
+    let (version, crc) = snapshot_header(&header, len, path)?;
     // The checksum is taken below the buffer, a block at a time; the limit keeps a damaged length inside the file.
     let mut reader =
         BufReader::with_capacity(1 << 20, Crc32Reader { inner: file.take(len), hasher: crc32fast::Hasher::new() });

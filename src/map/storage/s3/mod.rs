@@ -324,8 +324,6 @@ impl MapBackend for ObjectStorageBackend {
         Ok(())
     }
 
-    /// The ids, then every manifest (in parallel) for the counts it records. A manifest that cannot be read
-    /// or has no counts gives `None`: the store loads that map to tell (and holds it back if it is corrupt).
     /// The map's cache directory, once the dump its manifest names is there (downloaded now unless it is there
     /// already), so that the store reads the graph while the snapshot downloads and decodes. The open then
     /// finds that dump in place and does not fetch it again. `None` when the map has no dump or a request
@@ -345,6 +343,8 @@ impl MapBackend for ObjectStorageBackend {
         }
     }
 
+    /// The ids, then every manifest (in parallel) for the counts it records. A manifest that cannot be read
+    /// or has no counts gives `None`: the store loads that map to tell (and holds it back if it is corrupt).
     fn list_stats(&self) -> Result<Vec<(String, Option<MapStats>)>, MapError> {
         let s = &self.shared;
         let ids = self.list()?;
