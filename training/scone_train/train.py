@@ -453,15 +453,18 @@ def train(cfg: dict, run_dir: Path, steps: int | None = None, units=None) -> Pat
             tqdm.write(json.dumps(row))
             plot_log(log, run_dir / "curves.png")
             acc = {"loss": 0.0, "pos": 0.0, "neg": 0.0, "n": 0}
+            evaluated = {"model": model.state_dict(), "config": cfg, "step": done, "selection_precision": nn_prec,
+                         "selection_ratio": ratio, "selected_on": select_on}
+            if t.get("keep_evaluated", False):
+                torch.save(evaluated, run_dir / f"step-{done:05d}.pt")
             if prec > best:
                 best = prec
-                torch.save({"model": model.state_dict(), "config": cfg, "step": done, "selection_precision": nn_prec,
-                            "selection_ratio": ratio, "selected_on": select_on}, run_dir / "best.pt")
+                torch.save(evaluated, run_dir / "best.pt")
         if done % t["checkpoint_every"] == 0 or done == steps:
             ck = {
                 "model": model.state_dict(), "opt": opt.state_dict(), "sched": sched.state_dict(),
                 "sampler_rng": sampler.rng.bit_generator.state, "gen": gen.get_state(),
-                "step": done, "best": best, "log": log,
+                "step": done, "best": best, "log": log, "config": cfg,
             }
             torch.save(ck, run_dir / "last.tmp")
             os.replace(run_dir / "last.tmp", last)
