@@ -65,6 +65,11 @@ pub struct LocalizeSettings {
     /// distractors), see BENCHMARKS.md. Keypoints of equal response keep their order, so client keypoints
     /// without responses are searched in the order sent.
     pub max_query_keypoints: usize,
+    /// With stage 1 capped (`max_query_keypoints`), a query whose pose after the other stages has fewer than
+    /// this many inliers (or none) has its other keypoints searched too and is answered exactly as without
+    /// the cap: the cap then only speeds up the queries that a few searches already place firmly, and loses
+    /// none of the others. 0 = off (a capped query is answered from its capped search alone).
+    pub full_search_below_inliers: usize,
     /// Multiplies the pose covariance of the refinement (`σ² (JᵀJ)⁻¹`), which counts only the query's pixel
     /// noise: the map's landmarks have errors of their own, so the raw ellipsoid is too small. 26: the 95th
     /// percentile of the raw squared Mahalanobis distance over 17 localised far-map queries of the training
@@ -97,6 +102,7 @@ impl Default for LocalizeSettings {
             ransac: RansacSettings { threshold_px: 4.0, confidence: 0.999, max_iters: 2000, ..Default::default() },
             min_inliers: 15,
             max_query_keypoints: usize::MAX,
+            full_search_below_inliers: 0,
             covariance_scale: 26.0,
             candidate_keyframes: 5,
             candidate_matching: true,
@@ -192,18 +198,26 @@ struct Ranked {
     ratio: f32,
 }
 
-/// Stage 1: 2D-3D matches of the query rows `embeddings` against the map's index (rows as keypoints).
-fn index_matches(
+/// Stage 1: the index's accepted 2D-3D matches of the query keypoints `rows` (every one when `rows` is all of
+/// them), in `rows` order, before one match per landmark is kept.
+fn index_hits(
     data: &MapData,
     index: &EmbeddingIndex,
     embeddings: &[f32],
+    rows: &[usize],
     prior: Option<&Prior>,
     params: &LocalizeSettings,
 ) -> Vec<Ranked> {
     let dim = data.meta.dim;
+    let all = rows.len() * dim == embeddings.len();
+    let subset: std::borrow::Cow<[f32]> = if all {
+        embeddings.into()
+    } else {
+        rows.iter().flat_map(|&i| embeddings[i * dim..(i + 1) * dim].iter().copied()).collect()
+    };
     let near = |obs: usize| within_prior(data, data.observations[obs].landmark, prior);
     let accept: crate::map::index::Accept = if prior.is_some() { Some(&near) } else { None };
-    let all_hits = index.search_many(data, &embeddings[..embeddings.len() / dim * dim], params.knn.max(2), accept);
+    let all_hits = index.search_many(data, &subset, params.knn.max(2), accept);
     let mut found = Vec::new();
     for (i, hits) in all_hits.iter().enumerate() {
         let Some(first) = hits.first() else { continue };
@@ -215,9 +229,9 @@ fn index_matches(
         if other.is_some() && first.distance >= params.ratio * other.map_or(0.0, |o| o.distance) {
             continue;
         }
-        found.push(Ranked { m: LandmarkMatch { keypoint: i, landmark: lm, distance: first.distance }, ratio });
+        found.push(Ranked { m: LandmarkMatch { keypoint: rows[i], landmark: lm, distance: first.distance }, ratio });
     }
-    one_per_landmark(found)
+    found
 }
 
 /// Keeps one match per landmark (the closest), in keypoint order.
@@ -542,6 +556,72 @@ fn strongest(features: &Features, n: usize) -> Option<Vec<usize>> {
     Some(chosen)
 }
 
+/// Wall time of PnP and of stages 2 and 3's own matching, seconds, summed over a query's attempts.
+#[derive(Default)]
+struct StageTimes {
+    pnp_s: f64,
+    stages_s: f64,
+}
+
+/// From stage 1's matches (one per landmark) to the matches and pose: PnP, then stages 2 and 3 as `params` say.
+fn after_search(
+    data: &MapData,
+    query: &Query,
+    stage1: Vec<Ranked>,
+    params: &LocalizeSettings,
+    times: &mut StageTimes,
+) -> Result<(Vec<Ranked>, Option<AbsolutePose>), MapError> {
+    let Query { features, embeddings, camera, prior } = *query;
+    let estimate = |matches: &[Ranked], pnp_s: &mut f64| -> Result<Option<AbsolutePose>, MapError> {
+        let t = std::time::Instant::now();
+        let p3: Vec<[f64; 3]> = matches.iter().map(|r| data.landmarks[&r.m.landmark].point).collect();
+        let p2: Vec<(f32, f32)> =
+            matches.iter().map(|r| (features.keypoints[r.m.keypoint].x, features.keypoints[r.m.keypoint].y)).collect();
+        let pose = if camera.focal_unknown() {
+            absolute_pose_unknown_focal(&p3, &p2, camera, &params.ransac, params.min_inliers)?
+        } else {
+            absolute_pose(&p3, &p2, camera, &params.ransac, params.min_inliers)?
+        };
+        *pnp_s += t.elapsed().as_secs_f64();
+        Ok(pose)
+    };
+    let inliers = |p: &Option<AbsolutePose>| p.as_ref().map_or(0, |p| p.inliers.len());
+    let mut matches = join(stage1);
+    if !(params.candidate_matching || params.guided_search) {
+        // Stage 1 alone keeps the order it always had: the nearest embeddings first, ties in keypoint order.
+        matches.sort_by(|a, b| a.m.distance.total_cmp(&b.m.distance).then(a.m.keypoint.cmp(&b.m.keypoint)));
+    }
+    let mut pose = estimate(&matches, &mut times.pnp_s)?;
+    if params.candidate_matching && inliers(&pose) < params.candidate_skip_inliers {
+        let t = std::time::Instant::now();
+        let candidates =
+            data.covisible_keyframes(matches.iter().map(|r| r.m.landmark), |_| true, params.candidate_keyframes);
+        let every: Vec<usize> = (0..features.len()).collect();
+        let stage2 = candidate_matches(data, &candidates, features, &every, embeddings, prior, params)?;
+        times.stages_s += t.elapsed().as_secs_f64();
+        let joined = join(matches.iter().copied().chain(stage2));
+        if joined.len() > matches.len() {
+            let again = estimate(&joined, &mut times.pnp_s)?;
+            if inliers(&again) >= inliers(&pose) {
+                (matches, pose) = (joined, again);
+            }
+        }
+    }
+    if let Some(p) = pose.as_ref().filter(|_| params.guided_search) {
+        let t = std::time::Instant::now();
+        let guided = guided_matches(data, p, query, &matches, params);
+        times.stages_s += t.elapsed().as_secs_f64();
+        if !guided.is_empty() {
+            let joined = join(matches.iter().copied().chain(guided));
+            let again = estimate(&joined, &mut times.pnp_s)?;
+            if inliers(&again) >= inliers(&pose) {
+                (matches, pose) = (joined, again);
+            }
+        }
+    }
+    Ok((matches, pose))
+}
+
 /// Localises a query (features with their embeddings, intrinsics) against a map.
 pub fn localize(
     data: &MapData,
@@ -573,70 +653,29 @@ pub fn localize(
         }
     }
     let t = std::time::Instant::now();
-    let dim = data.meta.dim;
     // Stage 1 searches only the strongest keypoints when capped; stages 2 and 3 read every keypoint (their
     // searches are the candidates' landmarks and windows around projected landmarks, not the whole map).
     let rows: Vec<usize> = strongest(features, params.max_query_keypoints.max(params.min_inliers))
         .unwrap_or_else(|| (0..features.len()).collect());
-    let subset: std::borrow::Cow<[f32]> = if rows.len() == features.len() {
-        embeddings.into()
-    } else {
-        rows.iter().flat_map(|&i| embeddings[i * dim..(i + 1) * dim].iter().copied()).collect()
-    };
-    let mut stage1 = index_matches(data, index, &subset, prior, params);
-    for r in &mut stage1 {
-        r.m.keypoint = rows[r.m.keypoint];
-    }
-    let search_s = t.elapsed().as_secs_f64();
-    let (mut pnp_s, mut stages_s) = (0.0, 0.0);
-    let estimate = |matches: &[Ranked], pnp_s: &mut f64| -> Result<Option<AbsolutePose>, MapError> {
+    let mut found = index_hits(data, index, embeddings, &rows, prior, params);
+    let mut search_s = t.elapsed().as_secs_f64();
+    let mut timing = StageTimes::default();
+    let query = Query { features, embeddings, camera, prior };
+    let (mut matches, mut pose) = after_search(data, &query, one_per_landmark(found.clone()), params, &mut timing)?;
+    let capped = rows.len() < features.len();
+    if capped && pose.as_ref().map_or(0, |p| p.inliers.len()) < params.full_search_below_inliers {
+        // The fallback: the other keypoints searched too, and the query answered as without the cap (per
+        // keypoint, a search and its acceptance do not depend on the others, so the hits are the same).
         let t = std::time::Instant::now();
-        let p3: Vec<[f64; 3]> = matches.iter().map(|r| data.landmarks[&r.m.landmark].point).collect();
-        let p2: Vec<(f32, f32)> =
-            matches.iter().map(|r| (features.keypoints[r.m.keypoint].x, features.keypoints[r.m.keypoint].y)).collect();
-        let pose = if camera.focal_unknown() {
-            absolute_pose_unknown_focal(&p3, &p2, camera, &params.ransac, params.min_inliers)?
-        } else {
-            absolute_pose(&p3, &p2, camera, &params.ransac, params.min_inliers)?
-        };
-        *pnp_s += t.elapsed().as_secs_f64();
-        Ok(pose)
-    };
-    let inliers = |p: &Option<AbsolutePose>| p.as_ref().map_or(0, |p| p.inliers.len());
-    let mut matches = join(stage1);
-    if !(params.candidate_matching || params.guided_search) {
-        // Stage 1 alone keeps the order it always had: the nearest embeddings first, ties in keypoint order.
-        matches.sort_by(|a, b| a.m.distance.total_cmp(&b.m.distance).then(a.m.keypoint.cmp(&b.m.keypoint)));
+        let mut searched = vec![false; features.len()];
+        rows.iter().for_each(|&i| searched[i] = true);
+        let rest: Vec<usize> = (0..features.len()).filter(|&i| !searched[i]).collect();
+        found.extend(index_hits(data, index, embeddings, &rest, prior, params));
+        found.sort_by_key(|r| r.m.keypoint);
+        search_s += t.elapsed().as_secs_f64();
+        (matches, pose) = after_search(data, &query, one_per_landmark(found), params, &mut timing)?;
     }
-    let mut pose = estimate(&matches, &mut pnp_s)?;
-    if params.candidate_matching && inliers(&pose) < params.candidate_skip_inliers {
-        let t = std::time::Instant::now();
-        let candidates =
-            data.covisible_keyframes(matches.iter().map(|r| r.m.landmark), |_| true, params.candidate_keyframes);
-        let every: Vec<usize> = (0..features.len()).collect();
-        let stage2 = candidate_matches(data, &candidates, features, &every, embeddings, prior, params)?;
-        stages_s += t.elapsed().as_secs_f64();
-        let joined = join(matches.iter().copied().chain(stage2));
-        if joined.len() > matches.len() {
-            let again = estimate(&joined, &mut pnp_s)?;
-            if inliers(&again) >= inliers(&pose) {
-                (matches, pose) = (joined, again);
-            }
-        }
-    }
-    if let Some(p) = pose.as_ref().filter(|_| params.guided_search) {
-        let t = std::time::Instant::now();
-        let query = Query { features, embeddings, camera, prior };
-        let guided = guided_matches(data, p, &query, &matches, params);
-        stages_s += t.elapsed().as_secs_f64();
-        if !guided.is_empty() {
-            let joined = join(matches.iter().copied().chain(guided));
-            let again = estimate(&joined, &mut pnp_s)?;
-            if inliers(&again) >= inliers(&pose) {
-                (matches, pose) = (joined, again);
-            }
-        }
-    }
+    let StageTimes { pnp_s, stages_s } = timing;
     if let Some(c) = pose.as_mut().and_then(|p| p.covariance_w2c.as_mut()) {
         *c *= params.covariance_scale;
     }

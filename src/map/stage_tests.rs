@@ -385,3 +385,37 @@ fn keyframes_at_one_centre_match_without_an_epipolar_window() {
     assert!(observations.len() >= 190, "{} observations", observations.len());
     assert!(observations.iter().all(|o| o.landmark == u64::from(o.keypoint)));
 }
+
+#[test]
+fn a_capped_query_short_of_the_fallback_inliers_is_answered_as_without_the_cap() {
+    let (features, embeddings) = query(0..0);
+    let same = |a: &Localization, b: &Localization| {
+        assert_eq!(a.matches, b.matches);
+        let (pa, pb) = (a.pose.as_ref().expect("localised"), b.pose.as_ref().expect("localised"));
+        assert_eq!(pa.inliers, pb.inliers);
+        assert_eq!(pa.camera_to_world, pb.camera_to_world);
+        assert_eq!(a.confidence, b.confidence);
+    };
+    // Without look-alikes, and with 150 landmarks whose look-alikes hide them from stage 1.
+    for alike in [0, 150] {
+        let data = map_with_look_alikes(alike);
+        for base in [LocalizeSettings::default().stage_one_only(), LocalizeSettings::default()] {
+            let every = locate(&data, &features, &embeddings, &base);
+            let capped = LocalizeSettings { max_query_keypoints: 50, ..base };
+            let alone = locate(&data, &features, &embeddings, &capped);
+            // Short of the inliers: the other 150 keypoints are searched, and the answer is the uncapped one.
+            let fallback = LocalizeSettings { full_search_below_inliers: 1000, ..capped };
+            same(&locate(&data, &features, &embeddings, &fallback), &every);
+            // A capped pose with enough inliers is kept as the capped search gave it.
+            let firm = alone.pose.as_ref().map_or(0, |p| p.inliers.len());
+            if firm > 0 {
+                let kept = LocalizeSettings { full_search_below_inliers: firm, ..capped };
+                same(&locate(&data, &features, &embeddings, &kept), &alone);
+            }
+            if alike == 0 {
+                assert!(firm > 0, "50 clean matches localise");
+                assert_ne!(alone.matches, every.matches, "the cap changed what stage 1 found");
+            }
+        }
+    }
+}

@@ -26,12 +26,15 @@ for cap in ${CAPS:-all 800 400}; do
       7scenes-redkitchen-sel) distractors=$D/liberty-internet,$D/sun3d-studyroom ;;
       sun3d-studyroom-sel) distractors=$D/liberty-internet,$D/7scenes-redkitchen ;;
     esac
-    extra=(); [ "$cap" = all ] || extra=(--max-query-keypoints "$cap")
-    f="$out/$cap--$name.json"
+    extra=(); tag=$cap
+    [ "$cap" = all ] || extra=(--max-query-keypoints "$cap")
+    # FALLBACK=T: a capped query short of T inliers is searched with every keypoint (session 43's rule).
+    if [ -n "${FALLBACK:-}" ] && [ "$cap" != all ]; then extra+=(--full-search-below-inliers "$FALLBACK"); tag=$cap-fallback$FALLBACK; fi
+    f="$out/$tag--$name.json"
     [ -s "$f" ] || "$B" eval reloc --scene "$sc" --methods scone --map-block 0:0.5 --distractors "$distractors" \
       --distractor-observations 100000 --distractor-stride 5 --foreign "$foreign" --foreign-stride 2 \
-      --opencv-threads 1 --embed-threads 1 "${extra[@]}" --json "$f" > "$out/$cap--$name.md" 2> "$out/$cap--$name.log" \
-      || echo "FAILED $cap $name"
+      --opencv-threads 1 --embed-threads 1 "${extra[@]}" --json "$f" > "$out/$tag--$name.md" 2> "$out/$tag--$name.log" \
+      || echo "FAILED $tag $name"
   done
 done
 echo "$out"

@@ -14,11 +14,15 @@ mkdir -p "$out"
 for scene in kitti-clip2 middlebury-dino48 strecha-fountain-P11 tum-fr3-long-office; do
   for cap in ${CAPS:-all 800}; do
     k=$cap; [ "$cap" = all ] && k=1000000000
-    f="$out/$cap--$scene.json"
+    extra=(); tag=$cap
+    # FALLBACK=T: a capped query short of T inliers is searched with every keypoint (session 43's rule).
+    if [ -n "${FALLBACK:-}" ] && [ "$cap" != all ]; then extra=(--full-search-below-inliers "$FALLBACK"); tag=$cap-fallback$FALLBACK; fi
+    f="$out/$tag--$scene.json"
     [ -s "$f" ] || "$B" eval reloc --scene "$D/$scene" --map-block 0:0.5 --methods scone \
       --distractors "$D/7scenes-redkitchen,$D/sun3d-studyroom" --distractor-observations 100000 --distractor-stride 5 \
-      --foreign "$D/strecha-castle-P30" --foreign-stride 3 --max-query-keypoints "$k" --opencv-threads 1 \
-      --embed-threads 1 --json "$f" > "$out/$cap--$scene.md" 2> "$out/$cap--$scene.log" || echo "FAILED $cap $scene"
+      --foreign "$D/strecha-castle-P30" --foreign-stride 3 --max-query-keypoints "$k" "${extra[@]}" \
+      --opencv-threads 1 --embed-threads 1 --json "$f" > "$out/$tag--$scene.md" 2> "$out/$tag--$scene.log" \
+      || echo "FAILED $tag $scene"
   done
 done
 echo "$out"

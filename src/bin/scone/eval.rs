@@ -118,6 +118,10 @@ pub enum EvalCommand {
         /// `store.localize.max_query_keypoints`).
         #[arg(long)]
         max_query_keypoints: Option<usize>,
+        /// With stage 1 capped, a query whose pose has fewer inliers than this is searched again with every
+        /// keypoint (default: the service's `store.localize.full_search_below_inliers`).
+        #[arg(long)]
+        full_search_below_inliers: Option<usize>,
         /// Exactly these parts of the staged pipeline on (`none`: today's stage 1 and map building before
         /// issue 27); without the flag, the service's defaults.
         #[arg(long, value_delimiter = ',')]
@@ -311,6 +315,7 @@ pub fn run(cmd: EvalCommand) -> anyhow::Result<()> {
             centre_principal_point,
             covariance_scale,
             max_query_keypoints,
+            full_search_below_inliers,
             stages,
             foreign,
             foreign_stride,
@@ -350,6 +355,9 @@ pub fn run(cmd: EvalCommand) -> anyhow::Result<()> {
             }
             if let Some(k) = max_query_keypoints {
                 rc.localize.max_query_keypoints = k;
+            }
+            if let Some(t) = full_search_below_inliers {
+                rc.localize.full_search_below_inliers = t;
             }
             if let Some(stages) = stages {
                 let on: Vec<reloc::Stage> = stages.iter().filter_map(|s| s.stage()).collect();
