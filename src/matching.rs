@@ -13,7 +13,7 @@ use opencv::features2d::BFMatcher;
 use opencv::prelude::*;
 
 use crate::error::FeatureError;
-use crate::features::Features;
+use crate::features::{Features, DESCRIPTOR_BYTES};
 
 /// A putative correspondence: keypoint `query` of the first image, keypoint `train` of the second.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -183,6 +183,11 @@ pub enum SconeMatcher {
     /// on the selection split (docs/model-experiments.md, issue 25).
     #[default]
     ScaleAware,
+    /// One descriptor of both: each keypoint's unit embedding followed by its FREAK bits as ±1/√512, by L2
+    /// with the same ratio test. The squared distance is |Δe|² + 4·Hamming/512, each part over [0, 4], so
+    /// every match is judged on both descriptors with equal weight. A frame without FREAK bits for every
+    /// keypoint is matched by the embedding alone.
+    Joint,
     /// FREAK descriptors alone (Hamming nearest neighbour, the same ratio test): the baseline SConE is
     /// compared with, so that a client or the console can put the two side by side on the same keypoints.
     Freak,
@@ -195,7 +200,7 @@ impl SconeMatcher {
         match name {
             None => Ok(Self::default()),
             Some(n) => <Self as clap::ValueEnum>::from_str(n, false).map_err(|_| {
-                format!("metadata 'scone.matcher' names no matcher: '{n}' (plain, union, rerank, scale-aware, freak)")
+                format!("metadata 'scone.matcher' names no matcher: '{n}' (plain, union, rerank, scale-aware, joint, freak)")
             }),
         }
     }
@@ -206,6 +211,7 @@ impl SconeMatcher {
             SconeMatcher::Union => "union",
             SconeMatcher::Rerank => "rerank",
             SconeMatcher::ScaleAware => "scale-aware",
+            SconeMatcher::Joint => "joint",
             SconeMatcher::Freak => "freak",
         }
     }
@@ -271,8 +277,31 @@ pub fn match_scone(
                 _ => rerank_knn(&knn, a, b, test),
             }
         }
+        SconeMatcher::Joint => match (joint_rows(a)?, joint_rows(b)?) {
+            (Some(ja), Some(jb)) => match_descriptors(&ja, &jb, NORM_L2, test, b.points),
+            _ => match_l2(a.embeddings, b.embeddings, a.dim, test, b.points),
+        },
         SconeMatcher::Freak => match_descriptors(a.freak, b.freak, NORM_HAMMING, test, b.points),
     }
+}
+
+/// [`SconeMatcher::Joint`]'s descriptors of a frame: per keypoint its embedding, then its FREAK bits as
+/// ±1/√512 (least significant bit of each byte first); `None` when the frame lacks bits for some keypoint.
+fn joint_rows(f: &SconeFrame) -> Result<Option<Mat>, FeatureError> {
+    let n = f.points.len();
+    let bytes = DESCRIPTOR_BYTES;
+    if n == 0 || f.freak.rows() as usize != n || f.freak.cols() as usize != bytes || f.embeddings.len() != n * f.dim {
+        return Ok(None);
+    }
+    let bits = f.freak.data_bytes()?;
+    let w = ((bytes * 8) as f32).sqrt().recip();
+    let width = f.dim + bytes * 8;
+    let mut rows = Vec::with_capacity(n * width);
+    for (e, d) in f.embeddings.chunks_exact(f.dim).zip(bits.chunks_exact(bytes)) {
+        rows.extend_from_slice(e);
+        rows.extend(d.iter().flat_map(|&byte| (0..8).map(move |k| if byte >> k & 1 == 1 { w } else { -w })));
+    }
+    Ok(Some(embedding_mat(&rows, width)?))
 }
 
 /// SConE's ratio-test matches, plus `freak`'s for the keypoints SConE left unmatched.
@@ -483,6 +512,45 @@ mod tests {
         let mut got: Vec<_> = union.iter().map(|m| (m.query, m.train)).collect();
         got.sort_unstable();
         assert_eq!(got, vec![(0, 0), (1, 1)]);
+    }
+
+    #[test]
+    fn joint_weighs_both_descriptors_in_every_match() {
+        // Query 0: the embedding is equidistant from b0 and b1, FREAK's bits decide for b1. Query 1: FREAK is
+        // equidistant from b1 and b2 (128 bits each), the embedding decides for b2. Query 2: both descriptors
+        // together are equidistant from b0 and b2 (squared 2 + 1 each), so no match.
+        let s = std::f32::consts::FRAC_1_SQRT_2;
+        let ea = vec![s, s, -1.0, 0.0, 0.0, -1.0];
+        let eb = vec![1.0, 0.0, 0.0, 1.0, -1.0, 0.0];
+        let (z, o) = ([0u8; 64], [0xffu8; 64]);
+        let (mut quarter, mut half, mut three_quarters) = ([0u8; 64], [0u8; 64], [0u8; 64]);
+        quarter[..16].fill(0xff);
+        half[..32].fill(0xff);
+        three_quarters[..48].fill(0xff);
+        let (ea, eb, fa, fb) = frames(ea, eb, [o, three_quarters, quarter], [z, o, half]);
+        let (a, b) = (
+            SconeFrame { embeddings: &ea, dim: 2, freak: &fa, points: &PTS, sizes: &[] },
+            SconeFrame { embeddings: &eb, dim: 2, freak: &fb, points: &PTS, sizes: &[] },
+        );
+        let test = RatioTest::new(0.8);
+        let pairs = |m: &[Match]| m.iter().map(|m| (m.query, m.train)).collect::<Vec<_>>();
+        let joint = match_scone(SconeMatcher::Joint, &a, &b, &test).unwrap();
+        assert_eq!(pairs(&joint), vec![(0, 1), (1, 2)]);
+        // Each alone misses one of them.
+        assert_eq!(pairs(&match_scone(SconeMatcher::Plain, &a, &b, &test).unwrap()), vec![(1, 2)]);
+        assert_eq!(pairs(&match_scone(SconeMatcher::Freak, &a, &b, &test).unwrap()), vec![(0, 1)]);
+        // The distance is the joint descriptor's L2: query 0 to b1 differs in the embedding only.
+        let d01 = (s * s + (s - 1.0) * (s - 1.0)).sqrt();
+        assert!((joint[0].distance - d01).abs() < 1e-5, "{} against {d01}", joint[0].distance);
+        // Query 1 to b2: the same embedding, 128 bits apart, so 4 * 128 / 512 = 1.
+        assert!((joint[1].distance - 1.0).abs() < 1e-5, "{}", joint[1].distance);
+        // Without bits for every keypoint, the embedding alone answers.
+        let none = Mat::default();
+        let bare = SconeFrame { embeddings: &ea, dim: 2, freak: &none, points: &PTS, sizes: &[] };
+        assert_eq!(
+            pairs(&match_scone(SconeMatcher::Joint, &bare, &b, &test).unwrap()),
+            pairs(&match_scone(SconeMatcher::Plain, &bare, &b, &test).unwrap())
+        );
     }
 
     #[test]

@@ -55,6 +55,7 @@ impl proto::matching_server::Matching for GrpcApi {
                     Ok(proto::PairMatcher::Rerank) => Some(SconeMatcher::Rerank),
                     Ok(proto::PairMatcher::Freak) => Some(SconeMatcher::Freak),
                     Ok(proto::PairMatcher::ScaleAware) => Some(SconeMatcher::ScaleAware),
+                    Ok(proto::PairMatcher::Joint) => Some(SconeMatcher::Joint),
                     Err(_) => return Err(invalid("matcher", &format!("{} is not a PairMatcher", r.matcher))),
                 };
                 let conv = convention(r.pose_convention)?;
@@ -75,6 +76,7 @@ impl proto::matching_server::Matching for GrpcApi {
                     SconeMatcher::Rerank => proto::PairMatcher::Rerank,
                     SconeMatcher::Freak => proto::PairMatcher::Freak,
                     SconeMatcher::ScaleAware => proto::PairMatcher::ScaleAware,
+                    SconeMatcher::Joint => proto::PairMatcher::Joint,
                 };
                 Ok(proto::MatchPairResponse {
                     matcher: ran as i32,

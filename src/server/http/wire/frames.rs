@@ -28,6 +28,8 @@ pub enum Matcher {
     /// declare none).
     #[serde(rename = "scale-aware")]
     ScaleAware,
+    /// One descriptor of both: the unit embedding and FREAK's bits, by L2 with the ratio test.
+    Joint,
     /// FREAK alone (Hamming + ratio test): the baseline, for comparison on the same keypoints.
     Freak,
 }
@@ -40,6 +42,7 @@ impl From<crate::matching::SconeMatcher> for Matcher {
             S::Union => Self::Union,
             S::Rerank => Self::Rerank,
             S::ScaleAware => Self::ScaleAware,
+            S::Joint => Self::Joint,
             S::Freak => Self::Freak,
         }
     }
@@ -52,6 +55,7 @@ impl From<Matcher> for crate::matching::SconeMatcher {
             Matcher::Union => Self::Union,
             Matcher::Rerank => Self::Rerank,
             Matcher::ScaleAware => Self::ScaleAware,
+            Matcher::Joint => Self::Joint,
             Matcher::Freak => Self::Freak,
         }
     }

@@ -1,0 +1,49 @@
+#!/usr/bin/env python3
+"""Issue 39, round 6: applies the round-6 rule of docs/model-experiments.md to score.sh's reports.
+
+    python3 docs/results/issue39/round6.py [--work $SCONE_PREFIX/work/i39] [ring-e1-real-joint [ring-e1-real]]
+
+The shipped model with the matcher `joint` must (1) pass round 2's rule (round2.judge, with the constellation
+model's scale-aware mean of round 2's run as the "shipped" figure), (2) reach a mean AUC@10 of at least `union`'s
+0.3110 + 0.005, and (3) be within 5 px in no zoom bin up to 2.5x below `union`'s (the reference directory,
+scored on the same warps by the same score.sh). Standard library only.
+"""
+
+import argparse
+import os
+import sys
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from round2 import ZOOM_BINS, judge, table_header, table_row, warp_figures  # noqa: E402
+
+ROUND2_CONSTELLATION_MEAN = 0.2806
+UNION_MEAN = 0.3110
+
+
+def zoom_bins(directory, matcher):
+    return {b["label"]: b["scone"] for b in warp_figures(directory, matcher)[2] if b["axis"] == "zoom"}
+
+
+def main():
+    default = Path(os.environ.get("SCONE_PREFIX", Path.home() / ".cache/scone")) / "work/i39"
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--work", type=Path, default=default)
+    parser.add_argument("candidate", nargs="?", default="ring-e1-real-joint")
+    parser.add_argument("reference", nargs="?", default="ring-e1-real")
+    args = parser.parse_args()
+    r = judge(args.work / args.candidate, "joint", ROUND2_CONSTELLATION_MEAN)
+    if r["mean"] < UNION_MEAN + 0.005:
+        r["failures"].append(f"pairs {r['mean']:.4f} < union {UNION_MEAN:.4f} + 0.005")
+    mine, ref = zoom_bins(args.work / args.candidate, "joint"), zoom_bins(args.work / args.reference, "union")
+    for label in ZOOM_BINS[1:]:
+        if mine[label] < ref[label]:
+            r["failures"].append(f"zoom {label} {mine[label]:.2f} < union {ref[label]:.2f}")
+    print("zoom bins within 5 px, " + ", ".join(f"{b}: {mine[b]:.2f} (union {ref[b]:.2f})" for b in ZOOM_BINS))
+    verdict = "passes criteria 1-3" if not r["failures"] else "fails: " + "; ".join(r["failures"])
+    print(table_header())
+    print(table_row(args.candidate, r, verdict))
+
+
+if __name__ == "__main__":
+    main()
