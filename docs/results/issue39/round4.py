@@ -21,8 +21,24 @@ ROUND2_CONSTELLATION_MEAN = 0.2806
 RING_E1_REAL_UNION_MEAN = 0.3110
 
 
-def zoom_bins(directory):
-    return {b["label"]: b["scone"] for b in warp_figures(directory, "union")[2] if b["axis"] == "zoom"}
+def zoom_bins(directory, matcher="union"):
+    return {b["label"]: b["scone"] for b in warp_figures(directory, matcher)[2] if b["axis"] == "zoom"}
+
+
+def report(candidate, matcher, reference, reference_matcher, reference_name):
+    """Criteria 1-3 for `candidate` (a score.sh directory) with `matcher`, against `reference` with
+    `reference_matcher` (mean AUC@10 0.3110); prints the zoom bins and the table row."""
+    r = judge(candidate, matcher, ROUND2_CONSTELLATION_MEAN)
+    if r["mean"] < RING_E1_REAL_UNION_MEAN + 0.005:
+        r["failures"].append(f"pairs {r['mean']:.4f} < {reference_name} {RING_E1_REAL_UNION_MEAN:.4f} + 0.005")
+    mine, ref = zoom_bins(candidate, matcher), zoom_bins(reference, reference_matcher)
+    for label in ZOOM_BINS[1:]:
+        if mine[label] < ref[label]:
+            r["failures"].append(f"zoom {label} {mine[label]:.2f} < {reference_name} {ref[label]:.2f}")
+    print("zoom bins within 5 px, " + ", ".join(f"{b}: {mine[b]:.2f} ({reference_name} {ref[b]:.2f})" for b in ZOOM_BINS))
+    verdict = "passes criteria 1-3" if not r["failures"] else "fails: " + "; ".join(r["failures"])
+    print(table_header())
+    print(table_row(candidate.name, r, verdict))
 
 
 def main():
@@ -32,17 +48,7 @@ def main():
     parser.add_argument("model")
     parser.add_argument("reference", nargs="?", default="ring-e1-real")
     args = parser.parse_args()
-    r = judge(args.work / args.model, "union", ROUND2_CONSTELLATION_MEAN)
-    if r["mean"] < RING_E1_REAL_UNION_MEAN + 0.005:
-        r["failures"].append(f"pairs {r['mean']:.4f} < ring-e1-real {RING_E1_REAL_UNION_MEAN:.4f} + 0.005")
-    mine, ref = zoom_bins(args.work / args.model), zoom_bins(args.work / args.reference)
-    for label in ZOOM_BINS[1:]:
-        if mine[label] < ref[label]:
-            r["failures"].append(f"zoom {label} {mine[label]:.2f} < {args.reference} {ref[label]:.2f}")
-    print("zoom bins within 5 px, " + ", ".join(f"{b}: {mine[b]:.2f} ({args.reference} {ref[b]:.2f})" for b in ZOOM_BINS))
-    verdict = "passes criteria 1-3" if not r["failures"] else "fails: " + "; ".join(r["failures"])
-    print(table_header())
-    print(table_row(args.model, r, verdict))
+    report(args.work / args.model, "union", args.work / args.reference, "union", args.reference)
 
 
 if __name__ == "__main__":

@@ -15,14 +15,7 @@ import sys
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from round2 import ZOOM_BINS, judge, table_header, table_row, warp_figures  # noqa: E402
-
-ROUND2_CONSTELLATION_MEAN = 0.2806
-UNION_MEAN = 0.3110
-
-
-def zoom_bins(directory, matcher):
-    return {b["label"]: b["scone"] for b in warp_figures(directory, matcher)[2] if b["axis"] == "zoom"}
+from round4 import report  # noqa: E402
 
 
 def main():
@@ -32,17 +25,7 @@ def main():
     parser.add_argument("candidate", nargs="?", default="ring-e1-real-joint")
     parser.add_argument("reference", nargs="?", default="ring-e1-real")
     args = parser.parse_args()
-    r = judge(args.work / args.candidate, "joint", ROUND2_CONSTELLATION_MEAN)
-    if r["mean"] < UNION_MEAN + 0.005:
-        r["failures"].append(f"pairs {r['mean']:.4f} < union {UNION_MEAN:.4f} + 0.005")
-    mine, ref = zoom_bins(args.work / args.candidate, "joint"), zoom_bins(args.work / args.reference, "union")
-    for label in ZOOM_BINS[1:]:
-        if mine[label] < ref[label]:
-            r["failures"].append(f"zoom {label} {mine[label]:.2f} < union {ref[label]:.2f}")
-    print("zoom bins within 5 px, " + ", ".join(f"{b}: {mine[b]:.2f} (union {ref[b]:.2f})" for b in ZOOM_BINS))
-    verdict = "passes criteria 1-3" if not r["failures"] else "fails: " + "; ".join(r["failures"])
-    print(table_header())
-    print(table_row(args.candidate, r, verdict))
+    report(args.work / args.candidate, "joint", args.work / args.reference, "union", "union")
 
 
 if __name__ == "__main__":
