@@ -822,6 +822,7 @@ async fn match_pair_matchers_are_selectable_and_unknown_ones_refused() {
         proto::PairMatcher::Union,
         proto::PairMatcher::Rerank,
         proto::PairMatcher::ScaleAware,
+        proto::PairMatcher::Joint,
     ] {
         let r = matching.match_pair(request(m as i32)).await.unwrap().into_inner();
         let ran = if m == proto::PairMatcher::Default { proto::PairMatcher::Union } else { m };
@@ -857,6 +858,11 @@ async fn match_pair_matchers_are_selectable_and_unknown_ones_refused() {
     assert_eq!(plain["matcher"], "plain");
     let scale_aware: serde_json::Value = post("scale-aware").await.unwrap().json().await.unwrap();
     assert_eq!(scale_aware["matches"].as_array().unwrap().len(), counts[4]);
+    let joint: serde_json::Value = post("joint").await.unwrap().json().await.unwrap();
+    assert_eq!(
+        (joint["matches"].as_array().unwrap().len(), &joint["matcher"]),
+        (counts[5], &serde_json::json!("joint"))
+    );
     let r = post("nearest").await.unwrap();
     assert_eq!(r.status(), 400);
     server.shutdown().await.unwrap();
