@@ -183,10 +183,12 @@ pub enum SconeMatcher {
     /// on the selection split (docs/model-experiments.md, issue 25).
     #[default]
     ScaleAware,
-    /// One descriptor of both: each keypoint's unit embedding followed by its FREAK bits as ±1/√512, by L2
-    /// with the same ratio test. The squared distance is |Δe|² + 4·Hamming/512, each part over [0, 4], so
-    /// every match is judged on both descriptors with equal weight. A frame without FREAK bits for every
-    /// keypoint is matched by the embedding alone.
+    /// One descriptor of both: each keypoint's unit embedding followed by its FREAK bits as ±1/√512. The
+    /// squared distance is |Δe|² + 4·Hamming/512, each part over [0, 4], so every match is judged on both
+    /// descriptors with equal weight. The ratio applies to that squared distance, as FREAK's does to Hamming
+    /// (itself a squared distance of the bits): 0.8 there is 0.894 on the L2 distance (round 7 of
+    /// docs/model-experiments.md, issue 39). A frame without FREAK bits for every keypoint is matched by the
+    /// embedding alone, with the ratio as given.
     Joint,
     /// FREAK descriptors alone (Hamming nearest neighbour, the same ratio test): the baseline SConE is
     /// compared with, so that a client or the console can put the two side by side on the same keypoints.
@@ -278,7 +280,10 @@ pub fn match_scone(
             }
         }
         SconeMatcher::Joint => match (joint_rows(a)?, joint_rows(b)?) {
-            (Some(ja), Some(jb)) => match_descriptors(&ja, &jb, NORM_L2, test, b.points),
+            (Some(ja), Some(jb)) => {
+                let squared = RatioTest { ratio: test.ratio.sqrt(), ..*test };
+                match_descriptors(&ja, &jb, NORM_L2, &squared, b.points)
+            }
             _ => match_l2(a.embeddings, b.embeddings, a.dim, test, b.points),
         },
         SconeMatcher::Freak => match_descriptors(a.freak, b.freak, NORM_HAMMING, test, b.points),
@@ -544,6 +549,10 @@ mod tests {
         assert!((joint[0].distance - d01).abs() < 1e-5, "{} against {d01}", joint[0].distance);
         // Query 1 to b2: the same embedding, 128 bits apart, so 4 * 128 / 512 = 1.
         assert!((joint[1].distance - 1.0).abs() < 1e-5, "{}", joint[1].distance);
+        // The ratio applies to the squared distance: 0.3 there is 0.548 on the L2 distance, which query 0
+        // passes (0.766 against 2.14, 0.36) and query 1 does not (1 against 1.73, 0.58).
+        let strict = RatioTest::new(0.3);
+        assert_eq!(pairs(&match_scone(SconeMatcher::Joint, &a, &b, &strict).unwrap()), vec![(0, 1)]);
         // Without bits for every keypoint, the embedding alone answers.
         let none = Mat::default();
         let bare = SconeFrame { embeddings: &ea, dim: 2, freak: &none, points: &PTS, sizes: &[] };
