@@ -446,9 +446,12 @@ fn main() {
         let (store, observations) = (&open_maps[0], built.observations);
         if per_landmark {
             let label = "all, one point per landmark";
-            sweeps.push(sweep(store, &described, &camera, observations, &[usize::MAX, 800], label));
+            // Every keypoint, session 41's cap, and session 43's cap that falls back below 100 inliers.
+            let caps = [(usize::MAX, 0), (800, 0), (200, 100)];
+            sweeps.push(sweep(store, &described, &camera, observations, &caps, label));
         } else {
-            sweeps.push(sweep(store, &described, &camera, observations, &CAPS, "all"));
+            let caps: Vec<(usize, usize)> = CAPS.iter().map(|&c| (c, 0)).collect();
+            sweeps.push(sweep(store, &described, &camera, observations, &caps, "all"));
             adds.push(add_keyframes(&dir, &info, &described, &camera, observations));
         }
     }
@@ -653,26 +656,34 @@ const PER_LANDMARK_ENV: &str = "SCONE_BENCH_PER_LANDMARK";
 /// Query keypoint caps measured on one map: `usize::MAX` is every keypoint.
 const CAPS: [usize; 6] = [usize::MAX, 1000, 800, 600, 400, 250];
 
-/// Search and PnP of every query with each cap of [`CAPS`] (the service's localisation, called on the map
-/// directly so one opened map serves every cap).
+/// Search and PnP of every query with each (cap, `full_search_below_inliers`) of `caps` (the service's
+/// localisation, called on the map directly so one opened map serves every cap).
 fn sweep(
     store: &MapStore,
     described: &[Described],
     camera: &Camera,
     observations: usize,
-    caps: &[usize],
+    caps: &[(usize, usize)],
     all: &str,
 ) -> Vec<String> {
     let map = store.get("m").unwrap();
     let mut rows = Vec::new();
-    for &cap in caps {
-        let params = LocalizeSettings { max_query_keypoints: cap, ..LocalizeSettings::default() };
+    for &(cap, fallback) in caps {
+        let params = LocalizeSettings {
+            max_query_keypoints: cap,
+            full_search_below_inliers: fallback,
+            ..LocalizeSettings::default()
+        };
         let Scored { search_ms, stages_ms, pnp_ms, matches, localised, within, within5 } =
             map.read(|data, index| score(data, index, described, camera, &params));
         let n = described.len();
         rows.push(format!(
             "| {observations} | {} | {n} | {localised} | {within} | {within5} | {:.0} | {:.1} | {:.1} | {:.1} |",
-            if cap == usize::MAX { all.to_string() } else { cap.to_string() },
+            match (cap, fallback) {
+                (usize::MAX, _) => all.to_string(),
+                (_, 0) => cap.to_string(),
+                _ => format!("{cap}, all below {fallback} inliers"),
+            },
             median(matches),
             median(search_ms),
             median(stages_ms),
