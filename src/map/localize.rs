@@ -67,8 +67,10 @@ pub struct LocalizeSettings {
     pub max_query_keypoints: usize,
     /// With stage 1 capped (`max_query_keypoints`), a query whose pose after the other stages has fewer than
     /// this many inliers (or none) has its other keypoints searched too and is answered exactly as without
-    /// the cap: the cap then only speeds up the queries that a few searches already place firmly, and loses
-    /// none of the others. 0 = off (a capped query is answered from its capped search alone).
+    /// the cap, so the cap loses no query it could not place. 0 = off (a capped query is answered from its
+    /// capped search alone), the default: at caps of 100-400 it passed no selection rule, and it made queries
+    /// slower, far ones by searching twice and near ones by running stage 2, which costs more than the search
+    /// it saves (BENCHMARKS.md, "A capped search that falls back to every keypoint").
     pub full_search_below_inliers: usize,
     /// Multiplies the pose covariance of the refinement (`σ² (JᵀJ)⁻¹`), which counts only the query's pixel
     /// noise: the map's landmarks have errors of their own, so the raw ellipsoid is too small. 26: the 95th
