@@ -493,6 +493,13 @@ mod tests {
 
     const PTS: [(f32, f32); 3] = [(10.0, 10.0), (100.0, 10.0), (10.0, 100.0)];
 
+    /// A FREAK descriptor whose first `bytes` bytes have every bit set (8 x `bytes` ones), the rest none.
+    fn ones(bytes: usize) -> [u8; 64] {
+        let mut d = [0u8; 64];
+        d[..bytes].fill(0xff);
+        d
+    }
+
     #[test]
     fn union_adds_freak_matches_only_for_keypoints_scone_left_unmatched() {
         // SConE: query 0 clearly matches 0; queries 1 and 2 are ambiguous (equidistant from b1 and b2).
@@ -500,10 +507,7 @@ mod tests {
         let eb = vec![0.0, 0.0, 5.0, 4.0, 5.0, 6.0];
         // FREAK: query 0 would match 1 (disagreeing with SConE), query 1 clearly matches 1, query 2 is 128 bits
         // from both b1 and b2.
-        let (z, o) = ([0u8; 64], [0xffu8; 64]);
-        let (mut half, mut three_quarters) = ([0u8; 64], [0u8; 64]);
-        half[..32].fill(0xff);
-        three_quarters[..48].fill(0xff);
+        let (z, o, half, three_quarters) = (ones(0), ones(64), ones(32), ones(48));
         let (ea, eb, fa, fb) = frames(ea, eb, [o, o, three_quarters], [z, o, half]);
         let (a, b) = (
             SconeFrame { embeddings: &ea, dim: 2, freak: &fa, points: &PTS, sizes: &[] },
@@ -527,11 +531,7 @@ mod tests {
         let s = std::f32::consts::FRAC_1_SQRT_2;
         let ea = vec![s, s, -1.0, 0.0, 0.0, -1.0];
         let eb = vec![1.0, 0.0, 0.0, 1.0, -1.0, 0.0];
-        let (z, o) = ([0u8; 64], [0xffu8; 64]);
-        let (mut quarter, mut half, mut three_quarters) = ([0u8; 64], [0u8; 64], [0u8; 64]);
-        quarter[..16].fill(0xff);
-        half[..32].fill(0xff);
-        three_quarters[..48].fill(0xff);
+        let (z, o, quarter, half, three_quarters) = (ones(0), ones(64), ones(16), ones(32), ones(48));
         let (ea, eb, fa, fb) = frames(ea, eb, [o, three_quarters, quarter], [z, o, half]);
         let (a, b) = (
             SconeFrame { embeddings: &ea, dim: 2, freak: &fa, points: &PTS, sizes: &[] },
@@ -581,13 +581,7 @@ mod tests {
         // 12 keypoints per frame, FREAK bits distinct per keypoint and equal across the frames (every FREAK
         // match is k -> k); SConE embeddings agree with FREAK except that keypoint 0 is ambiguous for SConE.
         let n = 12;
-        let bits: Vec<[u8; 64]> = (0..n)
-            .map(|k| {
-                let mut b = [0u8; 64];
-                b[..(k + 1) * 5].fill(0xff);
-                b
-            })
-            .collect();
+        let bits: Vec<[u8; 64]> = (0..n).map(|k| ones((k + 1) * 5)).collect();
         let mut ea: Vec<f32> = (0..n).flat_map(|k| [10.0 * k as f32, 0.0]).collect();
         ea[0] = 5.0; // halfway between b0 and b1
         let eb: Vec<f32> = (0..n).flat_map(|k| [10.0 * k as f32, 0.0]).collect();

@@ -663,9 +663,11 @@ pub fn localize(
     let mut search_s = t.elapsed().as_secs_f64();
     let mut timing = StageTimes::default();
     let query = Query { features, embeddings, camera, prior };
-    let (mut matches, mut pose) = after_search(data, &query, one_per_landmark(found.clone()), params, &mut timing)?;
-    let capped = rows.len() < features.len();
-    if capped && pose.as_ref().map_or(0, |p| p.inliers.len()) < params.full_search_below_inliers {
+    // The capped hits are kept for the fallback only when there can be one.
+    let may_fall_back = rows.len() < features.len() && params.full_search_below_inliers > 0;
+    let first = if may_fall_back { found.clone() } else { std::mem::take(&mut found) };
+    let (mut matches, mut pose) = after_search(data, &query, one_per_landmark(first), params, &mut timing)?;
+    if may_fall_back && pose.as_ref().map_or(0, |p| p.inliers.len()) < params.full_search_below_inliers {
         // The fallback: the other keypoints searched too, and the query answered as without the cap (per
         // keypoint, a search and its acceptance do not depend on the others, so the hits are the same).
         let t = std::time::Instant::now();
