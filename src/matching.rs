@@ -81,19 +81,28 @@ fn competitor(cands: &[(f32, usize)], b_points: &[(f32, f32)], same_corner_px: f
 /// A query's nearest candidate when it passes the ratio test against its competitor (`row`: the query's
 /// candidates nearest first; `cands` is scratch space).
 fn ratio_winner(
-    row: &Vector<DMatch>,
+    query: usize,
+    row: &[(usize, f32)],
     cands: &mut Vec<(f32, usize)>,
     b_points: &[(f32, f32)],
     test: &RatioTest,
-) -> Result<Option<Match>, FeatureError> {
+) -> Option<Match> {
     if row.len() < 2 {
-        return Ok(None);
+        return None;
     }
-    let m0 = row.get(0)?;
+    let (train, distance) = row[0];
     cands.clear();
-    cands.extend(row.iter().map(|m| (m.distance, m.train_idx as usize)));
-    let m = Match { query: m0.query_idx as usize, train: m0.train_idx as usize, distance: m0.distance };
-    Ok((m0.distance < test.ratio * competitor(cands, b_points, test.same_corner_px)).then_some(m))
+    cands.extend(row.iter().map(|&(t, d)| (d, t)));
+    (distance < test.ratio * competitor(cands, b_points, test.same_corner_px)).then_some(Match {
+        query,
+        train,
+        distance,
+    })
+}
+
+/// OpenCV's knn answer as (train row, distance) per query row.
+fn knn_rows(knn: &Vector<Vector<DMatch>>) -> Vec<Vec<(usize, f32)>> {
+    knn.iter().map(|hits| hits.iter().map(|h| (h.train_idx as usize, h.distance)).collect()).collect()
 }
 
 /// Nearest neighbours of `a`'s rows in `b` with OpenCV's brute-force matcher, ratio test and optional mutual
@@ -128,30 +137,21 @@ pub fn match_descriptors_masked(
             format!("{} keypoint positions for {} descriptors", b_points.len(), b.rows()),
         )));
     }
-    let matcher = BFMatcher::new(norm, false)?;
-    let mut knn = Vector::<Vector<DMatch>>::new();
     let k = if same_corner { SAME_CORNER_CANDIDATES } else { 2 };
-    matcher.knn_train_match(a, b, &mut knn, k, mask, false)?;
-    let reverse: Option<Vec<i32>> = if test.mutual {
-        let mut best = Vector::<DMatch>::new();
-        let mut back = Mat::default();
-        if !mask.empty() {
-            opencv::core::transpose(mask, &mut back)?;
-        }
-        matcher.train_match(b, a, &mut best, &back)?;
-        let mut rev = vec![-1; b.rows() as usize];
-        for m in best.iter() {
-            rev[m.query_idx as usize] = m.train_idx;
-        }
-        Some(rev)
+    // With the mutual check, both directions come from one distance matrix; without it, OpenCV's knn alone.
+    let (rows, reverse) = if test.mutual {
+        let both = nearest_both_ways(a, b, norm, k as usize, mask)?;
+        (both.forward, Some(both.back))
     } else {
-        None
+        let mut knn = Vector::<Vector<DMatch>>::new();
+        BFMatcher::new(norm, false)?.knn_train_match(a, b, &mut knn, k, mask, false)?;
+        (knn_rows(&knn), None)
     };
     let mut out = Vec::new();
     let mut cands: Vec<(f32, usize)> = Vec::with_capacity(k as usize);
-    for pair in knn.iter() {
-        let Some(m) = ratio_winner(&pair, &mut cands, b_points, test)? else { continue };
-        if reverse.as_ref().is_some_and(|rev| rev[m.train] != m.query as i32) {
+    for (q, row) in rows.iter().enumerate() {
+        let Some(m) = ratio_winner(q, row, &mut cands, b_points, test) else { continue };
+        if reverse.as_ref().is_some_and(|back| back[m.train] != Some(m.query)) {
             continue;
         }
         out.push(m);
@@ -355,8 +355,8 @@ fn freak_ratio_matches(
     }
     let mut out = Vec::new();
     let mut cands: Vec<(f32, usize)> = Vec::with_capacity(RERANK_CANDIDATES as usize);
-    for row in knn.iter() {
-        out.extend(ratio_winner(&row, &mut cands, b.points, test)?);
+    for (q, row) in knn_rows(knn).iter().enumerate() {
+        out.extend(ratio_winner(q, row, &mut cands, b.points, test));
     }
     Ok(out)
 }
@@ -405,6 +405,101 @@ fn rerank_knn(
     Ok(out)
 }
 
+/// Brute-force nearest neighbours in both directions from one distance matrix: what OpenCV's
+/// `BFMatcher::knnMatch(query, train, k, mask)` and `BFMatcher::match(train, query, maskᵀ)` answer, at half
+/// their distance computations. Both call `cv::batchDistance` with the same per-pair arithmetic, which is
+/// symmetric, so one matrix serves both; it is computed here in bands of query rows
+/// ([`BOTH_WAYS_BAND_VALUES`] distances at a time) and read with OpenCV's own orders: a query row's neighbours
+/// by ascending distance, ties in train order, and a train row's nearest query row the first of the smallest.
+/// A pair the mask leaves out has batchDistance's "no distance" (`FLT_MAX`, or `INT_MAX` for Hamming) and is
+/// never a neighbour, as in OpenCV.
+pub struct BothWays {
+    /// Per query row, its `k` nearest train rows (fewer when `train` or the mask admits fewer): (train row,
+    /// distance).
+    pub forward: Vec<Vec<(usize, f32)>>,
+    /// Per train row, its nearest query row (none when the mask admits none).
+    pub back: Vec<Option<usize>>,
+}
+
+/// The most distances [`nearest_both_ways`] holds at once (16 MB of f32).
+pub const BOTH_WAYS_BAND_VALUES: usize = 1 << 22;
+
+/// [`BothWays`] of `query` against `train` (the same type: f32 rows with `NORM_L2`, bytes with
+/// `NORM_HAMMING`), only the pairs `mask` admits (`query.rows() x train.rows()`, `CV_8U`; empty admits all).
+/// Empty when either has no rows.
+pub fn nearest_both_ways(query: &Mat, train: &Mat, norm: i32, k: usize, mask: &Mat) -> Result<BothWays, FeatureError> {
+    nearest_both_ways_in_bands(query, train, norm, k, mask, BOTH_WAYS_BAND_VALUES)
+}
+
+fn nearest_both_ways_in_bands(
+    query: &Mat,
+    train: &Mat,
+    norm: i32,
+    k: usize,
+    mask: &Mat,
+    band_values: usize,
+) -> Result<BothWays, FeatureError> {
+    let (nq, nt) = (query.rows().max(0) as usize, train.rows().max(0) as usize);
+    let mut out = BothWays { forward: Vec::with_capacity(nq), back: Vec::new() };
+    if nq == 0 || nt == 0 {
+        return Ok(out);
+    }
+    let k = k.min(nt);
+    let hamming = norm == NORM_HAMMING;
+    let (dtype, none) =
+        if hamming { (opencv::core::CV_32S, i32::MAX as f32) } else { (opencv::core::CV_32F, f32::MAX) };
+    let band = (band_values / nt).clamp(1, nq);
+    let mut best = vec![none; nt];
+    let mut back = vec![u32::MAX; nt];
+    let (mut dist, mut as_f32) = (Mat::default(), Mat::default());
+    let mut start = 0;
+    while start < nq {
+        let end = (start + band).min(nq);
+        let rows = query.row_bounds(start as i32, end as i32)?;
+        let mut no_index = opencv::core::no_array();
+        if mask.empty() {
+            opencv::core::batch_distance(&rows, train, &mut dist, dtype, &mut no_index, norm, 0, mask, 0, false)?;
+        } else {
+            let admitted = mask.row_bounds(start as i32, end as i32)?;
+            opencv::core::batch_distance(&rows, train, &mut dist, dtype, &mut no_index, norm, 0, &admitted, 0, false)?;
+        }
+        // Hamming distances are small integers: exact in f32, as BFMatcher reports them.
+        let values = if hamming {
+            dist.convert_to(&mut as_f32, opencv::core::CV_32F, 1.0, 0.0)?;
+            &as_f32
+        } else {
+            &dist
+        };
+        let values = values.data_typed::<f32>()?;
+        for (r, row) in values.chunks_exact(nt).enumerate() {
+            let q = start + r;
+            // batchDistance's insertion: a distance enters only below the k-th, after the equal ones.
+            let mut near: Vec<(usize, f32)> = Vec::with_capacity(k + 1);
+            let mut kth = none;
+            for (t, &d) in row.iter().enumerate() {
+                if d < kth {
+                    let at = near.partition_point(|&(_, e)| e <= d);
+                    near.insert(at, (t, d));
+                    near.truncate(k);
+                    if near.len() == k {
+                        kth = near[k - 1].1;
+                    }
+                }
+            }
+            out.forward.push(near);
+            // Rows come in order, so a strict "below" keeps the first of equal distances.
+            for ((b, back), &d) in best.iter_mut().zip(back.iter_mut()).zip(row) {
+                let closer = d < *b;
+                *b = if closer { d } else { *b };
+                *back = if closer { q as u32 } else { *back };
+            }
+        }
+        start = end;
+    }
+    out.back = back.into_iter().map(|q| (q != u32::MAX).then_some(q as usize)).collect();
+    Ok(out)
+}
+
 /// Embedding rows (`[N, dim]`, row-major) as an OpenCV f32 matrix.
 pub fn embedding_mat(rows: &[f32], dim: usize) -> Result<Mat, FeatureError> {
     if rows.is_empty() {
@@ -441,6 +536,65 @@ mod tests {
         let a = vec![0.0, 0.0];
         let b = vec![1.0, 0.0, 0.0, 1.1, far, 0.0];
         (a, b, vec![(10.0, 10.0), (11.0, 10.0), (60.0, 10.0)])
+    }
+
+    /// OpenCV's two calls that [`nearest_both_ways`] stands for.
+    fn bf_both_ways(query: &Mat, train: &Mat, norm: i32, k: usize, mask: &Mat) -> BothWays {
+        let matcher = BFMatcher::new(norm, false).unwrap();
+        let mut knn = Vector::<Vector<DMatch>>::new();
+        matcher.knn_train_match(query, train, &mut knn, k as i32, mask, false).unwrap();
+        let mut back_mask = Mat::default();
+        if !mask.empty() {
+            opencv::core::transpose(mask, &mut back_mask).unwrap();
+        }
+        let mut back = Vector::<DMatch>::new();
+        matcher.train_match(train, query, &mut back, &back_mask).unwrap();
+        let mut nearest = vec![None; train.rows() as usize];
+        for m in back.iter() {
+            nearest[m.query_idx as usize] = Some(m.train_idx as usize);
+        }
+        BothWays { forward: knn_rows(&knn), back: nearest }
+    }
+
+    #[test]
+    fn both_ways_from_one_matrix_is_opencvs_answer_to_the_bit() {
+        use rand::{Rng, SeedableRng};
+        let mut rng = rand::rngs::StdRng::seed_from_u64(7);
+        // Embeddings rounded to a coarse grid, and repeated rows, so equal distances (ties) are common.
+        let (nq, nt, dim) = (150, 97, 8);
+        let mut grid = |n: usize| -> Vec<f32> { (0..n * dim).map(|_| rng.random_range(0..4) as f32 * 0.25).collect() };
+        let mut q = grid(nq);
+        let t = grid(nt);
+        q[dim..2 * dim].copy_from_slice(&t[..dim]);
+        let (qm, tm) = (embedding_mat(&q, dim).unwrap(), embedding_mat(&t, dim).unwrap());
+        let bytes: Vec<u8> = (0..(nq + nt) * DESCRIPTOR_BYTES).map(|_| rng.random::<u8>() & 0x11).collect();
+        let (qb, tb) = (
+            crate::features::bits_mat(&bytes[..nq * DESCRIPTOR_BYTES]).unwrap(),
+            crate::features::bits_mat(&bytes[nq * DESCRIPTOR_BYTES..]).unwrap(),
+        );
+        // A mask admitting a third of the pairs, with query row 3 and train row 5 admitting none.
+        let mut admitted: Vec<u8> = (0..nq * nt).map(|_| u8::from(rng.random_range(0..3) == 0)).collect();
+        admitted[3 * nt..4 * nt].fill(0);
+        (0..nq).for_each(|i| admitted[i * nt + 5] = 0);
+        let mask = Mat::new_rows_cols_with_data(nq as i32, nt as i32, &admitted).unwrap().try_clone().unwrap();
+        for (qm, tm, norm) in [(&qm, &tm, NORM_L2), (&qb, &tb, NORM_HAMMING)] {
+            for mask in [&Mat::default(), &mask] {
+                for k in [1, 2, 7, 200] {
+                    let want = bf_both_ways(qm, tm, norm, k, mask);
+                    // One band, bands of several rows, and a band per row.
+                    for band in [usize::MAX, 5 * nt, 1] {
+                        let got = nearest_both_ways_in_bands(qm, tm, norm, k, mask, band).unwrap();
+                        let case = format!("norm {norm}, masked {}, k {k}, band {band}", !mask.empty());
+                        assert_eq!(got.forward, want.forward, "{case}");
+                        assert_eq!(got.back, want.back, "{case}");
+                    }
+                }
+            }
+        }
+        let masked = nearest_both_ways(&qm, &tm, NORM_L2, 2, &mask).unwrap();
+        assert!(masked.forward[3].is_empty() && masked.back[5].is_none(), "rows the mask leaves out have no neighbour");
+        let empty = nearest_both_ways(&Mat::default(), &tm, NORM_L2, 7, &Mat::default()).unwrap();
+        assert!(empty.forward.is_empty() && empty.back.is_empty());
     }
 
     #[test]

@@ -37,8 +37,7 @@ use serde::{Deserialize, Serialize};
 
 use std::collections::{HashMap, HashSet};
 
-use opencv::core::{DMatch, Mat, Vector, NORM_HAMMING, NORM_L2};
-use opencv::features2d::BFMatcher;
+use opencv::core::{Mat, NORM_HAMMING, NORM_L2};
 use opencv::prelude::*;
 
 use crate::camera::Camera;
@@ -46,7 +45,7 @@ use crate::error::MapError;
 use crate::features::{bits_mat, Features, DESCRIPTOR_BYTES};
 use crate::map::index::{l2_squared, EmbeddingIndex};
 use crate::map::model::MapData;
-use crate::matching::embedding_mat;
+use crate::matching::{embedding_mat, nearest_both_ways};
 use crate::pose::{absolute_pose, absolute_pose_unknown_focal, AbsolutePose, RansacSettings};
 
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
@@ -277,8 +276,8 @@ fn landmark_views(data: &MapData, landmarks: &[u64]) -> Vec<usize> {
     views
 }
 
-/// Matches of the query's rows `query` against the rows `views` (one per observation id in `views`) by
-/// OpenCV's exact search in `norm`: the nearest view's landmark when its distance is below `ratio` times the
+/// Matches of the query's rows `query` against the rows `views` (one per observation id in `views`) by exact
+/// search in `norm` (OpenCV's brute force, one distance matrix for both directions): the nearest view's landmark when its distance is below `ratio` times the
 /// nearest view of another landmark, and the keypoint is the nearest query row to one of that landmark's views
 /// (mutual). `distance` is left to the caller; the rank is the ratio.
 fn mutual_landmark_matches(
@@ -289,29 +288,23 @@ fn mutual_landmark_matches(
     norm: i32,
     ratio: f32,
 ) -> Result<Vec<Ranked>, MapError> {
-    let fe = crate::error::FeatureError::from;
     if query.rows() < 1 || train.rows() < 1 {
         return Ok(Vec::new());
     }
-    let matcher = BFMatcher::new(norm, false).map_err(fe)?;
-    let mut knn = Vector::<Vector<DMatch>>::new();
-    let k = (VIEWS_PER_LANDMARK as i32 + 1).min(train.rows());
-    matcher.knn_train_match(query, train, &mut knn, k, &Mat::default(), false).map_err(fe)?;
-    let mut back = Vector::<DMatch>::new();
-    matcher.train_match(train, query, &mut back, &Mat::default()).map_err(fe)?;
+    let both = nearest_both_ways(query, train, norm, VIEWS_PER_LANDMARK + 1, &Mat::default())?;
+    let landmark = |t: usize| data.observations[views[t]].landmark;
     let nearest_of: HashSet<(u64, usize)> =
-        back.iter().map(|m| (data.observations[views[m.query_idx as usize]].landmark, m.train_idx as usize)).collect();
+        both.back.iter().enumerate().filter_map(|(t, q)| q.map(|q| (landmark(t), q))).collect();
     let mut found = Vec::new();
-    for hits in knn.iter() {
-        let Ok(first) = hits.get(0) else { continue };
-        let lm = data.observations[views[first.train_idx as usize]].landmark;
-        let q = first.query_idx as usize;
-        let other = hits.iter().find(|h| data.observations[views[h.train_idx as usize]].landmark != lm);
-        if other.is_some_and(|o| first.distance >= ratio * o.distance) || !nearest_of.contains(&(lm, q)) {
+    for (q, hits) in both.forward.iter().enumerate() {
+        let Some(&(first, d0)) = hits.first() else { continue };
+        let lm = landmark(first);
+        let other = hits.iter().find(|h| landmark(h.0) != lm).map(|h| h.1);
+        if other.is_some_and(|d1| d0 >= ratio * d1) || !nearest_of.contains(&(lm, q)) {
             continue;
         }
-        let r = other.map_or(1.0, |o| first.distance / o.distance.max(f32::MIN_POSITIVE));
-        found.push(Ranked { m: LandmarkMatch { keypoint: q, landmark: lm, distance: first.distance }, ratio: r });
+        let r = other.map_or(1.0, |d1| d0 / d1.max(f32::MIN_POSITIVE));
+        found.push(Ranked { m: LandmarkMatch { keypoint: q, landmark: lm, distance: d0 }, ratio: r });
     }
     Ok(found)
 }
