@@ -20,6 +20,9 @@
 //!   messages of a client stream (both set in `grpc.rs`).
 //! - **`tcp_keepalive_ms`**: TCP keepalive on accepted sockets, so vanished peers are noticed.
 //!
+//! A connection the server closes lingers ([`LINGER`], as nginx's `lingering_close`): after its FIN it reads
+//! and discards until the client closes too, so the last response reaches a client that was still sending.
+//!
 //! How: the accepted socket is wrapped in a [`Conn`] that enforces the times on its own reads and writes;
 //! the transport tells it when requests begin and end ([`Activity::begin`], a guard that lives until the
 //! response body is done), which is what "in flight" means here. The rules are evaluated only while a
@@ -234,8 +237,17 @@ pub struct Conn {
     read_timer: Pin<Box<Sleep>>,
     write_timer: Pin<Box<Sleep>>,
     write_stalled_since: Option<Instant>,
+    /// Set once the write half is shut down: the end of the lingering close.
+    linger: Option<Pin<Box<Sleep>>>,
     _slot: OwnedSemaphorePermit,
 }
+
+/// The longest a closing connection waits for its client to close its side (nginx's `lingering_timeout`
+/// default), and never longer than the idle time.
+pub const LINGER: Duration = Duration::from_secs(5);
+
+/// Reads of a lingering close per poll, before it yields the thread.
+const LINGER_READS_PER_POLL: usize = 64;
 
 fn timed_out(what: &str) -> io::Error {
     io::Error::new(io::ErrorKind::TimedOut, what.to_string())
@@ -251,6 +263,7 @@ impl Conn {
             read_timer: Box::pin(tokio::time::sleep_until(far)),
             write_timer: Box::pin(tokio::time::sleep_until(far)),
             write_stalled_since: None,
+            linger: None,
             _slot: slot,
         }
     }
@@ -336,8 +349,36 @@ impl AsyncWrite for Conn {
         Pin::new(&mut self.io).poll_flush(cx)
     }
 
+    /// A lingering close: the write half's FIN first, then whatever the client still sends is read and
+    /// discarded until it closes its side (or [`LINGER`] passes, or it resets). Closing a socket with unread
+    /// bytes makes the kernel answer with a reset, which throws away the part of the last response not yet
+    /// delivered; an HTTP/2 client keeps sending window updates while it reads that response.
     fn poll_shutdown(mut self: Pin<&mut Self>, cx: &mut Context<'_>) -> Poll<io::Result<()>> {
-        Pin::new(&mut self.io).poll_shutdown(cx)
+        let this = &mut *self;
+        if this.linger.is_none() {
+            std::task::ready!(Pin::new(&mut this.io).poll_shutdown(cx))?;
+            this.linger = Some(Box::pin(tokio::time::sleep(LINGER.min(this.idle))));
+        }
+        let mut scrap = [0u8; 2048];
+        for _ in 0..LINGER_READS_PER_POLL {
+            let mut buf = ReadBuf::new(&mut scrap);
+            match Pin::new(&mut this.io).poll_read(cx, &mut buf) {
+                Poll::Ready(Ok(())) if buf.filled().is_empty() => return Poll::Ready(Ok(())),
+                Poll::Ready(Ok(())) => continue,
+                // A reset from the client: nothing of ours is left to protect.
+                Poll::Ready(Err(_)) => return Poll::Ready(Ok(())),
+                Poll::Pending => {
+                    let timer = this.linger.as_mut().expect("set above");
+                    return timer.as_mut().poll(cx).map(Ok);
+                }
+            }
+        }
+        // A client that keeps sending gets no more than the linger time, and the task's thread is not held.
+        if this.linger.as_mut().expect("set above").as_mut().poll(cx).is_ready() {
+            return Poll::Ready(Ok(()));
+        }
+        cx.waker().wake_by_ref();
+        Poll::Pending
     }
 }
 
@@ -497,6 +538,42 @@ mod tests {
             idle: Duration::from_secs(60),
             tcp_keepalive: None,
         }
+    }
+
+    /// The flaky shutdown test's failure, made certain: the server writes a response larger than the socket
+    /// buffers hold, shuts down and closes while bytes the client sent later lie unread. A plain close then
+    /// makes the kernel reset the connection and drop what it had not yet sent; the lingering close lets the
+    /// client read the whole response and its end.
+    #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+    async fn a_closing_connection_delivers_its_last_response_though_the_client_sent_more() {
+        use tokio::io::{AsyncReadExt, AsyncWriteExt};
+        let listener =
+            Listener::new(TcpListener::bind("127.0.0.1:0").await.unwrap(), limits(), Protocol::Http2, "test");
+        let addr = listener.local_addr().unwrap();
+        const RESPONSE: usize = 16 << 20;
+        let server = tokio::spawn(async move {
+            let (mut conn, _) = listener.accept().await;
+            let mut first = [0u8; 4];
+            conn.read_exact(&mut first).await.unwrap();
+            conn.write_all(&vec![7u8; RESPONSE]).await.unwrap();
+            conn.shutdown().await.unwrap();
+        });
+        let mut client = TcpStream::connect(addr).await.unwrap();
+        client.write_all(b"ask!").await.unwrap();
+        let mut got = vec![0u8; 64 << 10];
+        let mut total = client.read(&mut got).await.unwrap();
+        // Control bytes the server never reads (as an HTTP/2 client's window updates), then the rest.
+        client.write_all(&[0u8; 512]).await.unwrap();
+        let end = loop {
+            match client.read(&mut got).await {
+                Ok(0) => break Ok(()),
+                Ok(n) => total += n,
+                Err(e) => break Err(e),
+            }
+        };
+        assert_eq!((end.map_err(|e| e.kind()), total), (Ok(()), RESPONSE), "the whole response, then its end");
+        drop(client);
+        server.await.unwrap();
     }
 
     #[test]
