@@ -67,9 +67,10 @@ pub struct LocalizeSettings {
     /// With stage 1 capped (`max_query_keypoints`), a query whose pose after the other stages has fewer than
     /// this many inliers (or none) has its other keypoints searched too and is answered exactly as without
     /// the cap, so the cap loses no query it could not place. 0 = off (a capped query is answered from its
-    /// capped search alone), the default: at caps of 100-400 it passed no selection rule, and it made queries
-    /// slower, far ones by searching twice and near ones by running stage 2, which costs more than the search
-    /// it saves (BENCHMARKS.md, "A capped search that falls back to every keypoint").
+    /// capped search alone), the default: at caps of 100-400 it passed no selection rule (session 43), and it
+    /// made far queries slower by searching twice. Near ones then paid stage 2 at more than the search saved;
+    /// stage 2 has since become about 4x cheaper (BENCHMARKS.md, "A capped search that falls back to every
+    /// keypoint" and the section after it).
     pub full_search_below_inliers: usize,
     /// Multiplies the pose covariance of the refinement (`σ² (JᵀJ)⁻¹`), which counts only the query's pixel
     /// noise: the map's landmarks have errors of their own, so the raw ellipsoid is too small. 26: the 95th
@@ -277,7 +278,7 @@ fn landmark_views(data: &MapData, landmarks: &[u64]) -> Vec<usize> {
 }
 
 /// Matches of the query's rows `query` against the rows `views` (one per observation id in `views`) by exact
-/// search in `norm` (OpenCV's brute force, one distance matrix for both directions): the nearest view's landmark when its distance is below `ratio` times the
+/// search in `norm` (OpenCV's brute-force answer, from [`nearest_both_ways`]): the nearest view's landmark when its distance is below `ratio` times the
 /// nearest view of another landmark, and the keypoint is the nearest query row to one of that landmark's views
 /// (mutual). `distance` is left to the caller; the rank is the ratio.
 fn mutual_landmark_matches(
