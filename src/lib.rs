@@ -19,6 +19,7 @@
 //! Geometry and matching:
 //! - [`camera`]: intrinsics and camera-to-world poses, their checks and quaternion conversions;
 //! - [`matching`]: nearest-neighbour matching with the ratio test, and the SConE matchers that add FREAK;
+//! - [`nearest`]: brute-force neighbours in both directions (the mutual check), OpenCV's answer to the bit;
 //! - [`pose`]: relative pose (essential matrix) and absolute pose (PnP) with OpenCV's RANSAC;
 //! - [`render`]: pictures of matches and localisations (PNG) for people debugging the service.
 //!
@@ -65,6 +66,7 @@ pub mod error;
 pub mod features;
 pub mod map;
 pub mod matching;
+pub mod nearest;
 pub mod offline;
 pub mod pipeline;
 pub mod pose;

@@ -45,7 +45,8 @@ use crate::error::MapError;
 use crate::features::{bits_mat, Features, DESCRIPTOR_BYTES};
 use crate::map::index::{l2_squared, EmbeddingIndex};
 use crate::map::model::MapData;
-use crate::matching::{embedding_mat, nearest_both_ways};
+use crate::matching::embedding_mat;
+use crate::nearest::nearest_both_ways;
 use crate::pose::{absolute_pose, absolute_pose_unknown_focal, AbsolutePose, RansacSettings};
 
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
