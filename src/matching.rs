@@ -80,20 +80,20 @@ fn competitor(cands: &[(f32, usize)], b_points: &[(f32, f32)], same_corner_px: f
 }
 
 /// A query's nearest candidate when it passes the ratio test against its competitor (`row`: the query's
-/// candidates nearest first; `cands` is scratch space).
+/// candidates nearest first, as (train row, distance); `cands` is scratch space).
 fn ratio_winner(
     query: usize,
-    row: &[(usize, f32)],
+    row: impl IntoIterator<Item = (usize, f32)>,
     cands: &mut Vec<(f32, usize)>,
     b_points: &[(f32, f32)],
     test: &RatioTest,
 ) -> Option<Match> {
-    if row.len() < 2 {
+    cands.clear();
+    cands.extend(row.into_iter().map(|(t, d)| (d, t)));
+    if cands.len() < 2 {
         return None;
     }
-    let (train, distance) = row[0];
-    cands.clear();
-    cands.extend(row.iter().map(|&(t, d)| (d, t)));
+    let (distance, train) = cands[0];
     (distance < test.ratio * competitor(cands, b_points, test.same_corner_px)).then_some(Match {
         query,
         train,
@@ -101,9 +101,9 @@ fn ratio_winner(
     })
 }
 
-/// OpenCV's knn answer as (train row, distance) per query row.
-pub(crate) fn knn_rows(knn: &Vector<Vector<DMatch>>) -> Vec<Vec<(usize, f32)>> {
-    knn.iter().map(|hits| hits.iter().map(|h| (h.train_idx as usize, h.distance)).collect()).collect()
+/// An OpenCV match as (train row, distance), the form [`ratio_winner`] reads.
+pub(crate) fn train_and_distance(m: DMatch) -> (usize, f32) {
+    (m.train_idx as usize, m.distance)
 }
 
 /// Nearest neighbours of `a`'s rows in `b` with OpenCV's brute-force matcher, ratio test and optional mutual
@@ -139,25 +139,24 @@ pub fn match_descriptors_masked(
         )));
     }
     let k = if same_corner { SAME_CORNER_CANDIDATES } else { 2 };
-    // With the mutual check, both directions come from one distance matrix; without it, OpenCV's knn alone.
-    let (rows, reverse) = if test.mutual {
-        let both = nearest_both_ways(a, b, norm, k as usize, mask)?;
-        (both.forward, Some(both.back))
-    } else {
-        let mut knn = Vector::<Vector<DMatch>>::new();
-        BFMatcher::new(norm, false)?.knn_train_match(a, b, &mut knn, k, mask, false)?;
-        (knn_rows(&knn), None)
-    };
-    let mut out = Vec::new();
     let mut cands: Vec<(f32, usize)> = Vec::with_capacity(k as usize);
-    for (q, row) in rows.iter().enumerate() {
-        let Some(m) = ratio_winner(q, row, &mut cands, b_points, test) else { continue };
-        if reverse.as_ref().is_some_and(|back| back[m.train] != Some(m.query)) {
-            continue;
-        }
-        out.push(m);
+    if test.mutual {
+        // Both directions from one distance matrix.
+        let both = nearest_both_ways(a, b, norm, k as usize, mask)?;
+        let winners = both
+            .forward
+            .iter()
+            .enumerate()
+            .filter_map(|(q, row)| ratio_winner(q, row.iter().copied(), &mut cands, b_points, test));
+        return Ok(winners.filter(|m| both.back[m.train] == Some(m.query)).collect());
     }
-    Ok(out)
+    let mut knn = Vector::<Vector<DMatch>>::new();
+    BFMatcher::new(norm, false)?.knn_train_match(a, b, &mut knn, k, mask, false)?;
+    let winners = knn
+        .iter()
+        .enumerate()
+        .filter_map(|(q, row)| ratio_winner(q, row.iter().map(train_and_distance), &mut cands, b_points, test));
+    Ok(winners.collect())
 }
 
 /// How SConE picks its matches between two frames. Every variant runs on the same keypoints, and the two that
@@ -356,8 +355,8 @@ fn freak_ratio_matches(
     }
     let mut out = Vec::new();
     let mut cands: Vec<(f32, usize)> = Vec::with_capacity(RERANK_CANDIDATES as usize);
-    for (q, row) in knn_rows(knn).iter().enumerate() {
-        out.extend(ratio_winner(q, row, &mut cands, b.points, test));
+    for (q, row) in knn.iter().enumerate() {
+        out.extend(ratio_winner(q, row.iter().map(train_and_distance), &mut cands, b.points, test));
     }
     Ok(out)
 }

@@ -89,7 +89,7 @@ fn l2_by_product(
     let tv = ndarray::ArrayView2::from_shape((nt, dim), t).map_err(shape)?;
     let band = (band_values / nt).clamp(1, nq);
     let mut estimate = vec![0f32; nt];
-    let mut top: Vec<f32> = Vec::with_capacity(k + 1);
+    let mut top: Vec<((), f32)> = Vec::with_capacity(k + 1);
     let mut start = 0;
     while start < nq {
         let end = (start + band).min(nq);
@@ -115,12 +115,7 @@ fn l2_by_product(
                 }
                 for &a in chunk {
                     if a < kth {
-                        let at = top.partition_point(|&x| x <= a);
-                        top.insert(at, a);
-                        top.truncate(k);
-                        if top.len() == k {
-                            kth = top[k - 1];
-                        }
+                        kth = keep_nearest(&mut top, ((), a), k).unwrap_or(kth);
                     }
                 }
             }
@@ -198,6 +193,15 @@ fn l2_by_product(
     Ok(Some(out))
 }
 
+/// `cv::batchDistance`'s insertion of a distance below the k-th: `item` joins `near` (ascending, at most `k`)
+/// after the equal distances. The k-th distance once there are `k`.
+fn keep_nearest<T>(near: &mut Vec<(T, f32)>, item: (T, f32), k: usize) -> Option<f32> {
+    let at = near.partition_point(|(_, e)| *e <= item.1);
+    near.insert(at, item);
+    near.truncate(k);
+    (near.len() == k).then(|| near[k - 1].1)
+}
+
 fn nearest_both_ways_in_bands(
     query: &Mat,
     train: &Mat,
@@ -240,17 +244,12 @@ fn nearest_both_ways_in_bands(
         let values = values.data_typed::<f32>()?;
         for (r, row) in values.chunks_exact(nt).enumerate() {
             let q = start + r;
-            // batchDistance's insertion: a distance enters only below the k-th, after the equal ones.
+            // batchDistance's insertion: a distance enters only below the k-th.
             let mut near: Vec<(usize, f32)> = Vec::with_capacity(k + 1);
             let mut kth = none;
             for (t, &d) in row.iter().enumerate() {
                 if d < kth {
-                    let at = near.partition_point(|&(_, e)| e <= d);
-                    near.insert(at, (t, d));
-                    near.truncate(k);
-                    if near.len() == k {
-                        kth = near[k - 1].1;
-                    }
+                    kth = keep_nearest(&mut near, (t, d), k).unwrap_or(kth);
                 }
             }
             out.forward.push(near);
@@ -271,7 +270,7 @@ fn nearest_both_ways_in_bands(
 mod tests {
     use super::*;
     use crate::features::DESCRIPTOR_BYTES;
-    use crate::matching::{embedding_mat, knn_rows};
+    use crate::matching::{embedding_mat, train_and_distance};
     use opencv::core::{DMatch, Vector};
     use opencv::features2d::BFMatcher;
 
@@ -290,7 +289,8 @@ mod tests {
         for m in back.iter() {
             nearest[m.query_idx as usize] = Some(m.train_idx as usize);
         }
-        BothWays { forward: knn_rows(&knn), back: nearest }
+        let forward = knn.iter().map(|hits| hits.iter().map(train_and_distance).collect()).collect();
+        BothWays { forward, back: nearest }
     }
 
     #[test]

@@ -279,9 +279,9 @@ fn landmark_views(data: &MapData, landmarks: &[u64]) -> Vec<usize> {
 }
 
 /// Matches of the query's rows `query` against the rows `views` (one per observation id in `views`) by exact
-/// search in `norm` (OpenCV's brute-force answer, from [`nearest_both_ways`]): the nearest view's landmark when its distance is below `ratio` times the
-/// nearest view of another landmark, and the keypoint is the nearest query row to one of that landmark's views
-/// (mutual). `distance` is left to the caller; the rank is the ratio.
+/// search in `norm` (OpenCV's brute-force answer, from [`nearest_both_ways`]): the nearest view's landmark
+/// when its distance is below `ratio` times the nearest view of another landmark, and the keypoint is the
+/// nearest query row to one of that landmark's views (mutual). `distance` is left to the caller; the rank is the ratio.
 fn mutual_landmark_matches(
     data: &MapData,
     query: &Mat,
