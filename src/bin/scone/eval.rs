@@ -122,6 +122,10 @@ pub enum EvalCommand {
         /// keypoint (default: the service's `store.localize.full_search_below_inliers`).
         #[arg(long)]
         full_search_below_inliers: Option<usize>,
+        /// Also localise every query with stage 1 capped at each of these keypoint counts, on the same map
+        /// (one graph), with the same fallback; each is a row of its own.
+        #[arg(long, value_delimiter = ',')]
+        also_caps: Vec<usize>,
         /// Exactly these parts of the staged pipeline on (`none`: today's stage 1 and map building before
         /// issue 27); without the flag, the service's defaults.
         #[arg(long, value_delimiter = ',')]
@@ -316,6 +320,7 @@ pub fn run(cmd: EvalCommand) -> anyhow::Result<()> {
             covariance_scale,
             max_query_keypoints,
             full_search_below_inliers,
+            also_caps,
             stages,
             foreign,
             foreign_stride,
@@ -328,6 +333,7 @@ pub fn run(cmd: EvalCommand) -> anyhow::Result<()> {
         } => {
             anyhow::ensure!(unit_scale.is_finite() && unit_scale > 0.0, "--unit-scale must be positive");
             anyhow::ensure!(track <= 10, "--track: a track holds at most 10 frames");
+            anyhow::ensure!(also_caps.iter().all(|&k| k > 0), "--also-caps: every cap is at least one keypoint");
             for m in &methods {
                 anyhow::ensure!(
                     matches!(m, Method::Scone | Method::Freak | Method::Sift),
@@ -365,6 +371,7 @@ pub fn run(cmd: EvalCommand) -> anyhow::Result<()> {
             }
             rc.foreign = foreign;
             rc.foreign_stride = foreign_stride;
+            rc.also_caps = also_caps;
             rc.index_points = index_points;
             rc.track = track;
             rc.track_noise = reloc::TrackNoise {

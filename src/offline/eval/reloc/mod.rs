@@ -41,6 +41,7 @@
 
 use crate::decode::{decode_grey, ImageLimitSettings};
 use crate::embedding::Embedder;
+use crate::map::localize::LocalizeSettings;
 use crate::offline::scene::Scene;
 use crate::progress::Progress;
 
@@ -74,9 +75,12 @@ pub fn evaluate(scene: &Scene, cfg: &RelocConfig, embedder: Option<&Embedder>) -
         let bytes = std::fs::read(&f.rgb).map_err(|e| format!("{}: {e}", f.rgb.display()))?;
         images.push(decode_grey(&bytes, &limits)?);
     }
+    if cfg.track >= 2 && !cfg.also_caps.is_empty() {
+        return Err("stage 1 caps on the same map (also_caps) are for single frames, not tracks".into());
+    }
     let mut summaries = Vec::new();
     let mut queries = Vec::new();
-    let per_method = images.len() + map_frames.len() + query_frames.len();
+    let per_method = images.len() + map_frames.len() + (1 + cfg.also_caps.len()) * query_frames.len();
     let mut progress = Progress::new("eval reloc", cfg.methods.len() * per_method);
     for &method in &cfg.methods {
         let (build, localize) = cfg.settings_for(method);
@@ -92,6 +96,17 @@ pub fn evaluate(scene: &Scene, cfg: &RelocConfig, embedder: Option<&Embedder>) -
         let scene_focal = (scene.camera.fx + scene.camera.fy) / 2.0;
         summaries.push(summarise(method, &records, map.figures(), foreign, scene_focal, cfg.unit_scale));
         queries.extend(records.into_iter().map(|r| (method, r)));
+        // The same map, so the same graph: the caps differ from the row above only by the cap.
+        for &cap in &cfg.also_caps {
+            let capped = LocalizeSettings { max_query_keypoints: cap, ..localize };
+            let mut records =
+                view.localise_queries(&query_frames, &map_frames, &map, cfg, &capped, &mut progress)?;
+            records.iter_mut().for_each(|r| r.stage1_cap = Some(cap));
+            let foreign = foreign_poses(&map.data, &map.index, method, cfg, &capped, embedder)?;
+            let summary = summarise(method, &records, map.figures(), foreign, scene_focal, cfg.unit_scale);
+            summaries.push(RelocSummary { stage1_cap: Some(cap), ..summary });
+            queries.extend(records.into_iter().map(|r| (method, r)));
+        }
     }
     Ok(RelocReport { scene: scene.name.clone(), path_extent, config: cfg.clone(), summaries, queries })
 }

@@ -59,6 +59,11 @@ pub struct RelocConfig {
     pub track: usize,
     #[serde(default)]
     pub track_noise: TrackNoise,
+    /// Stage 1 caps also run on the same map, each a summary of its own (`max_query_keypoints` = K, the rest of
+    /// `localize` as it is, its fallback included): caps compared on one graph, since every build of the HNSW
+    /// graph differs a little (hnsw_rs inserts in parallel). Single frames only.
+    #[serde(default)]
+    pub also_caps: Vec<usize>,
 }
 
 /// The error a tracker makes, added to a track's relative poses (seeded by `seed` and the query).
@@ -151,6 +156,7 @@ impl Default for RelocConfig {
             index_points: IndexSettings::default().points,
             track: 0,
             track_noise: TrackNoise::default(),
+            also_caps: Vec::new(),
         }
     }
 }

@@ -39,6 +39,9 @@ pub struct QueryRecord {
     /// 2° and 5 % of the inliers' median depth).
     #[serde(default)]
     pub within_confidence_tolerance: Option<bool>,
+    /// Stage 1's cap of an `also_caps` run on the same map (absent: the configuration's own settings).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub stage1_cap: Option<usize>,
 }
 
 /// Success of the queries whose viewing angle to the map falls in one bin.
@@ -96,6 +99,9 @@ pub struct RelocSummary {
     pub foreign_queries: usize,
     #[serde(default)]
     pub foreign_localised: usize,
+    /// Stage 1's cap of an `also_caps` run on the same map (absent: the configuration's own settings).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub stage1_cap: Option<usize>,
 }
 
 #[derive(Debug, Clone, Serialize, Deserialize)]
@@ -170,6 +176,7 @@ pub(super) fn summarise(
         },
         foreign_queries: foreign.0,
         foreign_localised: foreign.1,
+        stage1_cap: None,
         median_focal_error: {
             let truth = scene_focal;
             median(&recs.iter().filter_map(|r| r.focal).map(|f| (f - truth).abs() / truth).collect::<Vec<_>>())

@@ -253,6 +253,7 @@ impl<'a> MethodView<'a> {
                 focal: out.pose.as_ref().map(|p| p.focal),
                 mahalanobis2,
                 within_confidence_tolerance,
+                stage1_cap: None,
             });
         }
         Ok(recs)

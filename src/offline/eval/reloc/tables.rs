@@ -1,6 +1,6 @@
 //! A relocalisation report as markdown: each method's summary, then its queries by viewing angle to the map.
 
-use crate::offline::eval::reloc::report::RelocReport;
+use crate::offline::eval::reloc::report::{RelocReport, RelocSummary};
 use crate::offline::eval::stats::markdown_table;
 
 pub fn markdown(r: &RelocReport) -> String {
@@ -36,7 +36,7 @@ pub fn markdown(r: &RelocReport) -> String {
         &headers,
         r.summaries.iter().map(|m| {
             vec![
-                m.method.name().to_string(),
+                row_name(m),
                 m.map_keyframes.to_string(),
                 m.landmarks.to_string(),
                 m.queries.to_string(),
@@ -75,7 +75,7 @@ pub fn markdown(r: &RelocReport) -> String {
             m.bins.iter().filter(|b| b.queries > 0).map(move |b| {
                 let hi = if b.angle_deg.1.is_finite() { format!("{:.0}", b.angle_deg.1) } else { "inf".into() };
                 vec![
-                    m.method.name().to_string(),
+                    row_name(m),
                     m.distractor_observations.to_string(),
                     format!("{:.0}-{hi}", b.angle_deg.0),
                     b.queries.to_string(),
@@ -89,4 +89,12 @@ pub fn markdown(r: &RelocReport) -> String {
         }),
     ));
     s
+}
+
+/// The method, and stage 1's cap where the row is one of `also_caps`.
+fn row_name(m: &RelocSummary) -> String {
+    match m.stage1_cap {
+        Some(cap) => format!("{}, stage 1 capped at {cap}", m.method.name()),
+        None => m.method.name().to_string(),
+    }
 }

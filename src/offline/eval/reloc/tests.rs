@@ -33,6 +33,7 @@ fn queries_fall_into_their_angle_bins_with_scaled_thresholds() {
         focal: None,
         mahalanobis2: None,
         within_confidence_tolerance: None,
+        stage1_cap: None,
     };
     let recs = [rec(5.0, 0.01), rec(15.0, 0.3), rec(50.0, 0.1)];
     let bins = bin_summaries(&recs, 1.0);

@@ -176,6 +176,7 @@ impl MethodView<'_> {
                 within_confidence_tolerance: first
                     .as_ref()
                     .map(|p| within_confidence_tolerance(p, &frames[0].points3d, &gt)),
+                stage1_cap: None,
             });
         }
         Ok(recs)
