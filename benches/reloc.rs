@@ -11,9 +11,9 @@
 //!
 //! The index of one point per landmark (`store.index.points = "landmarks"`) is measured in a process of its
 //! own on a copy of the level's map with its own dump (made once, in the build process): the same row and
-//! recall (against exact search over the same points), the row again with stage 1 capped at 800 query
-//! keypoints (issue 41's candidate; every keypoint, the default, is the row before), and every query of the
-//! level with both. `SCONE_BENCH_ADD_ONLY=1` with `SCONE_BENCH_LEVEL=N` measures AddKeyframe alone at level N.
+//! recall (against exact search over the same points) with the service's default stage 1 (since session 45,
+//! the strongest 100 query keypoints, every keypoint below 100 inliers), the row again with every query
+//! keypoint searched (the default before), and every query of the level with several caps. `SCONE_BENCH_ADD_ONLY=1` with `SCONE_BENCH_LEVEL=N` measures AddKeyframe alone at level N.
 //!
 //! Map: real, different frames, never repeated. The posed frames of the training scenes of `../shared/data`,
 //! in this order: `7scenes-redkitchen` (every frame but the held-out ones, triangulated with its poses),
@@ -298,23 +298,24 @@ fn main() {
         // The per-landmark index is measured in a process of its own (`run_levels`), its map opened first as
         // the HNSW row's is, so neither row's memory is lowered by what the other freed.
         let per_landmark = std::env::var_os(PER_LANDMARK_ENV).is_some();
-        // The per-landmark process measures the index's default twice: every query keypoint searched (the
-        // default), then stage 1 capped at 800 (issue 41's candidate) on the map opened again.
+        // The per-landmark process measures the index's default twice: stage 1 as the service's default (since
+        // session 45 capped, with the fallback), then every query keypoint searched (the default before) on the
+        // map opened again. `None`: the service's default cap.
         let row_list = if per_landmark {
             vec![
-                (PER_LANDMARK, per_landmark_settings(), usize::MAX),
-                (PER_LANDMARK_CAPPED, per_landmark_settings(), 800),
+                (PER_LANDMARK, per_landmark_settings(), None),
+                (PER_LANDMARK_EVERY, per_landmark_settings(), Some(usize::MAX)),
             ]
         } else {
             vec![
-                (PER_OBSERVATION, per_observation_settings(), usize::MAX),
-                ("exact", IndexSettings { exact_below: usize::MAX, ..IndexSettings::default() }, usize::MAX),
-                ("HNSW per observation, 800 query keypoints", per_observation_settings(), 800),
-                ("HNSW per observation, stage 1 only", per_observation_settings(), usize::MAX),
+                (PER_OBSERVATION, per_observation_settings(), Some(usize::MAX)),
+                ("exact", IndexSettings { exact_below: usize::MAX, ..IndexSettings::default() }, Some(usize::MAX)),
+                ("HNSW per observation, 800 query keypoints", per_observation_settings(), Some(800)),
+                ("HNSW per observation, stage 1 only", per_observation_settings(), Some(usize::MAX)),
             ]
         };
         for (label, index, cap) in row_list {
-            if label == PER_LANDMARK_CAPPED {
+            if label == PER_LANDMARK_EVERY {
                 // The same map directory: the first store lets go of it (its memory figure is the first open's).
                 open_maps.clear();
             }
@@ -327,7 +328,9 @@ fn main() {
             let t = Instant::now();
             let map_dir = if per_landmark { dir.join("per-landmark") } else { dir.clone() };
             let mut cfg = config(&map_dir, index);
-            cfg.localize.max_query_keypoints = cap;
+            if let Some(cap) = cap {
+                cfg.localize.max_query_keypoints = cap;
+            }
             if label.ends_with("stage 1 only") {
                 cfg.localize = cfg.localize.stage_one_only();
             }
@@ -426,7 +429,7 @@ fn main() {
                 m("stages"),
                 median(totals),
                 match label {
-                    PER_OBSERVATION | PER_LANDMARK | PER_LANDMARK_CAPPED => {
+                    PER_OBSERVATION | PER_LANDMARK | PER_LANDMARK_EVERY => {
                         format!("{ready:.2}{}", if from_dump { "" } else { " (graph rebuilt)" })
                     }
                     "exact" => format!("{ready:.2} (map data only)"),
@@ -446,8 +449,9 @@ fn main() {
         let (store, observations) = (&open_maps[0], built.observations);
         if per_landmark {
             let label = "all, one point per landmark";
-            // Every keypoint, session 41's cap, and session 43's cap that falls back below 100 inliers.
-            let caps = [(usize::MAX, 0), (800, 0), (200, 100)];
+            // Every keypoint, session 41's cap, session 43's cap that falls back below 100 inliers, and session
+            // 45's default (the cap that the rule of "Caps compared on one graph" chose).
+            let caps = [(usize::MAX, 0), (800, 0), (200, 100), (100, 100)];
             sweeps.push(sweep(store, &described, &camera, observations, &caps, label));
         } else {
             let caps: Vec<(usize, usize)> = CAPS.iter().map(|&c| (c, 0)).collect();
@@ -646,10 +650,11 @@ fn add_keyframes(
 
 /// Label of the row of one index point per observation (before issue 31)...
 const PER_OBSERVATION: &str = "HNSW, one point per observation";
-/// ...and of one point per landmark (the default since), ...
+/// ...and of one point per landmark (the default since) with stage 1 as the service's default (since session
+/// 45: the strongest 100 query keypoints searched, every keypoint below 100 inliers), ...
 const PER_LANDMARK: &str = "HNSW, one point per landmark";
-/// ...the same with stage 1 capped at 800 query keypoints (issue 41's candidate), ...
-const PER_LANDMARK_CAPPED: &str = "HNSW, one point per landmark, 800 query keypoints";
+/// ...the same with every query keypoint searched (the default before session 45), ...
+const PER_LANDMARK_EVERY: &str = "HNSW, one point per landmark, every query keypoint searched";
 /// ...measured in a child process with this variable set.
 const PER_LANDMARK_ENV: &str = "SCONE_BENCH_PER_LANDMARK";
 

@@ -32,7 +32,8 @@ pub const BOTH_WAYS_BAND_VALUES: usize = 1 << 22;
 pub fn nearest_both_ways(query: &Mat, train: &Mat, norm: i32, k: usize, mask: &Mat) -> Result<BothWays, FeatureError> {
     let pairs = query.rows().max(0) as usize * train.rows().max(0) as usize;
     if norm == NORM_L2 && pairs >= BY_PRODUCT_MIN_PAIRS {
-        if let Some(both) = l2_by_product(query, train, k, mask, BOTH_WAYS_BAND_VALUES)? {
+        let parts = rayon::current_num_threads().min(query.rows() as usize / PART_MIN_ROWS).max(1);
+        if let Some(both) = l2_by_product(query, train, k, mask, BOTH_WAYS_BAND_VALUES, parts)? {
             return Ok(both);
         }
     }
@@ -53,12 +54,16 @@ const BY_PRODUCT_MIN_PAIRS: usize = 1 << 16;
 /// among OpenCV's answers; only those are measured again by `cv::batchDistance` (the very values BFMatcher
 /// compares, whatever else is in the call) and ranked in OpenCV's orders. `None` when the rows are not
 /// continuous f32 or their norms are not finite and below 1e30: then only OpenCV's path gives its answer.
+/// The query rows are scanned and measured in `parts` contiguous parts on rayon's threads; a column's limit is
+/// the smallest over every part, and the parts' answers are joined in row order, so the answer does not depend
+/// on `parts`.
 fn l2_by_product(
     query: &Mat,
     train: &Mat,
     k: usize,
     mask: &Mat,
     band_values: usize,
+    parts: usize,
 ) -> Result<Option<BothWays>, FeatureError> {
     let (nq, nt, dim) = (query.rows().max(0) as usize, train.rows().max(0) as usize, query.cols().max(0) as usize);
     let continuous = query.is_continuous() && train.is_continuous() && (mask.empty() || mask.is_continuous());
@@ -73,124 +78,209 @@ fn l2_by_product(
         return Ok(None);
     }
     let admitted: Option<&[u8]> = if mask.empty() { None } else { Some(mask.data_typed::<u8>()?) };
-    let k = k.min(nt);
     let e = (6 * dim + 32) as f32 * (f32::EPSILON / 2.0);
     let (qmax, tmax) = (qn.iter().fold(0f32, |a, &b| a.max(b)), tn.iter().fold(0f32, |a, &b| a.max(b)));
     let col_slack: Vec<f32> = tn.iter().map(|&x| 2.0 * e * (qmax + x)).collect();
-    let mut col_min = vec![f32::INFINITY; nt];
-    // f32::MAX, not infinity: a pair the mask leaves out never gets under it.
-    let mut col_limit = vec![f32::MAX; nt];
-    // Pairs that may hold a column's nearest row: (train row, query row, estimate).
-    let mut col_cands: Vec<(u32, u32, f32)> = Vec::new();
-    // Per query row, the train rows that may be among its k nearest or whose nearest it may be.
-    let mut needed: Vec<Vec<u32>> = vec![Vec::new(); nq];
-    let shape =
-        |e: ndarray::ShapeError| FeatureError::OpenCv(opencv::Error::new(opencv::core::StsBadArg, e.to_string()));
-    let tv = ndarray::ArrayView2::from_shape((nt, dim), t).map_err(shape)?;
-    let band = (band_values / nt).clamp(1, nq);
-    let mut estimate = vec![0f32; nt];
-    let mut top: Vec<((), f32)> = Vec::with_capacity(k + 1);
-    let mut start = 0;
-    while start < nq {
-        let end = (start + band).min(nq);
-        let qv = ndarray::ArrayView2::from_shape((end - start, dim), &q[start * dim..end * dim]).map_err(shape)?;
-        let products = qv.dot(&tv.t());
-        for (r, row) in products.rows().into_iter().enumerate() {
-            let i = start + r;
-            for ((a, &g), &n) in estimate.iter_mut().zip(row.iter()).zip(&tn) {
-                *a = qn[i] + n - 2.0 * g;
-            }
-            // A pair the mask leaves out is estimated at infinity: above every limit below (all finite).
-            if let Some(m) = admitted {
-                for (a, &m) in estimate.iter_mut().zip(&m[i * nt..(i + 1) * nt]) {
-                    *a = if m == 0 { f32::INFINITY } else { *a };
-                }
-            }
-            // The k smallest estimates; chunks with nothing below the k-th are skipped whole (vector compares).
-            top.clear();
-            let mut kth = f32::INFINITY;
-            for chunk in estimate.chunks(SCAN_CHUNK) {
-                if !chunk.iter().fold(false, |hit, &a| hit | (a < kth)) {
-                    continue;
-                }
-                for &a in chunk {
-                    if a < kth {
-                        kth = keep_nearest(&mut top, ((), a), k).unwrap_or(kth);
-                    }
-                }
-            }
-            let limit = (kth + 2.0 * e * (qn[i] + tmax)).min(f32::MAX);
-            let mine = &mut needed[i];
-            for (c, (chunk, limits)) in estimate.chunks(SCAN_CHUNK).zip(col_limit.chunks_mut(SCAN_CHUNK)).enumerate() {
-                let hit = chunk.iter().zip(limits.iter()).fold(false, |hit, (&a, &l)| hit | (a <= limit) | (a <= l));
-                if !hit {
-                    continue;
-                }
-                for (o, (&a, l)) in chunk.iter().zip(limits.iter_mut()).enumerate() {
-                    let j = c * SCAN_CHUNK + o;
-                    if a <= limit {
-                        mine.push(j as u32);
-                    }
-                    if a <= *l {
-                        col_cands.push((j as u32, i as u32, a));
-                        if a < col_min[j] {
-                            col_min[j] = a;
-                            *l = a + col_slack[j];
-                        }
-                    }
-                }
-            }
-        }
-        start = end;
+    let shared = Shared { q, t, qn: &qn, tn: &tn, admitted, dim, k: k.min(nt), e, tmax, col_slack: &col_slack };
+    // Contiguous parts of the query rows, each scanned on a thread of rayon's with its own band of estimates.
+    let parts = parts.clamp(1, nq);
+    let bounds: Vec<(usize, usize)> = (0..parts).map(|p| (p * nq / parts, (p + 1) * nq / parts)).collect();
+    let band = (band_values / parts / nt).clamp(1, nq);
+    let scanned: Vec<Scanned> = par_map(&bounds, |&(a, b)| shared.scan(a, b, band))?;
+    // A column's smallest estimate over every part sets its limit; a part's own limits were never below it,
+    // so each part holds every pair under it.
+    let mut col_limit = vec![f32::INFINITY; nt];
+    for s in &scanned {
+        col_limit.iter_mut().zip(&s.col_min).for_each(|(l, &m)| *l = l.min(m));
     }
-    for &(j, i, a) in &col_cands {
-        if a <= col_limit[j as usize] {
-            needed[i as usize].push(j);
-        }
-    }
-    // OpenCV's distances of the pairs kept, row by row, read in its orders.
+    col_limit.iter_mut().zip(&col_slack).for_each(|(l, &s)| *l = if l.is_finite() { *l + s } else { f32::MAX });
+    let measured: Vec<Measured> = par_map(&scanned, |s| shared.measure(query, s, &col_limit))?;
+    // Parts in row order, and a strict "below": a train row's nearest query row is the first of the smallest.
     let mut out = BothWays { forward: Vec::with_capacity(nq), back: vec![None; nt] };
     let mut best = vec![f32::MAX; nt];
-    let (mut gathered, mut dist) = (Vec::<f32>::new(), Mat::default());
-    for (i, js) in needed.iter_mut().enumerate() {
-        js.sort_unstable();
-        js.dedup();
-        if js.is_empty() {
-            out.forward.push(Vec::new());
-            continue;
-        }
-        gathered.clear();
-        for &j in js.iter() {
-            gathered.extend_from_slice(&t[j as usize * dim..(j as usize + 1) * dim]);
-        }
-        let rows = Mat::new_rows_cols_with_data(js.len() as i32, dim as i32, &gathered)?;
-        let mut no_index = opencv::core::no_array();
-        let no_mask = opencv::core::no_array();
-        opencv::core::batch_distance(
-            &query.row(i as i32)?,
-            &rows,
-            &mut dist,
-            opencv::core::CV_32F,
-            &mut no_index,
-            NORM_L2,
-            0,
-            &no_mask,
-            0,
-            false,
-        )?;
-        let d = dist.data_typed::<f32>()?;
-        let mut near: Vec<(usize, f32)> = js.iter().zip(d).map(|(&j, &d)| (j as usize, d)).collect();
-        for &(j, d) in &near {
+    for m in measured {
+        out.forward.extend(m.forward);
+        for (j, (d, i)) in m.back.into_iter().enumerate() {
             if d < best[j] {
                 best[j] = d;
                 out.back[j] = Some(i);
             }
         }
-        near.sort_by(|x, y| x.1.total_cmp(&y.1).then(x.0.cmp(&y.0)));
-        near.truncate(k);
-        out.forward.push(near);
     }
     Ok(Some(out))
+}
+
+/// Query rows below which a part of [`l2_by_product`] is not worth a thread of its own ([`nearest_both_ways`]).
+const PART_MIN_ROWS: usize = 256;
+
+/// [`l2_by_product`]'s parts of the query rows on rayon's threads (the one calling, alone), in order.
+fn par_map<I: Sync, O: Send>(
+    items: &[I],
+    f: impl Fn(&I) -> Result<O, FeatureError> + Sync + Send,
+) -> Result<Vec<O>, FeatureError> {
+    use rayon::prelude::*;
+    if items.len() == 1 {
+        return Ok(vec![f(&items[0])?]);
+    }
+    items.par_iter().map(f).collect()
+}
+
+/// What every part of [`l2_by_product`] reads.
+struct Shared<'a> {
+    q: &'a [f32],
+    t: &'a [f32],
+    qn: &'a [f32],
+    tn: &'a [f32],
+    admitted: Option<&'a [u8]>,
+    dim: usize,
+    k: usize,
+    /// The bound's factor: a squared distance's estimate errs by at most `e (|q|² + |t|²)`.
+    e: f32,
+    tmax: f32,
+    col_slack: &'a [f32],
+}
+
+/// A part's scan: per query row of `rows`, the train rows that may be among its k nearest; the pairs that may
+/// hold a column's nearest row (train row, query row, estimate); and each column's smallest estimate.
+struct Scanned {
+    rows: (usize, usize),
+    needed: Vec<Vec<u32>>,
+    col_cands: Vec<(u32, u32, f32)>,
+    col_min: Vec<f32>,
+}
+
+/// A part's answer: its rows' k nearest, and per train row its nearest query row of the part (distance, row;
+/// `f32::MAX` where the mask admits none).
+struct Measured {
+    forward: Vec<Vec<(usize, f32)>>,
+    back: Vec<(f32, usize)>,
+}
+
+impl Shared<'_> {
+    fn scan(&self, first: usize, end: usize, band: usize) -> Result<Scanned, FeatureError> {
+        let (dim, nt, k) = (self.dim, self.tn.len(), self.k);
+        let shape =
+            |e: ndarray::ShapeError| FeatureError::OpenCv(opencv::Error::new(opencv::core::StsBadArg, e.to_string()));
+        let tv = ndarray::ArrayView2::from_shape((nt, dim), self.t).map_err(shape)?;
+        let mut col_min = vec![f32::INFINITY; nt];
+        // f32::MAX, not infinity: a pair the mask leaves out never gets under it.
+        let mut col_limit = vec![f32::MAX; nt];
+        let mut col_cands: Vec<(u32, u32, f32)> = Vec::new();
+        let mut needed: Vec<Vec<u32>> = vec![Vec::new(); end - first];
+        let mut estimate = vec![0f32; nt];
+        let mut top: Vec<((), f32)> = Vec::with_capacity(k + 1);
+        let mut start = first;
+        while start < end {
+            let stop = (start + band).min(end);
+            let qv = ndarray::ArrayView2::from_shape((stop - start, dim), &self.q[start * dim..stop * dim])
+                .map_err(shape)?;
+            let products = qv.dot(&tv.t());
+            for (r, row) in products.rows().into_iter().enumerate() {
+                let i = start + r;
+                for ((a, &g), &n) in estimate.iter_mut().zip(row.iter()).zip(self.tn) {
+                    *a = self.qn[i] + n - 2.0 * g;
+                }
+                // A pair the mask leaves out is estimated at infinity: above every limit below (all finite).
+                if let Some(m) = self.admitted {
+                    for (a, &m) in estimate.iter_mut().zip(&m[i * nt..(i + 1) * nt]) {
+                        *a = if m == 0 { f32::INFINITY } else { *a };
+                    }
+                }
+                // The k smallest estimates; chunks with nothing below the k-th are skipped whole (vector
+                // compares).
+                top.clear();
+                let mut kth = f32::INFINITY;
+                for chunk in estimate.chunks(SCAN_CHUNK) {
+                    if !chunk.iter().fold(false, |hit, &a| hit | (a < kth)) {
+                        continue;
+                    }
+                    for &a in chunk {
+                        if a < kth {
+                            kth = keep_nearest(&mut top, ((), a), k).unwrap_or(kth);
+                        }
+                    }
+                }
+                let limit = (kth + 2.0 * self.e * (self.qn[i] + self.tmax)).min(f32::MAX);
+                let mine = &mut needed[i - first];
+                let chunks = estimate.chunks(SCAN_CHUNK).zip(col_limit.chunks_mut(SCAN_CHUNK));
+                for (c, (chunk, limits)) in chunks.enumerate() {
+                    let hit =
+                        chunk.iter().zip(limits.iter()).fold(false, |hit, (&a, &l)| hit | (a <= limit) | (a <= l));
+                    if !hit {
+                        continue;
+                    }
+                    for (o, (&a, l)) in chunk.iter().zip(limits.iter_mut()).enumerate() {
+                        let j = c * SCAN_CHUNK + o;
+                        if a <= limit {
+                            mine.push(j as u32);
+                        }
+                        if a <= *l {
+                            col_cands.push((j as u32, i as u32, a));
+                            if a < col_min[j] {
+                                col_min[j] = a;
+                                *l = a + self.col_slack[j];
+                            }
+                        }
+                    }
+                }
+            }
+            start = stop;
+        }
+        Ok(Scanned { rows: (first, end), needed, col_cands, col_min })
+    }
+
+    /// OpenCV's distances of the pairs a part kept (its column candidates under the limits of every part),
+    /// row by row, read in its orders.
+    fn measure(&self, query: &Mat, s: &Scanned, col_limit: &[f32]) -> Result<Measured, FeatureError> {
+        let (dim, nt, first) = (self.dim, self.tn.len(), s.rows.0);
+        let mut needed = s.needed.clone();
+        for &(j, i, a) in &s.col_cands {
+            if a <= col_limit[j as usize] {
+                needed[i as usize - first].push(j);
+            }
+        }
+        let mut out = Measured { forward: Vec::with_capacity(needed.len()), back: vec![(f32::MAX, 0); nt] };
+        let (mut gathered, mut dist) = (Vec::<f32>::new(), Mat::default());
+        for (r, js) in needed.iter_mut().enumerate() {
+            let i = first + r;
+            js.sort_unstable();
+            js.dedup();
+            if js.is_empty() {
+                out.forward.push(Vec::new());
+                continue;
+            }
+            gathered.clear();
+            for &j in js.iter() {
+                gathered.extend_from_slice(&self.t[j as usize * dim..(j as usize + 1) * dim]);
+            }
+            let rows = Mat::new_rows_cols_with_data(js.len() as i32, dim as i32, &gathered)?;
+            let mut no_index = opencv::core::no_array();
+            let no_mask = opencv::core::no_array();
+            opencv::core::batch_distance(
+                &query.row(i as i32)?,
+                &rows,
+                &mut dist,
+                opencv::core::CV_32F,
+                &mut no_index,
+                NORM_L2,
+                0,
+                &no_mask,
+                0,
+                false,
+            )?;
+            let d = dist.data_typed::<f32>()?;
+            let mut near: Vec<(usize, f32)> = js.iter().zip(d).map(|(&j, &d)| (j as usize, d)).collect();
+            for &(j, d) in &near {
+                if d < out.back[j].0 {
+                    out.back[j] = (d, i);
+                }
+            }
+            near.sort_by(|x, y| x.1.total_cmp(&y.1).then(x.0.cmp(&y.0)));
+            near.truncate(self.k);
+            out.forward.push(near);
+        }
+        Ok(out)
+    }
 }
 
 /// `cv::batchDistance`'s insertion of a distance below the k-th: `item` joins `near` (ascending, at most `k`)
@@ -356,17 +446,20 @@ mod tests {
                         let got = nearest_both_ways_in_bands(qm, tm, norm, k, mask, band).unwrap();
                         assert_eq!(got.forward, want.forward, "{case}");
                         assert_eq!(got.back, want.back, "{case}");
-                        if norm == NORM_L2 {
-                            let got = l2_by_product(qm, tm, k, mask, band).unwrap().expect("finite rows");
-                            assert_eq!(got.forward, want.forward, "by product, {case}");
-                            assert_eq!(got.back, want.back, "by product, {case}");
+                        // In one part, and in several on rayon's threads (rows split unevenly).
+                        for parts in [1, 2, 3, 7] {
+                            if norm == NORM_L2 {
+                                let got = l2_by_product(qm, tm, k, mask, band, parts).unwrap().expect("finite rows");
+                                assert_eq!(got.forward, want.forward, "by product, {parts} parts, {case}");
+                                assert_eq!(got.back, want.back, "by product, {parts} parts, {case}");
+                            }
                         }
                     }
                 }
             }
         }
         let huge = embedding_mat(&[1e20; 8], 8).unwrap();
-        assert!(l2_by_product(&huge, &huge, 1, &Mat::default(), usize::MAX).unwrap().is_none(), "left to OpenCV");
+        assert!(l2_by_product(&huge, &huge, 1, &Mat::default(), usize::MAX, 2).unwrap().is_none(), "left to OpenCV");
         let masked = nearest_both_ways(&qm, &tm, NORM_L2, 2, &mask).unwrap();
         assert!(masked.forward[3].is_empty() && masked.back[5].is_none(), "rows the mask leaves out have no neighbour");
         let empty = nearest_both_ways(&Mat::default(), &tm, NORM_L2, 7, &Mat::default()).unwrap();

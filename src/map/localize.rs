@@ -60,18 +60,21 @@ pub struct LocalizeSettings {
     /// index by stage 1 (all of them are still embedded). Stages 2 and 3 read every keypoint: stage 1 only has
     /// to find the candidate keyframes, and stage 2 matches the whole query against their landmarks, at a
     /// cost that does not grow with the map. The index search is the largest stage on a large map and grows
-    /// with the number of queries. Off by default (every keypoint is searched): 800 passed issue 41's selection
-    /// rule but lost far queries on the validation scenes (KITTI 5 -> 3 of 25 within (0.25 m, 2°) with 100k
-    /// distractors), see BENCHMARKS.md. Keypoints of equal response keep their order, so client keypoints
-    /// without responses are searched in the order sent.
+    /// with the number of queries. Default 100, with `full_search_below_inliers` = 100: chosen by issue 41's
+    /// rule with caps and every keypoint compared on one graph (BENCHMARKS.md, "Caps compared on one graph");
+    /// a cap of at least the query's keypoints (say 1000000000) searches every keypoint, the default before
+    /// session 45. A cap alone, without the fallback, lost far queries on the validation scenes (800: KITTI
+    /// 5 -> 3 of 25 within (0.25 m, 2°)).
+    /// Keypoints of equal response keep their order, so client keypoints without responses are searched in
+    /// the order sent.
     pub max_query_keypoints: usize,
     /// With stage 1 capped (`max_query_keypoints`), a query whose pose after the other stages has fewer than
     /// this many inliers (or none) has its other keypoints searched too and is answered exactly as without
-    /// the cap, so the cap loses no query it could not place. 0 = off (a capped query is answered from its
-    /// capped search alone), the default: at caps of 100-400 it passed no selection rule (session 43), and it
-    /// made far queries slower by searching twice. Near ones then paid stage 2 at more than the search saved;
-    /// stage 2 has since become about 4x cheaper (BENCHMARKS.md, "A capped search that falls back to every
-    /// keypoint" and the section after it).
+    /// the cap, so the cap loses no query it could not place; 0 = off (a capped query is answered from its
+    /// capped search alone). Default 100, the inlier count at which stage 2 is skipped
+    /// (`candidate_skip_inliers`): a query placed that firmly by the capped search pays 100 searches and
+    /// stage 2, and one that is not pays the capped attempt and then every keypoint's search (far queries
+    /// took 1.05-1.4x as long on the validation scenes).
     pub full_search_below_inliers: usize,
     /// Multiplies the pose covariance of the refinement (`σ² (JᵀJ)⁻¹`), which counts only the query's pixel
     /// noise: the map's landmarks have errors of their own, so the raw ellipsoid is too small. 26: the 95th
@@ -104,8 +107,8 @@ impl Default for LocalizeSettings {
             knn: 4,
             ransac: RansacSettings { threshold_px: 4.0, confidence: 0.999, max_iters: 2000, ..Default::default() },
             min_inliers: 15,
-            max_query_keypoints: usize::MAX,
-            full_search_below_inliers: 0,
+            max_query_keypoints: 100,
+            full_search_below_inliers: 100,
             covariance_scale: 26.0,
             candidate_keyframes: 5,
             candidate_matching: true,
@@ -145,9 +148,17 @@ impl LocalizeSettings {
         Ok(())
     }
 
-    /// Today's pipeline before issue 27: stage 1 alone (the baseline of the benchmarks).
+    /// The pipeline before issue 27: stage 1 alone, every query keypoint searched (the baseline of the
+    /// benchmarks; a cap leans on stage 2 to match the keypoints it does not search).
     pub fn stage_one_only(self) -> Self {
-        Self { candidate_matching: false, candidate_freak: false, guided_search: false, ..self }
+        Self {
+            candidate_matching: false,
+            candidate_freak: false,
+            guided_search: false,
+            max_query_keypoints: usize::MAX,
+            full_search_below_inliers: 0,
+            ..self
+        }
     }
 }
 

@@ -399,9 +399,10 @@ fn a_capped_query_short_of_the_fallback_inliers_is_answered_as_without_the_cap()
     // Without look-alikes, and with 150 landmarks whose look-alikes hide them from stage 1.
     for alike in [0, 150] {
         let data = map_with_look_alikes(alike);
-        for base in [LocalizeSettings::default().stage_one_only(), LocalizeSettings::default()] {
+        let every_keypoint = LocalizeSettings { max_query_keypoints: usize::MAX, ..LocalizeSettings::default() };
+        for base in [LocalizeSettings::default().stage_one_only(), every_keypoint] {
             let every = locate(&data, &features, &embeddings, &base);
-            let capped = LocalizeSettings { max_query_keypoints: 50, ..base };
+            let capped = LocalizeSettings { max_query_keypoints: 50, full_search_below_inliers: 0, ..base };
             let alone = locate(&data, &features, &embeddings, &capped);
             // Short of the inliers: the other 150 keypoints are searched, and the answer is the uncapped one.
             let fallback = LocalizeSettings { full_search_below_inliers: 1000, ..capped };

@@ -672,8 +672,8 @@ fn a_query_keypoint_cap_searches_the_strongest_keypoints_and_still_localises() {
         context: Vec::new(),
     };
     let features = query(&response);
-    let all =
-        localize(&data, &index, &features, &keyframe.embeddings, &cam, None, &LocalizeSettings::default()).unwrap();
+    let every = LocalizeSettings { max_query_keypoints: usize::MAX, ..LocalizeSettings::default() };
+    let all = localize(&data, &index, &features, &keyframe.embeddings, &cam, None, &every).unwrap();
     assert_eq!(all.matches.len(), n);
     // Stage 1 alone: guided search reads every keypoint (stage_tests.rs has the cap with all stages).
     let capped = LocalizeSettings { max_query_keypoints: 50, ..LocalizeSettings::default().stage_one_only() };

@@ -15,7 +15,9 @@ D=${SCONE_DATA:-$here/../shared/data}/scenes
 S=$SCONE_PREFIX/work/sel
 out="${OUT:-$SCONE_PREFIX/work/i41/sel}"
 mkdir -p "$out"
-for cap in ${CAPS:-all 800 400}; do
+# ALSO_CAPS=K1,K2,...: every keypoint and each cap on the same map, one report per scene (session 45's rule).
+caps=${CAPS:-all 800 400}; [ -n "${ALSO_CAPS:-}" ] && caps=all
+for cap in $caps; do
   for sc in "$D/strecha-castle-P30" "$SCONE_PREFIX/work/cal/templeRing-1-31" "$S/7scenes-redkitchen-sel" \
     "$S/sun3d-studyroom-sel" "$S/liberty-internet-sel"; do
     name=$(basename "$sc")
@@ -30,6 +32,10 @@ for cap in ${CAPS:-all 800 400}; do
     [ "$cap" = all ] || extra=(--max-query-keypoints "$cap")
     # FALLBACK=T: a capped query short of T inliers is searched with every keypoint (session 43's rule).
     if [ -n "${FALLBACK:-}" ] && [ "$cap" != all ]; then extra+=(--full-search-below-inliers "$FALLBACK"); tag=$cap-fallback$FALLBACK; fi
+    if [ -n "${ALSO_CAPS:-}" ]; then
+      extra=(--also-caps "$ALSO_CAPS"); tag=same-graph
+      [ -n "${FALLBACK:-}" ] && { extra+=(--full-search-below-inliers "$FALLBACK"); tag=same-graph-fallback$FALLBACK; }
+    fi
     f="$out/$tag--$name.json"
     [ -s "$f" ] || "$B" eval reloc --scene "$sc" --methods scone --map-block 0:0.5 --distractors "$distractors" \
       --distractor-observations 100000 --distractor-stride 5 --foreign "$foreign" --foreign-stride 2 \

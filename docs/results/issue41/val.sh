@@ -12,11 +12,17 @@ D=${SCONE_DATA:-$here/../shared/data}/scenes
 out="${OUT:-$SCONE_PREFIX/work/i41/val}"
 mkdir -p "$out"
 for scene in kitti-clip2 middlebury-dino48 strecha-fountain-P11 tum-fr3-long-office; do
-  for cap in ${CAPS:-all 800}; do
+  # ALSO_CAPS=K1,K2,...: every keypoint and each cap on the same map, one report per scene (session 45's rule).
+  caps=${CAPS:-all 800}; [ -n "${ALSO_CAPS:-}" ] && caps=all
+  for cap in $caps; do
     k=$cap; [ "$cap" = all ] && k=1000000000
     extra=(); tag=$cap
     # FALLBACK=T: a capped query short of T inliers is searched with every keypoint (session 43's rule).
     if [ -n "${FALLBACK:-}" ] && [ "$cap" != all ]; then extra=(--full-search-below-inliers "$FALLBACK"); tag=$cap-fallback$FALLBACK; fi
+    if [ -n "${ALSO_CAPS:-}" ]; then
+      extra=(--also-caps "$ALSO_CAPS"); tag=same-graph
+      [ -n "${FALLBACK:-}" ] && { extra+=(--full-search-below-inliers "$FALLBACK"); tag=same-graph-fallback$FALLBACK; }
+    fi
     f="$out/$tag--$scene.json"
     [ -s "$f" ] || "$B" eval reloc --scene "$D/$scene" --map-block 0:0.5 --methods scone \
       --distractors "$D/7scenes-redkitchen,$D/sun3d-studyroom" --distractor-observations 100000 --distractor-stride 5 \

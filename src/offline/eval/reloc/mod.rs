@@ -99,8 +99,7 @@ pub fn evaluate(scene: &Scene, cfg: &RelocConfig, embedder: Option<&Embedder>) -
         // The same map, so the same graph: the caps differ from the row above only by the cap.
         for &cap in &cfg.also_caps {
             let capped = LocalizeSettings { max_query_keypoints: cap, ..localize };
-            let mut records =
-                view.localise_queries(&query_frames, &map_frames, &map, cfg, &capped, &mut progress)?;
+            let mut records = view.localise_queries(&query_frames, &map_frames, &map, cfg, &capped, &mut progress)?;
             records.iter_mut().for_each(|r| r.stage1_cap = Some(cap));
             let foreign = foreign_poses(&map.data, &map.index, method, cfg, &capped, embedder)?;
             let summary = summarise(method, &records, map.figures(), foreign, scene_focal, cfg.unit_scale);

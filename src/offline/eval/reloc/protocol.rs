@@ -114,8 +114,11 @@ pub fn with_stages(
 ) -> (BuildSettings, LocalizeSettings) {
     let on = |s: Stage| stages.contains(&s);
     let build = if on(Stage::Build) { build.with_known_poses() } else { build.unguided() };
+    let candidate_matching = on(Stage::Candidates) || on(Stage::Freak);
+    // Without stage 2, every query keypoint is searched, as before issue 27 (a cap leans on stage 2).
+    let localize = if candidate_matching { localize } else { localize.stage_one_only() };
     let localize = LocalizeSettings {
-        candidate_matching: on(Stage::Candidates) || on(Stage::Freak),
+        candidate_matching,
         candidate_freak: on(Stage::Freak),
         guided_search: on(Stage::Guided),
         ..localize
