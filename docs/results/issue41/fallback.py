@@ -17,7 +17,11 @@ SCENES = ["strecha-castle-P30", "templeRing-1-31", "7scenes-redkitchen-sel", "su
 
 
 def figures(path):
-    s = json.loads(path.read_text())["summaries"][0]
+    return summary_figures(json.loads(path.read_text())["summaries"][0])
+
+
+def summary_figures(s):
+    """Queries within (0.25 m, 2°) and (0.5 m, 5°), mean query time and foreign frames of one summary."""
     n = s["queries"]
     return {
         "near": round(s["within_025m_2deg"] * n),
@@ -25,6 +29,7 @@ def figures(path):
         "ms": s["mean_query_ms"],
         "foreign": s["foreign_localised"],
         "foreign_queries": s["foreign_queries"],
+        "queries": n,
     }
 
 

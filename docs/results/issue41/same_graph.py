@@ -14,19 +14,9 @@ import json
 import sys
 from pathlib import Path
 
+from fallback import summary_figures  # the figures session 43's rule read
+
 SELECTION = ["strecha-castle-P30", "templeRing-1-31", "7scenes-redkitchen-sel", "sun3d-studyroom-sel", "liberty-internet-sel"]
-
-
-def figures(s):
-    n = s["queries"]
-    return {
-        "near": round(s["within_025m_2deg"] * n),
-        "wide": round(s["within_05m_5deg"] * n),
-        "ms": s["mean_query_ms"],
-        "foreign": s["foreign_localised"],
-        "foreign_queries": s["foreign_queries"],
-        "queries": n,
-    }
 
 
 def main():
@@ -36,7 +26,7 @@ def main():
     for scene in scenes:
         (path,) = run.glob(f"same-graph*--{scene}.json")
         for s in json.loads(path.read_text())["summaries"]:
-            rows.setdefault(s.get("stage1_cap"), []).append(figures(s))
+            rows.setdefault(s.get("stage1_cap"), []).append(summary_figures(s))
     ref = rows.pop(None)
     print("| stage 1 searches | " + " | ".join(f"{s} ({f['queries']})" for s, f in zip(scenes, ref)) + " | score | foreign localised |")
     print("|---" * (len(scenes) + 3) + "|")
