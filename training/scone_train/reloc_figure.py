@@ -54,7 +54,9 @@ def main() -> None:
             extent = report["path_extent"]
             for s in report["summaries"]:
                 method = NAMES.get(s["method"], s["method"])
-                records = [q for m, q in report["queries"] if m == s["method"]]
+                # A report of `eval reloc --also-caps` holds each cap's queries beside the configuration's own.
+                cap = s.get("stage1_cap")
+                records = [q for m, q in report["queries"] if m == s["method"] and q.get("stage1_cap") == cap]
                 xs, ys = [], []
                 for i, (lo, hi) in enumerate(zip(BASELINE_BINS, BASELINE_BINS[1:] + [float("inf")])):
                     inside = [q for q in records if lo <= q["baseline_to_map"] / extent < hi]

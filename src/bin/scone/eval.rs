@@ -333,7 +333,7 @@ pub fn run(cmd: EvalCommand) -> anyhow::Result<()> {
         } => {
             anyhow::ensure!(unit_scale.is_finite() && unit_scale > 0.0, "--unit-scale must be positive");
             anyhow::ensure!(track <= 10, "--track: a track holds at most 10 frames");
-            anyhow::ensure!(also_caps.iter().all(|&k| k > 0), "--also-caps: every cap is at least one keypoint");
+            anyhow::ensure!(also_caps.is_empty() || track < 2, "--also-caps is for single frames, not --track");
             for m in &methods {
                 anyhow::ensure!(
                     matches!(m, Method::Scone | Method::Freak | Method::Sift),
@@ -359,15 +359,21 @@ pub fn run(cmd: EvalCommand) -> anyhow::Result<()> {
             if let Some(c) = covariance_scale {
                 rc.localize.covariance_scale = c;
             }
+            // The stages first: an explicit cap or fallback applies over them (without stage 2 they search
+            // every keypoint unless told otherwise).
+            if let Some(stages) = stages {
+                let on: Vec<reloc::Stage> = stages.iter().filter_map(|s| s.stage()).collect();
+                (rc.build, rc.localize) = reloc::with_stages(rc.build, rc.localize, &on);
+            }
             if let Some(k) = max_query_keypoints {
                 rc.localize.max_query_keypoints = k;
             }
             if let Some(t) = full_search_below_inliers {
                 rc.localize.full_search_below_inliers = t;
             }
-            if let Some(stages) = stages {
-                let on: Vec<reloc::Stage> = stages.iter().filter_map(|s| s.stage()).collect();
-                (rc.build, rc.localize) = reloc::with_stages(rc.build, rc.localize, &on);
+            for &k in &also_caps {
+                let capped = scone::map::localize::LocalizeSettings { max_query_keypoints: k, ..rc.localize };
+                capped.validate().map_err(|e| anyhow::anyhow!("--also-caps {k}: {e}"))?;
             }
             rc.foreign = foreign;
             rc.foreign_stride = foreign_stride;

@@ -42,3 +42,21 @@ fn queries_fall_into_their_angle_bins_with_scaled_thresholds() {
     // Thresholds in scene units: x10 lets the 0.3 error pass (0.25 m x 10).
     assert_eq!(bin_summaries(&recs, 10.0)[1].within_025m_2deg, 1.0);
 }
+
+#[test]
+fn stages_without_stage_two_search_every_keypoint_and_with_it_keep_the_cap() {
+    use super::protocol::{with_stages, Stage};
+    use crate::map::builder::BuildSettings;
+    use crate::map::localize::LocalizeSettings;
+    let capped = LocalizeSettings { max_query_keypoints: 100, full_search_below_inliers: 100, ..Default::default() };
+    for stages in [&[][..], &[Stage::Guided], &[Stage::Build]] {
+        let (_, l) = with_stages(BuildSettings::default(), capped, stages);
+        assert!(!l.candidate_matching, "{stages:?}");
+        assert_eq!((l.max_query_keypoints, l.full_search_below_inliers), (usize::MAX, 0), "{stages:?}");
+    }
+    for stages in [&[Stage::Candidates][..], &[Stage::Freak, Stage::Guided]] {
+        let (_, l) = with_stages(BuildSettings::default(), capped, stages);
+        assert!(l.candidate_matching, "{stages:?}");
+        assert_eq!((l.max_query_keypoints, l.full_search_below_inliers), (100, 100), "{stages:?}");
+    }
+}
