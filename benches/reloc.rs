@@ -329,10 +329,9 @@ fn main() {
             let t = Instant::now();
             let map_dir = if per_landmark { dir.join("per-landmark") } else { dir.clone() };
             let mut cfg = config(&map_dir, index);
-            // A row's own cap stands alone, as these rows were measured before the fallback existed.
+            // A row's own cap stands alone (no fallback), as these rows were measured before it existed.
             if let Some(cap) = cap {
-                cfg.localize.max_query_keypoints = cap;
-                cfg.localize.full_search_below_inliers = 0;
+                (cfg.localize.max_query_keypoints, cfg.localize.full_search_below_inliers) = (cap, 0);
             }
             if label.ends_with("stage 1 only") {
                 cfg.localize = cfg.localize.stage_one_only();
@@ -452,8 +451,7 @@ fn main() {
         let (store, observations) = (&open_maps[0], built.observations);
         if per_landmark {
             let label = "all, one point per landmark";
-            // Every keypoint, session 41's cap, session 43's cap that falls back below 100 inliers, and session
-            // 45's default (the cap that the rule of "Caps compared on one graph" chose).
+            // Every keypoint, session 41's cap, session 43's with the fallback, and session 45's default.
             let caps = [(usize::MAX, 0), (800, 0), (200, 100), (100, 100)];
             sweeps.push(sweep(store, &described, &camera, observations, &caps, label));
         } else {
