@@ -86,7 +86,7 @@ fn l2_by_product(
     let parts = parts.clamp(1, nq);
     let bounds: Vec<(usize, usize)> = (0..parts).map(|p| (p * nq / parts, (p + 1) * nq / parts)).collect();
     let band = (band_values / parts / nt).clamp(1, nq);
-    let scanned: Vec<Scanned> = par_map(&bounds, |&(a, b)| shared.scan(a, b, band))?;
+    let scanned: Vec<Scanned> = par_map(bounds, |(a, b)| shared.scan(a, b, band))?;
     // A column's smallest estimate over every part sets its limit; a part's own limits were never below it,
     // so each part holds every pair under it.
     let mut col_limit = vec![f32::INFINITY; nt];
@@ -94,7 +94,7 @@ fn l2_by_product(
         col_limit.iter_mut().zip(&s.col_min).for_each(|(l, &m)| *l = l.min(m));
     }
     col_limit.iter_mut().zip(&col_slack).for_each(|(l, &s)| *l = if l.is_finite() { *l + s } else { f32::MAX });
-    let measured: Vec<Measured> = par_map(&scanned, |s| shared.measure(query, s, &col_limit))?;
+    let measured: Vec<Measured> = par_map(scanned, |s| shared.measure(query, s, &col_limit))?;
     // Parts in row order, and a strict "below": a train row's nearest query row is the first of the smallest.
     let mut out = BothWays { forward: Vec::with_capacity(nq), back: vec![None; nt] };
     let mut best = vec![f32::MAX; nt];
@@ -114,15 +114,15 @@ fn l2_by_product(
 const PART_MIN_ROWS: usize = 256;
 
 /// [`l2_by_product`]'s parts of the query rows on rayon's threads (the one calling, alone), in order.
-fn par_map<I: Sync, O: Send>(
-    items: &[I],
-    f: impl Fn(&I) -> Result<O, FeatureError> + Sync + Send,
+fn par_map<I: Send, O: Send>(
+    mut items: Vec<I>,
+    f: impl Fn(I) -> Result<O, FeatureError> + Sync + Send,
 ) -> Result<Vec<O>, FeatureError> {
     use rayon::prelude::*;
     if items.len() == 1 {
-        return Ok(vec![f(&items[0])?]);
+        return Ok(vec![f(items.pop().expect("one item"))?]);
     }
-    items.par_iter().map(f).collect()
+    items.into_par_iter().map(f).collect()
 }
 
 /// What every part of [`l2_by_product`] reads.
@@ -231,9 +231,9 @@ impl Shared<'_> {
 
     /// OpenCV's distances of the pairs a part kept (its column candidates under the limits of every part),
     /// row by row, read in its orders.
-    fn measure(&self, query: &Mat, s: &Scanned, col_limit: &[f32]) -> Result<Measured, FeatureError> {
+    fn measure(&self, query: &Mat, s: Scanned, col_limit: &[f32]) -> Result<Measured, FeatureError> {
         let (dim, nt, first) = (self.dim, self.tn.len(), s.rows.0);
-        let mut needed = s.needed.clone();
+        let mut needed = s.needed;
         for &(j, i, a) in &s.col_cands {
             if a <= col_limit[j as usize] {
                 needed[i as usize - first].push(j);

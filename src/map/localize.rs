@@ -4,10 +4,9 @@
 //!
 //! 1. **Index search.** Each of the query's `max_query_keypoints` strongest keypoints (100 by default) takes
 //!    its `knn` nearest observations in the map's index (optionally only those whose landmark lies within a
-//!    prior's radius). The nearest landmark is accepted
-//!    when its distance is below `ratio` times the distance to the nearest *other* landmark (several
-//!    observations of one landmark do not make it ambiguous); when all `knn` hits belong to one landmark it is
-//!    accepted. One query keypoint per landmark is kept (the closest). The keyframes observing the matched
+//!    prior's radius). The nearest landmark is accepted when its distance is below `ratio` times the distance
+//!    to the nearest *other* landmark (several observations of one landmark do not make it ambiguous); when all
+//!    `knn` hits belong to one landmark it is accepted. One query keypoint per landmark is kept (the closest). The keyframes observing the matched
 //!    landmarks then vote (covisibility): the `candidate_keyframes` with the most votes are the candidates.
 //!    A query whose pose after the stages below has fewer than `full_search_below_inliers` inliers (100 by
 //!    default) has its other keypoints searched too, and is answered as if every keypoint had been searched.

@@ -86,24 +86,22 @@ pub fn evaluate(scene: &Scene, cfg: &RelocConfig, embedder: Option<&Embedder>) -
         let (build, localize) = cfg.settings_for(method);
         let view = MethodView::describe(scene, &images, method, cfg, embedder, &mut progress)?;
         let map = view.build_map(&map_frames, cfg, &build, embedder, &mut progress)?;
-        let (records, foreign) = if cfg.track >= 2 {
-            let records = view.localise_tracks(&query_frames, &map_frames, &map, cfg, &localize, &mut progress)?;
-            (records, foreign_tracks(&map, method, cfg, &localize, embedder)?)
-        } else {
-            let records = view.localise_queries(&query_frames, &map_frames, &map, cfg, &localize, &mut progress)?;
-            (records, foreign_poses(&map.data, &map.index, method, cfg, &localize, embedder)?)
-        };
         let scene_focal = (scene.camera.fx + scene.camera.fy) / 2.0;
-        summaries.push(summarise(method, &records, map.figures(), foreign, scene_focal, cfg.unit_scale));
-        queries.extend(records.into_iter().map(|r| (method, r)));
-        // The same map, so the same graph: the caps differ from the row above only by the cap.
-        for &cap in &cfg.also_caps {
-            let capped = LocalizeSettings { max_query_keypoints: cap, ..localize };
-            let mut records = view.localise_queries(&query_frames, &map_frames, &map, cfg, &capped, &mut progress)?;
-            records.iter_mut().for_each(|r| r.stage1_cap = Some(cap));
-            let foreign = foreign_poses(&map.data, &map.index, method, cfg, &capped, embedder)?;
+        // The configuration's own settings, then each of `also_caps` on the same map, so the same graph: those
+        // rows differ from the first only by the cap.
+        for cap in std::iter::once(None).chain(cfg.also_caps.iter().copied().map(Some)) {
+            let localize =
+                LocalizeSettings { max_query_keypoints: cap.unwrap_or(localize.max_query_keypoints), ..localize };
+            let (mut records, foreign) = if cfg.track >= 2 {
+                let records = view.localise_tracks(&query_frames, &map_frames, &map, cfg, &localize, &mut progress)?;
+                (records, foreign_tracks(&map, method, cfg, &localize, embedder)?)
+            } else {
+                let records = view.localise_queries(&query_frames, &map_frames, &map, cfg, &localize, &mut progress)?;
+                (records, foreign_poses(&map.data, &map.index, method, cfg, &localize, embedder)?)
+            };
+            records.iter_mut().for_each(|r| r.stage1_cap = cap);
             let summary = summarise(method, &records, map.figures(), foreign, scene_focal, cfg.unit_scale);
-            summaries.push(RelocSummary { stage1_cap: Some(cap), ..summary });
+            summaries.push(RelocSummary { stage1_cap: cap, ..summary });
             queries.extend(records.into_iter().map(|r| (method, r)));
         }
     }
