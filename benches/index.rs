@@ -61,7 +61,8 @@ fn map_of(embeddings: &[f32], dim: usize) -> MapData {
         },
         new_landmarks: (0..n as u64).map(|i| (i, [0.0; 3])).collect(),
         observations: (0..n as u64).map(|i| NewObservation { landmark: i, keyframe: 0, keypoint: i as u32 }).collect(),
-    });
+    })
+    .unwrap();
     data
 }
 

@@ -1,14 +1,12 @@
 //! Relocalisation of a 640x480 JPEG query through the service's own path (`Service::localize`) against real
 //! maps of ~10k and ~100k observations, and with `SCONE_BENCH_1M=1` the largest the training scenes give
-//! (every frame below: 478,610 observations; they do not hold the 1M that level asks for, so it stops when
-//! they run out). Reported per level: time per stage and total, HNSW against exact search on the same map in
-//! the same run, recall@1/@2 of the index against exact search on the query's own embeddings, time to ready
-//! after a restart (snapshot + index dump), and memory per observation (RSS growth over the open; the exact row
-//! opens the map data without its graph while the HNSW row's map is still open, so the difference of the two
-//! rows is the graph's). Then a sweep of how many query keypoints are searched
-//! (`store.localize.max_query_keypoints`) over every query of the level, and AddKeyframe on a copy of the
-//! level's map (the first 20 queries added as keyframes: the plan alone, then the whole write).
-//!
+//! (727,987 observations: they run out before 1M). Per level: time per stage and total, HNSW against exact
+//! search on the same map in the same run, recall@1/@2 of the index against exact search on the query's own
+//! embeddings, time to ready after a restart (snapshot + index dump), and memory per observation (RSS growth
+//! over the open; the exact row opens the map data without its graph while the HNSW row's map is still open,
+//! so the difference of the two rows is the graph's). Then a sweep of `store.localize.max_query_keypoints`
+//! over every query of the level, and AddKeyframe on a copy of the level's map (the first 20 queries added
+//! as keyframes: the plan alone, then the whole write).
 //! The index of one point per landmark (`store.index.points = "landmarks"`) is measured in a process of its
 //! own on a copy of the level's map with its own dump (made once, in the build process): the same row and
 //! recall (against exact search over the same points) with the service's default stage 1 (since session 45,
@@ -19,13 +17,14 @@
 //! Map: real, different frames, never repeated. The posed frames of the training scenes of `../shared/data`,
 //! in this order: `7scenes-redkitchen` (every frame but the held-out ones, triangulated with its poses),
 //! `sun3d-studyroom` (with depth), `strecha-castle-P30`, `liberty-internet`, `middlebury-templeRing` (stamps
-//! 1-31, the ones in one world frame), each scene 10 km from the others
-//! so no landmark of one falls where another's are. A level's map is the shortest prefix of that order that
-//! holds its number of observations. Queries: the held-out frames of `7scenes-redkitchen` (every 10th,
-//! starting at the 5th) that lie inside the part of the scene the map covers, JPEG-encoded (quality 90).
+//! 1-31, the ones in one world frame), each scene 10 km from the others so no landmark of one falls where
+//! another's are. A level's map is the shortest prefix of that order that holds its number of observations.
+//! Queries: the held-out frames of `7scenes-redkitchen` (every 10th, starting at the 5th) inside the part of
+//! the scene the map covers, JPEG-encoded (quality 90).
 //!
-//! Maps are built once per model and kept under `$SCONE_PREFIX/bench/reloc` (default `~/.cache/scone`); an
-//! interrupted build resumes from the keyframes its write-ahead log holds. `SCONE_BENCH_REBUILD=1` builds
+//! Maps are built once per model and kept under `$SCONE_PREFIX/bench/reloc` (default `~/.cache/scone`; one of
+//! an older format is upgraded by the build process); an interrupted build resumes from the keyframes its
+//! write-ahead log holds. `SCONE_BENCH_REBUILD=1` builds
 //! again. Run: `cargo bench --bench reloc` (needs `../shared/data` or `$SCONE_DATA`; prints a note without it).
 
 use std::path::{Path, PathBuf};
@@ -44,6 +43,8 @@ use scone::map::builder::{plan, BuildSettings, Depth, KeyframeInput};
 use scone::map::index::{exact_search, EmbeddingIndex, IndexPoints, IndexSettings};
 use scone::map::localize::{localize, LocalizeSettings};
 use scone::map::model::MapData;
+use scone::map::storage::format::FORMAT_VERSION;
+use scone::map::storage::snapshot::snapshot_version;
 use scone::map::store::{MapStore, ModelInfo, StoreSettings};
 use scone::offline::scene::Scene;
 use scone::pipeline::Describer;
@@ -114,8 +115,7 @@ fn prepare(
     describer: &Describer,
     info: &ModelInfo,
 ) -> (PathBuf, Built, bool) {
-    // Keyed by the model and by the frame list, so a changed list (scenes, held-out rule, data) never resumes
-    // or reuses a map built from another.
+    // Keyed by the model and the frame list: a changed list (scenes, held-out rule, data) never reuses a map.
     let list: String = frames
         .iter()
         .map(|f| format!("{}/{}\n", scenes[f.scene].name, scenes[f.scene].frames[f.frame].stamp))
@@ -201,6 +201,12 @@ fn per_observation_settings() -> IndexSettings {
 /// index dump of one point per landmark: made once (in the build process), then reloaded as the other map is.
 fn per_landmark_copy(dir: &Path, info: &ModelInfo) -> PathBuf {
     let copy = dir.join("per-landmark");
+    // A map kept from a build before the current format is upgraded here, in the build's own process.
+    for (d, index) in [(dir, per_observation_settings()), (&copy, per_landmark_settings())] {
+        if snapshot_version(&d.join("maps/m/snapshot.bin")).is_ok_and(|v| v < FORMAT_VERSION) {
+            MapStore::open(config(d, index), info.clone()).unwrap();
+        }
+    }
     if copy.join("built").exists() {
         return copy;
     }
@@ -293,15 +299,13 @@ fn main() {
             println!("@add {}", add_keyframes(&dir, &info, &described, &camera, built.observations));
             return;
         }
-        // The exact row comes right after the HNSW row, before anything allocates and frees much, so its RSS
-        // growth is the map data's. The capped row's open is not measured.
-        // The last row is the pipeline before issue 27 (stage 1 alone), the baseline of the defaults' latency.
-        // The per-landmark index is measured in a process of its own (`run_levels`), its map opened first as
-        // the HNSW row's is, so neither row's memory is lowered by what the other freed.
+        // The exact row comes right after the HNSW row, before much is allocated and freed, so its RSS growth
+        // is the map data's. The last row is stage 1 alone (before issue 27), the defaults' latency baseline.
+        // The per-landmark index is measured in a process of its own (`run_levels`), its map opened first, so
+        // neither row's memory is lowered by what the other freed; twice: with the service's default stage 1
+        // (capped since session 45, with the fallback), then every query keypoint searched on the map opened
+        // again. `None`: the service's default cap.
         let per_landmark = std::env::var_os(PER_LANDMARK_ENV).is_some();
-        // The per-landmark process measures the index's default twice: stage 1 as the service's default (since
-        // session 45 capped, with the fallback), then every query keypoint searched (the default before) on the
-        // map opened again. `None`: the service's default cap.
         let row_list = if per_landmark {
             vec![
                 (PER_LANDMARK, per_landmark_settings(), None),
@@ -343,15 +347,7 @@ fn main() {
             }
             let rss_per_obs_kb = (rss_mb() - rss_before) * 1024.0 / built.observations as f64;
             let (observations, estimate_kb, payload_kb, from_dump) = store.get("m").unwrap().read(|data, index| {
-                let payload: usize = data
-                    .keyframes
-                    .values()
-                    .map(|k| {
-                        k.keypoints.len() * std::mem::size_of_val(&k.keypoints[0])
-                            + k.descriptors.len()
-                            + k.embeddings.len() * 4
-                    })
-                    .sum();
+                let payload: usize = data.keyframes.values().map(|k| k.memory_bytes()).sum();
                 let n = data.observations.len() as f64;
                 (
                     data.observations.len(),
@@ -439,7 +435,7 @@ fn main() {
                 },
                 match label {
                     PER_OBSERVATION | PER_LANDMARK => {
-                        format!("{rss_per_obs_kb:.2} (estimate {estimate_kb:.2}; keyframe payload {payload_kb:.2})")
+                        format!("{rss_per_obs_kb:.2} (estimate {estimate_kb:.2}; keyframes, payloads in memory {payload_kb:.2})")
                     }
                     "exact" => format!("{rss_per_obs_kb:.2} (map data only)"),
                     _ => "-".into(),

@@ -400,7 +400,10 @@ impl MapCache {
                 tracing::error!(map = %map.id, %reason, "another writer's record does not apply; reloading");
                 return Next::Reload;
             }
-            s.data.apply(record);
+            if let Err(e) = s.data.apply(record) {
+                tracing::error!(map = %map.id, error = %e, "another writer's record does not apply; reloading");
+                return Next::Reload;
+            }
         }
         let MapState { data, index } = &mut *s;
         if records.iter().any(|r| matches!(r, Record::Reembed { .. })) {

@@ -134,7 +134,7 @@ fn a_failed_index_dump_keeps_the_previous_dump_whole() {
         index.dump(&dir, &data).unwrap();
         let before: Vec<(PathBuf, Vec<u8>)> =
             files(&dir).into_iter().map(|p| (p.clone(), std::fs::read(p).unwrap())).collect();
-        data.apply(&keyframe_record(9, 100, 5000, 48, 9));
+        data.apply(&keyframe_record(9, 100, 5000, 48, 9)).unwrap();
         let mut grown = EmbeddingIndex::load_or_build(params, &dir, &data);
         grown.sync(&data);
         let mut p = parts.clone();
@@ -166,7 +166,7 @@ fn regression_a_dump_after_a_reload_is_the_dump_the_manifest_names() {
         let mut reloaded = EmbeddingIndex::load_or_build(params, &dir, &data);
         assert!(reloaded.loaded_from_dump(), "round {round}");
         assert_eq!(reloaded.graph_shape().unwrap().0, data.live_observations(), "round {round}");
-        data.apply(&keyframe_record(100 + round, 300, 10_000 + 300 * round, 48, 40 + round));
+        data.apply(&keyframe_record(100 + round, 300, 10_000 + 300 * round, 48, 40 + round)).unwrap();
         reloaded.sync(&data);
         reloaded.dump(&dir, &data).unwrap();
         // One dump on disk (the replaced ones deleted), and it is the one the manifest names.

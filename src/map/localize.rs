@@ -44,7 +44,7 @@ use opencv::prelude::*;
 
 use crate::camera::Camera;
 use crate::error::MapError;
-use crate::features::{bits_mat, Features, DESCRIPTOR_BYTES};
+use crate::features::{bits_mat, Features};
 use crate::map::index::{l2_squared, EmbeddingIndex};
 use crate::map::model::MapData;
 use crate::matching::embedding_mat;
@@ -344,17 +344,10 @@ fn candidate_matches(
     let train = embedding_mat(&train, dim)?;
     let query = embedding_mat(embeddings, dim)?;
     let mut found = mutual_landmark_matches(data, &query, &train, &views, NORM_L2, params.candidate_ratio)?;
-    let keyframe_bits = |o: usize| {
-        let ob = &data.observations[o];
-        data.keyframes.get(&ob.keyframe).and_then(|k| {
-            let i = ob.keypoint as usize;
-            (k.descriptors.len() == k.keypoints.len() * DESCRIPTOR_BYTES).then(|| k.descriptor(i))
-        })
+    let bits = match params.candidate_freak && features.descriptors.len() == features.len() {
+        true => data.observation_descriptors(&views)?,
+        false => None,
     };
-    let bits: Option<Vec<u8>> = (params.candidate_freak && features.descriptors.len() == features.len())
-        .then(|| views.iter().map(|&o| keyframe_bits(o)).collect::<Option<Vec<&[u8]>>>())
-        .flatten()
-        .map(|b| b.concat());
     if let Some(bytes) = bits {
         let train = bits_mat(&bytes)?;
         let qbytes: Vec<u8> = rows.iter().flat_map(|&i| features.descriptors[i].iter().copied()).collect();

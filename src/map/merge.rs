@@ -238,7 +238,13 @@ pub fn plan_merge(
             reason: "the source map has no keyframes".into(),
         });
     }
-    let located: Vec<Located> = source.keyframes.values().filter_map(|kf| located(target, index, kf, params)).collect();
+    let mut located_keyframes = Vec::new();
+    for kf in source.keyframes.values() {
+        if let Some(l) = located(target, index, &*kf.load()?, params) {
+            located_keyframes.push(l);
+        }
+    }
+    let located = located_keyframes;
     let (transform, agree, estimated) = match transform {
         Some(t) => {
             // A given transform: the keyframes whose localisation agrees with it vote for fusions.
@@ -297,7 +303,8 @@ pub fn plan_merge(
         .values()
         .map(|kf| {
             let id = kf.id.checked_add(offset).ok_or_else(id_overflow)?;
-            Ok(Keyframe { id, pose: Pose::from_isometry(&moved_pose(&transform, &kf.pose.isometry())), ..kf.clone() })
+            let pose = Pose::from_isometry(&moved_pose(&transform, &kf.pose.isometry()));
+            Ok(Keyframe { id, pose, ..Keyframe::clone(&*kf.load()?) })
         })
         .collect::<Result<_, MapError>>()?;
     let mut new_ids: HashMap<u64, u64> = HashMap::new();

@@ -9,12 +9,14 @@
 //! mapping is part of the map (snapshot, export) and changes only through [`Record::AddExternalKeyframe`].
 
 use std::collections::{BTreeMap, HashMap};
+use std::sync::Arc;
 
 use serde::{Deserialize, Serialize};
 
-use crate::camera::{Camera, Pose};
-use crate::error::{FeatureError, MapError};
-use crate::features::{from_precomputed, Features, Keypoint, KeypointLimitSettings, DESCRIPTOR_BYTES};
+use crate::error::MapError;
+use crate::features::DESCRIPTOR_BYTES;
+use crate::map::payload::StoredPayloads;
+pub use crate::map::payload::{Keyframe, MapKeyframe};
 
 /// Map ids: 1-64 characters from `[A-Za-z0-9_-]`.
 pub fn validate_map_id(id: &str) -> Result<(), MapError> {
@@ -52,40 +54,6 @@ pub struct MapMeta {
     pub k: usize,
     pub dim: usize,
     pub created_unix_ms: u64,
-}
-
-/// A posed image of the map with all its keypoints.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-pub struct Keyframe {
-    pub id: u64,
-    pub pose: Pose,
-    pub camera: Camera,
-    pub keypoints: Vec<Keypoint>,
-    /// FREAK descriptors, `keypoints.len() x 64` bytes. Read and written as bytes in one piece: bincode encodes
-    /// bytes exactly as it encodes a `Vec<u8>` (a u64 length, then the bytes), so stored maps are unchanged
-    /// (`map::tests::descriptors_as_bytes_encode_as_before`); only the decode no longer goes a byte at a time.
-    #[serde(with = "serde_bytes")]
-    pub descriptors: Vec<u8>,
-    /// SConE embeddings of every keypoint, `keypoints.len() x dim` (matching new keyframes against this one).
-    pub embeddings: Vec<f32>,
-}
-
-impl Keyframe {
-    pub fn descriptor(&self, i: usize) -> &[u8] {
-        &self.descriptors[i * DESCRIPTOR_BYTES..(i + 1) * DESCRIPTOR_BYTES]
-    }
-
-    pub fn embedding(&self, i: usize, dim: usize) -> &[f32] {
-        &self.embeddings[i * dim..(i + 1) * dim]
-    }
-
-    /// The keypoints and FREAK descriptors the keyframe stores, as features a model embeds again (a map
-    /// re-embedded after a model upgrade). They passed the keypoint checks when the keyframe was written; its
-    /// keypoint count is not limited again.
-    pub fn features(&self) -> Result<Features, FeatureError> {
-        let limits = KeypointLimitSettings { max_keypoints: usize::MAX, ..Default::default() };
-        from_precomputed(self.camera.width, self.camera.height, self.keypoints.clone(), &self.descriptors, &limits)
-    }
 }
 
 /// One sighting of a landmark: a keypoint of a keyframe and its embedding.
@@ -163,11 +131,12 @@ pub struct MapStats {
     pub memory_bytes: u64,
 }
 
-/// The whole state of one map.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+/// The whole state of one map. Its keyframes' payloads are in memory or in the file of the snapshot that
+/// holds them ([`crate::map::payload`]); the rest is in memory.
+#[derive(Debug, Clone, PartialEq)]
 pub struct MapData {
     pub meta: MapMeta,
-    pub keyframes: BTreeMap<u64, Keyframe>,
+    pub keyframes: BTreeMap<u64, MapKeyframe>,
     pub landmarks: BTreeMap<u64, Landmark>,
     pub observations: Vec<Observation>,
     /// Row-major `[observations, dim]`.
@@ -180,7 +149,6 @@ pub struct MapData {
     /// Observation ids of each keyframe, in order: derived from `observations`, so map building and
     /// relocalisation reach a keyframe's observations without scanning them all. Not stored; rebuilt when a
     /// snapshot is decoded ([`MapData::rebuild_derived`]). A removed keyframe's entry goes with it.
-    #[serde(skip)]
     by_keyframe: HashMap<u64, Vec<u64>>,
 }
 
@@ -196,6 +164,20 @@ impl MapData {
             version: 0,
             external_ids: BTreeMap::new(),
             by_keyframe: HashMap::new(),
+        }
+    }
+
+    /// Points the keyframes at their payloads in a snapshot just made durable: their payloads leave memory.
+    /// Only a snapshot of this map as it is now (its version) is used; a keyframe it does not hold keeps its
+    /// payload.
+    pub fn store_payloads(&mut self, stored: &StoredPayloads) {
+        if stored.version != self.version {
+            return;
+        }
+        for (id, span) in &stored.spans {
+            if let Some(k) = self.keyframes.get_mut(id) {
+                k.set_stored(Arc::clone(&stored.file), *span);
+            }
         }
     }
 
@@ -281,30 +263,43 @@ impl MapData {
     /// A landmark's point, list header and map node.
     const LANDMARK_BYTES: usize = std::mem::size_of::<Landmark>() + 48;
 
-    /// A keyframe's payload in memory.
-    fn keyframe_bytes(k: &Keyframe) -> usize {
-        std::mem::size_of::<Keyframe>()
-            + k.keypoints.len() * std::mem::size_of::<Keypoint>()
-            + k.descriptors.len()
-            + k.embeddings.len() * 4
-    }
-
-    /// What a record adding `keyframes`, `landmarks` and `observations` adds to [`MapData::memory_bytes`].
+    /// What a record adding `keyframes` (their payloads in memory until the next snapshot), `landmarks` and
+    /// `observations` adds to [`MapData::memory_bytes`].
     fn added_bytes(&self, keyframes: &[Keyframe], landmarks: usize, observations: usize) -> u64 {
-        (keyframes.iter().map(Self::keyframe_bytes).sum::<usize>()
+        (keyframes.iter().map(|k| MapKeyframe::inline(k.clone()).memory_bytes()).sum::<usize>()
             + observations * (Self::OBSERVATION_BYTES + self.meta.dim * 4)
             + landmarks * Self::LANDMARK_BYTES) as u64
     }
 
-    /// An estimate of the memory the map's data takes when loaded: keyframes with their payload, landmarks,
-    /// observations and their embeddings. The map cache adds its index's graph
+    /// An estimate of the memory the map's data takes when loaded: keyframes (with their payload while it is
+    /// in memory), landmarks, observations and their embeddings. The map cache adds its index's graph
     /// ([`crate::map::index::EmbeddingIndex::memory_bytes`]), which depends on what the graph holds.
     pub fn memory_bytes(&self) -> usize {
-        let keyframes: usize = self.keyframes.values().map(Self::keyframe_bytes).sum();
+        let keyframes: usize = self.keyframes.values().map(MapKeyframe::memory_bytes).sum();
         keyframes
             + self.landmarks.len() * Self::LANDMARK_BYTES
             + self.observations.len() * Self::OBSERVATION_BYTES
             + self.embeddings.len() * 4
+    }
+
+    /// The FREAK bits of observations `views`, in order, read from their keyframes' payloads (where those are
+    /// stored); `None` when one of those keyframes has no descriptors (keypoints of another detector).
+    pub fn observation_descriptors(&self, views: &[usize]) -> Result<Option<Vec<u8>>, MapError> {
+        let mut loaded: HashMap<u64, Arc<Keyframe>> = HashMap::new();
+        let mut out = Vec::with_capacity(views.len() * DESCRIPTOR_BYTES);
+        for &o in views {
+            let ob = &self.observations[o];
+            let Some(k) = self.keyframes.get(&ob.keyframe) else { return Ok(None) };
+            let k = match loaded.entry(ob.keyframe) {
+                std::collections::hash_map::Entry::Occupied(e) => e.into_mut(),
+                std::collections::hash_map::Entry::Vacant(e) => e.insert(k.load()?),
+            };
+            if k.descriptors.len() != k.keypoints.len() * DESCRIPTOR_BYTES {
+                return Ok(None);
+            }
+            out.extend_from_slice(k.descriptor(ob.keypoint as usize));
+        }
+        Ok(Some(out))
     }
 
     pub fn embedding(&self, observation: usize) -> &[f32] {
@@ -359,8 +354,7 @@ impl MapData {
         }
         for o in observations {
             let known = self.landmarks.contains_key(&o.landmark) || fresh_landmarks.contains(&o.landmark);
-            let size =
-                sizes.get(&o.keyframe).copied().or_else(|| self.keyframes.get(&o.keyframe).map(|k| k.keypoints.len()));
+            let size = sizes.get(&o.keyframe).copied().or_else(|| self.keyframes.get(&o.keyframe).map(|k| k.keypoints));
             let in_range = size.is_some_and(|s| (o.keypoint as usize) < s);
             let fresh = seen.insert((o.keyframe, o.keypoint))
                 && !observed.get(&o.keyframe).is_some_and(|k| k.contains_key(&o.keypoint));
@@ -419,7 +413,7 @@ impl MapData {
                 }
                 for (id, e) in keyframes {
                     let Some(k) = self.keyframes.get(id) else { return Err(format!("no keyframe {id}")) };
-                    if e.len() != k.keypoints.len() * dim {
+                    if e.len() != k.keypoints * dim {
                         return Err(format!("keyframe {id}: embedding size does not match its keypoints"));
                     }
                 }
@@ -457,20 +451,50 @@ impl MapData {
         self.observations.iter().filter(|o| o.live).map(|o| ((o.keyframe, o.keypoint), o.landmark)).collect()
     }
 
+    /// The embeddings of the new observations `observations`, in order: from the keyframes the record adds,
+    /// or from this map's keyframes (their payloads read where they are stored). Read before anything
+    /// changes, so that a failed read leaves the map as it was.
+    fn new_observation_embeddings(
+        &self,
+        keyframes: &[Keyframe],
+        observations: &[NewObservation],
+    ) -> Result<Vec<f32>, MapError> {
+        let dim = self.meta.dim;
+        let mut loaded: HashMap<u64, Arc<Keyframe>> = HashMap::new();
+        let mut out = Vec::with_capacity(observations.len() * dim);
+        for o in observations {
+            let keyframe = match keyframes.iter().find(|k| k.id == o.keyframe) {
+                Some(k) => k,
+                None => match loaded.entry(o.keyframe) {
+                    std::collections::hash_map::Entry::Occupied(e) => &**e.into_mut(),
+                    std::collections::hash_map::Entry::Vacant(e) => {
+                        let k = self.keyframes.get(&o.keyframe).ok_or_else(|| MapError::Corrupt {
+                            path: self.meta.id.clone().into(),
+                            reason: format!("an observation names keyframe {}, which the map lacks", o.keyframe),
+                        })?;
+                        &**e.insert(k.load()?)
+                    }
+                },
+            };
+            out.extend_from_slice(keyframe.embedding(o.keypoint as usize, dim));
+        }
+        Ok(out)
+    }
+
     fn apply_keyframes(
         &mut self,
         keyframes: &[Keyframe],
         new_landmarks: &[(u64, [f64; 3])],
         observations: &[NewObservation],
-    ) {
+    ) -> Result<(), MapError> {
+        let embeddings = self.new_observation_embeddings(keyframes, observations)?;
         for (id, p) in new_landmarks {
             self.landmarks.insert(*id, Landmark { point: *p, observations: Vec::new() });
             self.next_landmark = self.next_landmark.max(id + 1);
         }
         for keyframe in keyframes {
-            self.keyframes.insert(keyframe.id, keyframe.clone());
+            self.keyframes.insert(keyframe.id, MapKeyframe::inline(keyframe.clone()));
         }
-        let dim = self.meta.dim;
         for o in observations {
             let oid = self.observations.len() as u64;
             self.observations.push(Observation {
@@ -480,25 +504,27 @@ impl MapData {
                 live: true,
             });
             self.by_keyframe.entry(o.keyframe).or_default().push(oid);
-            let e = self.keyframes[&o.keyframe].embedding(o.keypoint as usize, dim).to_vec();
-            self.embeddings.extend_from_slice(&e);
             if let Some(l) = self.landmarks.get_mut(&o.landmark) {
                 l.observations.push(oid);
             }
         }
+        self.embeddings.extend_from_slice(&embeddings);
+        Ok(())
     }
 
-    /// Applies a record (already checked).
-    pub fn apply(&mut self, record: &Record) {
+    /// Applies a record (already checked). The payloads of stored keyframes it needs (the embeddings of the
+    /// keypoints it observes, the keypoints a re-embedding keeps) are read first: an error (a read that
+    /// failed, a payload whose checksum does not match) leaves the map as it was.
+    pub fn apply(&mut self, record: &Record) -> Result<(), MapError> {
         match record {
             Record::AddKeyframe { keyframe, new_landmarks, observations } => {
-                self.apply_keyframes(std::slice::from_ref(keyframe), new_landmarks, observations)
+                self.apply_keyframes(std::slice::from_ref(keyframe), new_landmarks, observations)?
             }
             Record::Merge { keyframes, new_landmarks, observations, .. } => {
-                self.apply_keyframes(keyframes, new_landmarks, observations)
+                self.apply_keyframes(keyframes, new_landmarks, observations)?
             }
             Record::AddExternalKeyframe { keyframe, new_landmarks, observations, external_ids } => {
-                self.apply_keyframes(std::slice::from_ref(keyframe), new_landmarks, observations);
+                self.apply_keyframes(std::slice::from_ref(keyframe), new_landmarks, observations)?;
                 self.external_ids.extend(external_ids.iter().copied());
             }
             Record::RemoveKeyframe { id } => {
@@ -508,25 +534,31 @@ impl MapData {
                 }
             }
             Record::Reembed { model_id, k, dim, keyframes } => {
-                self.meta.model_id = model_id.clone();
-                self.meta.k = *k;
-                self.meta.dim = *dim;
+                // Every keyframe's payload in memory with its new embeddings, until the next snapshot.
+                let mut replaced = BTreeMap::new();
                 for (id, e) in keyframes {
-                    if let Some(kf) = self.keyframes.get_mut(id) {
-                        kf.embeddings = e.clone();
+                    if let Some(kf) = self.keyframes.get(id) {
+                        let mut whole = Keyframe::clone(&*kf.load()?);
+                        whole.embeddings = e.clone();
+                        replaced.insert(*id, MapKeyframe::inline(whole));
                     }
                 }
                 let mut embeddings = Vec::with_capacity(self.observations.len() * dim);
                 for o in &self.observations {
-                    match self.keyframes.get(&o.keyframe) {
+                    match replaced.get(&o.keyframe).and_then(|k| k.inline_keyframe()) {
                         Some(kf) => embeddings.extend_from_slice(kf.embedding(o.keypoint as usize, *dim)),
                         None => embeddings.extend(std::iter::repeat_n(0.0, *dim)),
                     }
                 }
+                self.meta.model_id = model_id.clone();
+                self.meta.k = *k;
+                self.meta.dim = *dim;
+                self.keyframes.extend(replaced);
                 self.embeddings = embeddings;
             }
         }
         self.version += 1;
+        Ok(())
     }
 
     /// Live observations of a landmark (their keyframes still exist).

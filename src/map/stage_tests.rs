@@ -66,7 +66,7 @@ fn add_keyframe(data: &mut MapData, id: u64, translation: [f64; 3], first: u64, 
             .collect(),
     };
     data.check(&record).unwrap();
-    data.apply(&record);
+    data.apply(&record).unwrap();
 }
 
 /// The scene's map, and beside it (1 km away) a keyframe of look-alikes: landmarks whose embeddings equal the
@@ -257,7 +257,7 @@ fn build(scene: &Scene3, xs: &[f64], params: &BuildSettings) -> MapData {
         let input = posed(id as u64, pose, &features, &embeddings);
         let record = plan_keyframe(&data, &input, params).unwrap();
         data.check(&record).unwrap();
-        data.apply(&record);
+        data.apply(&record).unwrap();
     }
     data
 }
@@ -333,7 +333,7 @@ fn freak_matches_join_the_embeddings_in_map_building() {
             assert!(none.len() <= 5 && some.len() >= 100, "{} -> {}", none.len(), some.len());
         }
         data.check(&record).unwrap();
-        data.apply(&record);
+        data.apply(&record).unwrap();
     }
 }
 

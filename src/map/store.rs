@@ -30,7 +30,8 @@ use crate::map::merge::plan_merge;
 pub use crate::map::merge::MergePlan;
 use crate::map::model::{validate_map_id, MapData, MapMeta, MapStats, Record};
 use crate::map::storage::backend::{LoadReport, MapBackend, MapJournal, OperationStats};
-use crate::map::storage::format::{decode_export, encode_export, install_dump, read_dump, write_atomic};
+use crate::map::storage::format::{install_dump, read_dump, write_atomic};
+use crate::map::storage::snapshot::{decode_export, encode_export};
 use crate::map::storage::{open_backend, BackendSettings};
 
 /// Settings of the map store.
@@ -255,14 +256,17 @@ impl MapStore {
         } else if self.cache.is_loaded(id) || self.cache.is_held_back(id) {
             return Err(MapError::MapExists { map: id.to_string() });
         }
-        let data = MapData::new(MapMeta {
+        let mut data = MapData::new(MapMeta {
             id: id.to_string(),
             model_id: self.model.model_id.clone(),
             k: self.model.k,
             dim: self.model.dim,
             created_unix_ms: now_ms(),
         });
-        let log = self.backend.create(id, &data)?;
+        let mut log = self.backend.create(id, &data)?;
+        if let Some(stored) = log.take_stored_payloads() {
+            data.store_payloads(&stored);
+        }
         let index = EmbeddingIndex::new(self.config.index);
         let map = Arc::new(Map::new(id, data, index, log, self.cache.now()));
         self.cache.insert(Arc::clone(&map));
@@ -414,13 +418,14 @@ impl MapStore {
             let s = map.state.read();
             let mut out = Vec::with_capacity(s.data.keyframes.len());
             for kf in s.data.keyframes.values() {
+                let kf = kf.load()?;
                 if kf.descriptors.is_empty() && !kf.keypoints.is_empty() {
                     return Err(MapError::InvalidInput {
                         field: "map".into(),
                         reason: format!("keyframe {} has no FREAK descriptors to re-embed", kf.id),
                     });
                 }
-                out.push((kf.id, embed(kf)?));
+                out.push((kf.id, embed(&kf)?));
             }
             out
         };
@@ -476,7 +481,14 @@ impl MapStore {
             return Err(e);
         }
         let mut s = map.state.write();
-        s.data.apply(&record);
+        if let Err(e) = s.data.apply(&record) {
+            // The record is durable but this copy could not read what it needs (a stored payload): load the
+            // map again, which replays the record.
+            drop(s);
+            tracing::error!(map = %map.id, error = %e, "a logged record does not apply to the loaded copy; reloading");
+            self.cache.reload_stale(map, &|id| self.load_map(id));
+            return Err(e);
+        }
         {
             let MapState { data, index } = &mut *s;
             index.sync(data);
@@ -484,7 +496,8 @@ impl MapStore {
         map.bytes.store(s.memory_bytes(), Ordering::Relaxed);
         map.checked.store(self.cache.now(), Ordering::Relaxed);
         let version = s.data.version;
-        if log.wants_compaction() {
+        // A re-embedding put every payload in memory: a snapshot takes them out again.
+        if log.wants_compaction() || matches!(record, Record::Reembed { .. }) {
             // Queries may read on while the snapshot (and the index dump) is written and uploaded. The record
             // is durable and applied: a failed dump or compaction is logged, not this write's error (the log
             // keeps the records, and the next write tries again).
@@ -492,8 +505,20 @@ impl MapStore {
             if let Err(e) = s.index.dump(log.index_dir(), &s.data).and_then(|()| log.compact(&s.data)) {
                 tracing::error!(map = %map.id, error = %e, "compaction failed; the records stay in the log");
             }
+            drop(s);
+            Self::store_payloads(map, log);
         }
         Ok(version)
+    }
+
+    /// Points `map`'s keyframes at the payloads of the snapshot its journal wrote last, if it wrote one (the
+    /// caller holds the journal, so the map is still the version that snapshot holds).
+    fn store_payloads(map: &Map, log: &mut dyn MapJournal) {
+        if let Some(stored) = log.take_stored_payloads() {
+            let mut s = map.state.write();
+            s.data.store_payloads(&stored);
+            map.bytes.store(s.memory_bytes(), Ordering::Relaxed);
+        }
     }
 
     /// Localises a query against `map`.
@@ -574,7 +599,11 @@ impl MapStore {
         if (!self.cache.is_lazy() && self.cache.is_held_back(id)) || self.backend.exists(id)? {
             return Err(MapError::MapExists { map: id.to_string() });
         }
-        let log = self.backend.create(id, &data)?;
+        let mut log = self.backend.create(id, &data)?;
+        // The imported payloads leave memory for the new map's snapshot.
+        if let Some(stored) = log.take_stored_payloads() {
+            data.store_payloads(&stored);
+        }
         let installed = dump.map(|d| install_dump(log.index_dir(), &d));
         if let Some(Err(e)) = &installed {
             tracing::warn!(map = %id, error = %e, "cannot install the exported index dump; it is rebuilt");

@@ -7,8 +7,8 @@ use crate::camera::Pose;
 use crate::features::{Keypoint, DESCRIPTOR_BYTES};
 use crate::map::index::{exact_search, EmbeddingIndex, IndexSettings};
 use crate::map::model::{Keyframe, MapData, MapMeta, NewObservation, Record};
-use crate::map::storage::format::{decode_snapshot, encode_snapshot};
 use crate::map::storage::local::LocalJournal;
+use crate::map::storage::snapshot::{decode_snapshot, encode_snapshot};
 
 use crate::test_dir::{temp_dir, TestDir};
 
@@ -59,7 +59,7 @@ pub(crate) fn keyframe_record(id: u64, n: usize, first_landmark: u64, dim: usize
 pub(crate) fn write(log: &mut LocalJournal, data: &mut MapData, r: Record) {
     data.check(&r).unwrap();
     log.append(data.version + 1, &r).unwrap();
-    data.apply(&r);
+    data.apply(&r).unwrap();
 }
 
 #[test]
@@ -84,13 +84,13 @@ fn log_replays_to_the_same_map() {
 /// length against the header's, the magic.
 #[test]
 fn a_snapshot_decoded_as_it_is_read_is_its_bytes_decoded_and_damage_is_refused() {
-    use crate::map::storage::format::{frame_snapshot, read_snapshot, MapDataV1};
+    use crate::map::storage::snapshot::{frame_snapshot, read_snapshot, MapDataV1};
     let dir = temp_dir("read-snapshot");
     let mut data = MapData::new(meta(8));
     for k in 0..4 {
-        data.apply(&keyframe_record(k, 30, k * 30, 8, k));
+        data.apply(&keyframe_record(k, 30, k * 30, 8, k)).unwrap();
     }
-    data.apply(&Record::RemoveKeyframe { id: 1 });
+    data.apply(&Record::RemoveKeyframe { id: 1 }).unwrap();
     let path = dir.join("snapshot.bin");
     let bytes = encode_snapshot(&data).unwrap();
     std::fs::write(&path, &bytes).unwrap();
@@ -98,7 +98,7 @@ fn a_snapshot_decoded_as_it_is_read_is_its_bytes_decoded_and_damage_is_refused()
     assert_eq!(read_snapshot(&path).unwrap(), decode_snapshot(&bytes, &path).unwrap());
     let v1 = MapDataV1 {
         meta: data.meta.clone(),
-        keyframes: data.keyframes.clone(),
+        keyframes: data.keyframes.iter().map(|(&i, k)| (i, Keyframe::clone(&k.load().unwrap()))).collect(),
         landmarks: data.landmarks.clone(),
         observations: data.observations.clone(),
         embeddings: data.embeddings.clone(),
@@ -112,14 +112,25 @@ fn a_snapshot_decoded_as_it_is_read_is_its_bytes_decoded_and_damage_is_refused()
         std::fs::write(&path, b).unwrap();
         read_snapshot(&path).unwrap_err().to_string()
     };
-    // Bytes 24-31 are the map id's u64 length prefix, little-endian: flipped at byte 31, a decode that trusted
-    // it would allocate and read far past the file.
-    for at in [24, 31, bytes.len() / 2, bytes.len() - 1] {
+    // The core follows the 32-byte header and the payload section. Its first 8 bytes are the map id's u64
+    // length prefix, little-endian: flipped at its last byte, a decode that trusted it would allocate and read
+    // far past the file.
+    let core = 32 + u64::from_le_bytes(bytes[12..20].try_into().unwrap()) as usize;
+    for at in [core, core + 7, (core + bytes.len()) / 2, bytes.len() - 1] {
         let mut b = bytes.clone();
         b[at] ^= 0x80;
         assert!(refused(&b).contains("checksum mismatch"), "byte {at}: {}", refused(&b));
     }
+    // A payload byte: the payload's own checksum refuses the map.
+    let mut b = bytes.clone();
+    b[40] ^= 0x80;
+    assert!(refused(&b).contains("checksum mismatch"), "{}", refused(&b));
     assert!(refused(&bytes[..bytes.len() - 5]).contains("header says"));
+    for at in [12, 19, 20, 27] {
+        let mut b = bytes.clone();
+        b[at] ^= 0x80;
+        assert!(refused(&b).contains("header says"), "byte {at}: {}", refused(&b));
+    }
     assert!(refused(&bytes[..20]).contains("bad magic"));
     let mut b = bytes.clone();
     b[0] = b'X';
@@ -216,7 +227,7 @@ fn compaction_keeps_everything_and_restarts_the_log() {
 #[test]
 fn snapshot_format_checks_magic_version_and_checksum() {
     let mut data = MapData::new(meta(4));
-    data.apply(&keyframe_record(0, 3, 0, 4, 9));
+    data.apply(&keyframe_record(0, 3, 0, 4, 9)).unwrap();
     let bytes = encode_snapshot(&data).unwrap();
     let p = PathBuf::from("export.scone");
     assert_eq!(decode_snapshot(&bytes, &p).unwrap(), data);
@@ -232,7 +243,7 @@ fn snapshot_format_checks_magic_version_and_checksum() {
 #[test]
 fn records_that_do_not_fit_are_refused_before_logging() {
     let mut data = MapData::new(meta(8));
-    data.apply(&keyframe_record(0, 3, 0, 8, 1));
+    data.apply(&keyframe_record(0, 3, 0, 8, 1)).unwrap();
     assert!(data.check(&keyframe_record(0, 3, 10, 8, 1)).is_err(), "duplicate keyframe id");
     assert!(data.check(&Record::RemoveKeyframe { id: 9 }).is_err());
     let Record::AddKeyframe { mut keyframe, new_landmarks, observations } = keyframe_record(5, 3, 20, 8, 1) else {
@@ -255,9 +266,9 @@ fn brute(data: &MapData, q: &[f32], k: usize) -> Vec<usize> {
 fn exact_search_equals_brute_force_and_skips_tombstones() {
     let mut data = MapData::new(meta(48));
     for k in 0..4 {
-        data.apply(&keyframe_record(k, 200, k * 200, 48, k + 1));
+        data.apply(&keyframe_record(k, 200, k * 200, 48, k + 1)).unwrap();
     }
-    data.apply(&Record::RemoveKeyframe { id: 1 });
+    data.apply(&Record::RemoveKeyframe { id: 1 }).unwrap();
     let queries = vectors(20, 48, 77);
     for q in queries.chunks(48) {
         let hits = exact_search(&data, q, 5, None);
@@ -270,7 +281,7 @@ fn exact_search_equals_brute_force_and_skips_tombstones() {
 pub(crate) fn hnsw_map(keyframes: u64, seed: u64) -> (MapData, IndexSettings, EmbeddingIndex) {
     let mut data = MapData::new(meta(48));
     for k in 0..keyframes {
-        data.apply(&keyframe_record(k, 250, k * 250, 48, k + seed));
+        data.apply(&keyframe_record(k, 250, k * 250, 48, k + seed)).unwrap();
     }
     let params = IndexSettings { exact_below: 1000, ..IndexSettings::default() };
     let mut index = EmbeddingIndex::new(params);
@@ -298,8 +309,8 @@ fn hnsw_index_finds_near_duplicates_and_survives_a_dump() {
     let q = data.embedding(3).to_vec();
     assert_eq!(reloaded.search(&data, &q, 3, None), index.search(&data, &q, 3, None));
     // Tombstones are filtered, and new observations are searchable before the next sync.
-    data.apply(&Record::RemoveKeyframe { id: 0 });
-    data.apply(&keyframe_record(99, 10, 10_000, 48, 5));
+    data.apply(&Record::RemoveKeyframe { id: 0 }).unwrap();
+    data.apply(&keyframe_record(99, 10, 10_000, 48, 5)).unwrap();
     let q = data.embedding(3).to_vec();
     assert!(reloaded.search(&data, &q, 3, None).iter().all(|h| h.observation != 3));
     let newest = data.observations.len() - 1;
@@ -396,11 +407,11 @@ fn one_point_per_landmark_follows_new_views_removals_and_a_dump() {
     };
     let mut data = MapData::new(meta(48));
     let mut index = EmbeddingIndex::new(params);
-    data.apply(&keyframe_record(0, 300, 0, 48, 1));
+    data.apply(&keyframe_record(0, 300, 0, 48, 1)).unwrap();
     index.sync(&data);
     assert_eq!(index.graph_shape().unwrap().0, 300);
     // Views close to the first (the same vectors, nudged), so a landmark's views lie near each other.
-    let first = data.keyframes[&0].embeddings.clone();
+    let first = data.keyframes[&0].load().unwrap().embeddings.clone();
     let nudged = |id: u64, step: f32| {
         let mut r = views_record(id, 300, 48, 9);
         if let Record::AddKeyframe { keyframe, .. } = &mut r {
@@ -410,13 +421,13 @@ fn one_point_per_landmark_follows_new_views_removals_and_a_dump() {
     };
     // Two and three views: the first view stays the representative (no new points).
     for (k, step) in [(1, 0.02), (2, 0.01)] {
-        data.apply(&nudged(k, step));
+        data.apply(&nudged(k, step)).unwrap();
         index.sync(&data);
         assert_eq!(index.graph_shape().unwrap().0, 300, "after keyframe {k}");
     }
     // Four views: chosen again. Views 0 and 3 lie at the ends of the line, 1 and 2 (shifts 0.02 and 0.01)
     // between: they tie as the medoid, and the first, keyframe 1's, replaces keyframe 0's.
-    data.apply(&nudged(3, 0.03));
+    data.apply(&nudged(3, 0.03)).unwrap();
     index.sync(&data);
     assert_eq!(index.graph_shape().unwrap().0, 600);
     let hit = index.search(&data, data.embedding(0), 1, None)[0].observation;
@@ -435,7 +446,7 @@ fn one_point_per_landmark_follows_new_views_removals_and_a_dump() {
     assert!(!other.loaded_from_dump());
     // Removing keyframe 1 takes every representative: each landmark gets another, none from keyframe 1.
     let mut index = reloaded;
-    data.apply(&Record::RemoveKeyframe { id: 1 });
+    data.apply(&Record::RemoveKeyframe { id: 1 }).unwrap();
     index.sync(&data);
     assert_representatives(&data, &index);
     for i in (0..data.observations.len()).step_by(5) {
@@ -460,7 +471,8 @@ mod external {
     use super::*;
     use crate::features::Features;
     use crate::map::builder::{plan, BuildSettings, Depth, ExternalObservation, KeyframeInput};
-    use crate::map::storage::format::{encode_record, frame_snapshot, MapDataV1, FORMAT_VERSION};
+    use crate::map::storage::format::{encode_record, FORMAT_VERSION};
+    use crate::map::storage::snapshot::{frame_snapshot, MapDataV1};
 
     const DIM: usize = 8;
 
@@ -536,7 +548,7 @@ mod external {
         assert_eq!(new_landmarks.len(), 2);
         assert_eq!(external_ids.iter().map(|l| l.0).collect::<Vec<_>>(), vec![1, 5]);
         data.check(&p.record).unwrap();
-        data.apply(&p.record);
+        data.apply(&p.record).unwrap();
 
         // A second keyframe's view of id 1 observes the same landmark.
         let f2 = features(&[(100.0, 100.0), (250.0, 250.0)]);
@@ -548,7 +560,7 @@ mod external {
         assert_eq!(new_landmarks.len(), 1, "only id 7 is new");
         assert_eq!(observations[0].landmark, data.external_ids[&1]);
         data.check(&p2.record).unwrap();
-        data.apply(&p2.record);
+        data.apply(&p2.record).unwrap();
         assert_eq!(data.landmarks[&data.external_ids[&1]].observations.len(), 2);
         assert_eq!(data.landmarks.len(), 3);
         // A record may not link an id twice.
@@ -585,7 +597,7 @@ mod external {
         // An id the map links already, given with another point.
         let ok = vec![seen(100.0, 100.0, 5.0, 1)];
         let p = plan(&data, &input(0, &f, &e, &ok), &params).unwrap();
-        data.apply(&p.record);
+        data.apply(&p.record).unwrap();
         let mut moved = vec![seen(100.0, 100.0, 5.0, 1)];
         moved[0].point[2] += 0.5;
         let msg = field_of(plan(&data, &input(1, &f, &e, &moved), &params).unwrap_err());
@@ -654,7 +666,7 @@ fn a_query_keypoint_cap_searches_the_strongest_keypoints_and_still_localises() {
     let Record::AddKeyframe { keyframe, observations, .. } = keyframe_record(0, n, 0, dim, 5) else { unreachable!() };
     let new_landmarks = (0..n).map(|i| (i as u64, point(i))).collect();
     let mut data = MapData::new(meta(dim));
-    data.apply(&Record::AddKeyframe { keyframe: keyframe.clone(), new_landmarks, observations });
+    data.apply(&Record::AddKeyframe { keyframe: keyframe.clone(), new_landmarks, observations }).unwrap();
     let index = EmbeddingIndex::new(IndexSettings::default());
     // The query: the same embeddings at the landmarks' pixels; responses a permutation of 0..n (73 is prime to
     // 200), so the strongest keypoints are scattered over the index range.
@@ -748,7 +760,7 @@ fn keyframe_observation_lists_follow_records_and_snapshots() {
     let mut data = MapData::new(meta(8));
     for r in [keyframe_record(0, 6, 0, 8, 1), keyframe_record(1, 4, 6, 8, 2)] {
         data.check(&r).unwrap();
-        data.apply(&r);
+        data.apply(&r).unwrap();
     }
     // Keyframe 1 also sees landmark 0 through its keypoint 3... which it observes already: refused.
     let twice = Record::AddKeyframe {
@@ -767,11 +779,11 @@ fn keyframe_observation_lists_follow_records_and_snapshots() {
     assert_eq!(data.keypoint_landmarks(1).get(&3), Some(&9));
     let remove = Record::RemoveKeyframe { id: 0 };
     assert_eq!(data.stats_after(&remove).live_observations, 4);
-    data.apply(&remove);
+    data.apply(&remove).unwrap();
     assert!(data.keyframe_observations(0).is_empty());
     let again = keyframe_record(0, 3, 200, 8, 4);
     data.check(&again).unwrap();
-    data.apply(&again);
+    data.apply(&again).unwrap();
     assert_eq!(data.keyframe_observations(0), &[10, 11, 12]);
     assert_eq!(data.live_observations(), 7);
     let p = PathBuf::from("x");

@@ -13,16 +13,16 @@ use crate::features::{bits_mat, DESCRIPTOR_BYTES};
 use crate::map::builder::geometry::viewing_direction;
 use crate::map::builder::input::KeyframeInput;
 use crate::map::builder::settings::BuildSettings;
-use crate::map::model::{Keyframe, MapData};
+use crate::map::model::{Keyframe, MapData, MapKeyframe};
 use crate::matching::{embedding_mat, match_descriptors_masked, Match, RatioTest};
 
 /// Step 1: the `candidates` keyframes of `data` nearest to `input` that look the same way (viewing directions
 /// less than 90 degrees apart), nearest first, then the `covisible_candidates` that share the most landmarks
 /// with them.
-pub(super) fn candidates<'d>(data: &'d MapData, input: &KeyframeInput, params: &BuildSettings) -> Vec<&'d Keyframe> {
+pub(super) fn candidates<'d>(data: &'d MapData, input: &KeyframeInput, params: &BuildSettings) -> Vec<&'d MapKeyframe> {
     let centre = input.pose.translation.vector;
     let dir = viewing_direction(&input.pose);
-    let mut candidates: Vec<&Keyframe> =
+    let mut candidates: Vec<&MapKeyframe> =
         data.keyframes.values().filter(|k| viewing_direction(&k.pose.isometry()).dot(&dir) > 0.0).collect();
     candidates.sort_by(|a, b| {
         let da = (a.pose.isometry().translation.vector - centre).norm();

@@ -103,7 +103,9 @@ pub fn plan(data: &MapData, input: &KeyframeInput, params: &BuildSettings) -> Re
         };
         return Ok(Plan { record, external: planned.counts });
     }
-    let candidates = candidates(data, input, params);
+    // The candidates' payloads, read where they are stored.
+    let loaded = candidates(data, input, params).into_iter().map(|k| k.load()).collect::<Result<Vec<_>, _>>()?;
+    let candidates: Vec<&Keyframe> = loaded.iter().map(|k| &**k).collect();
     let matches = match_candidates(input, &candidates, data.meta.dim, params)?;
     let mut landmarks = NewLandmarks::new(data, input, params, &candidates);
     let to_triangulate = landmarks.observe_matched(&candidates, &matches);

@@ -111,7 +111,7 @@ fn parts(record: &Record) -> (&[(u64, [f64; 3])], &[NewObservation]) {
 fn add(data: &mut MapData, input: &KeyframeInput, params: &BuildSettings) -> Record {
     let record = plan_keyframe(data, input, params).unwrap();
     data.check(&record).unwrap();
-    data.apply(&record);
+    data.apply(&record).unwrap();
     record
 }
 
@@ -295,7 +295,7 @@ fn add_observer(data: &mut MapData, id: u64, x: f64, backwards: bool, landmarks:
         .collect();
     let record = Record::AddKeyframe { keyframe, new_landmarks, observations };
     data.check(&record).unwrap();
-    data.apply(&record);
+    data.apply(&record).unwrap();
 }
 
 #[test]

@@ -19,6 +19,7 @@ use std::path::Path;
 
 use crate::error::MapError;
 use crate::map::model::{MapData, MapStats, Record};
+use crate::map::payload::StoredPayloads;
 
 /// The collection of stored maps.
 pub trait MapBackend: Send + Sync {
@@ -104,6 +105,11 @@ pub trait MapJournal: Send + std::fmt::Debug {
 
     /// Local directory for the map's index dump.
     fn index_dir(&self) -> &Path;
+
+    /// Where the snapshot written last (by the create or a compaction) keeps each keyframe's payload, once:
+    /// the store points the map's keyframes there ([`MapData::store_payloads`]), and their payloads leave
+    /// memory.
+    fn take_stored_payloads(&mut self) -> Option<StoredPayloads>;
 
     /// Whether the stored map moved on from this copy (another replica wrote it). A local directory has one
     /// writer, this process, so it is always current.

@@ -1,46 +1,45 @@
 //! The bytes of stored maps, shared by both backends ([`crate::map::storage::local`], [`crate::map::storage::s3`]):
 //!
-//! * snapshot (`snapshot.bin`, an S3 snapshot object, and the map's export file): magic `SCONEMAP`, format
-//!   version (u32), payload length (u64), CRC-32 of the payload, then the whole [`MapData`] (bincode).
-//!   Written atomically on disk by [`write_atomic`]: temporary file, fsync, rename, fsync of the directory.
+//! * snapshot (`snapshot.bin`, an S3 snapshot object, and the map's export file, with its index section):
+//!   [`crate::map::storage::snapshot`]. Written atomically on disk by [`write_atomic`]: temporary file,
+//!   fsync, rename, fsync of the directory.
 //! * log (`log.bin`): magic `SCONELOG`, format version, then records `[len u32][crc u32][version u64][payload]`
 //!   (CRC over version and payload), read back one frame at a time by [`read_frame`].
 //! * segment (an S3 object): one framed record behind the magic `SCONESEG` and the format version.
-//! * export (ExportMap, ImportMap): a snapshot, followed, when the map has an HNSW graph, by an index section
-//!   (magic `SCONEIDX`, its own version, lengths and CRC-32) carrying the graph's dump ([`encode_export`]), so
-//!   an import answers exactly as the exported map. A build before this section refuses such an export
-//!   (bytes after the snapshot); an export without it reads everywhere.
+//! * index dumps: `index.json` and hnsw_rs's two files ([`read_dump`], [`install_dump`]).
 //!
 //! Format versions. Every file (snapshot, log, segment; the object-storage manifest too) carries the version
-//! it was written in. This build writes [`FORMAT_VERSION`] 2 and reads 1 and 2:
+//! it was written in. This build writes [`FORMAT_VERSION`] 3 and reads 1 to 3:
 //!
 //! * 1: the first format.
-//! * 2: [`MapData`] gained `external_ids` (landmarks given by an external SfM, see
+//! * 2: [`crate::map::model::MapData`] gained `external_ids` (landmarks given by an external SfM, see
 //!   [`crate::map::model`]), and [`Record`] the variant `AddExternalKeyframe`, appended last so a format-1
-//!   record decodes unchanged. A format-1 snapshot decodes through its own layout ([`MapDataV1`]) with no
-//!   external ids.
+//!   record decodes unchanged. A format-1 snapshot decodes through its own layout with no external ids.
+//! * 3 (issue 41): the snapshot split into a payload section and a core, so that a loaded map keeps its
+//!   keyframes' payloads on disk ([`crate::map::payload`]) and loading decodes only the core. Records,
+//!   segments and the log are unchanged (a record still carries its keyframe whole); their header says 3 so
+//!   that a build that reads only format 2 refuses a map whose snapshot it could not read. A format-1/2
+//!   snapshot decodes through its own layout, its payloads in memory until the map's next snapshot.
 //!
-//! A format-1 log is folded into a format-2 snapshot with a fresh format-2 log as soon as it is opened (the
-//! same crash-safe steps as compaction), so a record of the new kind never lands in a file whose header
-//! says 1. A build that reads only format 1 refuses the upgraded files with a version message instead of
-//! misreading them.
+//! An older map is upgraded as soon as it is opened: on a local disk its log is folded into a current
+//! snapshot with a fresh log (the same crash-safe steps as compaction), so a record of a new kind never
+//! lands in a file whose header promises an older format. A build that reads only older formats refuses the
+//! upgraded files with a version message instead of misreading them. In object storage the writer's next
+//! compaction rewrites the snapshot; until then a replica keeps a current-format copy of it in its cache.
 
 use std::fs::File;
 use std::io::{BufReader, Read, Write};
 use std::path::Path;
 
-use std::collections::BTreeMap;
-
 use serde::{Deserialize, Serialize};
 
 use crate::error::MapError;
-use crate::map::model::{Keyframe, Landmark, MapData, MapMeta, Observation, Record};
+use crate::map::model::Record;
 
 /// The format this build writes.
-pub const FORMAT_VERSION: u32 = 2;
+pub const FORMAT_VERSION: u32 = 3;
 /// The oldest format this build reads.
 pub const OLDEST_FORMAT_VERSION: u32 = 1;
-const SNAPSHOT_MAGIC: &[u8; 8] = b"SCONEMAP";
 pub(crate) const LOG_MAGIC: &[u8; 8] = b"SCONELOG";
 const SEGMENT_MAGIC: &[u8; 8] = b"SCONESEG";
 pub(crate) const LOG_HEADER: u64 = 12;
@@ -90,136 +89,15 @@ pub(crate) fn unreadable(path: &Path, what: &str, version: u32) -> MapError {
     )
 }
 
-/// [`MapData`] as format 1 stored it (before `external_ids`): the same fields in the same order.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-pub struct MapDataV1 {
-    pub meta: MapMeta,
-    pub keyframes: BTreeMap<u64, Keyframe>,
-    pub landmarks: BTreeMap<u64, Landmark>,
-    pub observations: Vec<Observation>,
-    pub embeddings: Vec<f32>,
-    pub next_landmark: u64,
-    pub version: u64,
-}
-
-impl From<MapDataV1> for MapData {
-    fn from(v: MapDataV1) -> Self {
-        let mut data = MapData::new(v.meta);
-        data.keyframes = v.keyframes;
-        data.landmarks = v.landmarks;
-        data.observations = v.observations;
-        data.embeddings = v.embeddings;
-        data.next_landmark = v.next_landmark;
-        data.version = v.version;
-        data.rebuild_derived();
-        data
-    }
-}
-
-/// Frames a snapshot payload behind the header of format `version` (format 1 only for tests of the upgrade).
-pub fn frame_snapshot(version: u32, payload: &[u8]) -> Vec<u8> {
-    let mut out = Vec::with_capacity(payload.len() + 24);
-    out.extend_from_slice(SNAPSHOT_MAGIC);
-    out.extend_from_slice(&version.to_le_bytes());
-    out.extend_from_slice(&(payload.len() as u64).to_le_bytes());
-    out.extend_from_slice(&crc32fast::hash(payload).to_le_bytes());
-    out.extend_from_slice(payload);
-    out
-}
-
 /// fsync of a directory, so a rename or a new file in it is durable.
 pub fn sync_dir(dir: &Path) -> Result<(), MapError> {
     File::open(dir).and_then(|d| d.sync_all()).map_err(io_err(dir))
 }
 
-/// Encodes a whole map in the snapshot/export format.
-pub fn encode_snapshot(data: &MapData) -> Result<Vec<u8>, MapError> {
-    let payload = bincode::serialize(data)
-        .map_err(|e| MapError::InvalidInput { field: "map".into(), reason: format!("cannot encode: {e}") })?;
-    Ok(frame_snapshot(FORMAT_VERSION, &payload))
-}
-
-/// Decodes the snapshot/export format (format 1 or 2), checking magic, version, length and checksum.
-pub fn decode_snapshot(bytes: &[u8], path: &Path) -> Result<MapData, MapError> {
-    if bytes.len() < 24 {
-        return Err(corrupt(path, "not a scone map file (bad magic)"));
-    }
-    let (version, crc) = snapshot_header(&bytes[..24], bytes.len() as u64 - 24, path)?;
-    let payload = &bytes[24..];
-    if crc32fast::hash(payload) != crc {
-        return Err(corrupt(path, "checksum mismatch"));
-    }
-    let decoded = if version == 1 {
-        // The conversion rebuilds what is derived.
-        bincode::deserialize::<MapDataV1>(payload).map(MapData::from)
-    } else {
-        bincode::deserialize::<MapData>(payload).map(|mut data| {
-            data.rebuild_derived();
-            data
-        })
-    };
-    decoded.map_err(|e| corrupt(path, format!("cannot decode (format {version}): {e}")))
-}
-
-/// The snapshot header's format version and checksum, once its magic, its version and its payload length
-/// (against the `payload_len` bytes that follow it) are checked.
-fn snapshot_header(header: &[u8], payload_len: u64, path: &Path) -> Result<(u32, u32), MapError> {
-    if &header[..8] != SNAPSHOT_MAGIC {
-        return Err(corrupt(path, "not a scone map file (bad magic)"));
-    }
-    let version = u32::from_le_bytes(header[8..12].try_into().expect("4 bytes"));
-    if !readable_version(version) {
-        return Err(unreadable(path, "map", version));
-    }
-    let len = u64::from_le_bytes(header[12..20].try_into().expect("8 bytes"));
-    if payload_len != len {
-        return Err(corrupt(path, format!("payload is {payload_len} bytes, header says {len}")));
-    }
-    Ok((version, u32::from_le_bytes(header[20..24].try_into().expect("4 bytes"))))
-}
-
-/// [`decode_snapshot`] of the snapshot file at `path`, decoded as it is read: the file's bytes are never all in
-/// memory beside the map they decode to (on a 728k-observation map, 0.8 GB less to allocate while it loads).
-/// The checksum covers the whole payload, as before: a map is returned only once it matched.
-pub fn read_snapshot(path: &Path) -> Result<MapData, MapError> {
-    use bincode::Options;
-    let mut file = File::open(path).map_err(io_err(path))?;
-    let size = file.metadata().map_err(io_err(path))?.len();
-    let mut header = [0u8; 24];
-    if size < 24 {
-        return Err(corrupt(path, "not a scone map file (bad magic)"));
-    }
-    file.read_exact(&mut header).map_err(io_err(path))?;
-    let len = size - 24;
-    let (version, crc) = snapshot_header(&header, len, path)?;
-    // The checksum is taken below the buffer, a block at a time; the limit keeps a damaged length inside the file.
-    let mut reader =
-        BufReader::with_capacity(1 << 20, Crc32Reader { inner: file.take(len), hasher: crc32fast::Hasher::new() });
-    let options = bincode::DefaultOptions::new().with_fixint_encoding().allow_trailing_bytes().with_limit(len);
-    // Format 1 is converted (which rebuilds what is derived) only once the checksum matched.
-    let decoded = if version == 1 {
-        options.deserialize_from::<_, MapDataV1>(&mut reader).map(Err)
-    } else {
-        options.deserialize_from::<_, MapData>(&mut reader).map(Ok)
-    };
-    // What the decode did not read (all of it after an error) is in the checksum too.
-    std::io::copy(&mut reader, &mut std::io::sink()).map_err(io_err(path))?;
-    if reader.into_inner().hasher.finalize() != crc {
-        return Err(corrupt(path, "checksum mismatch"));
-    }
-    match decoded.map_err(|e| corrupt(path, format!("cannot decode (format {version}): {e}")))? {
-        Ok(mut data) => {
-            data.rebuild_derived();
-            Ok(data)
-        }
-        Err(v1) => Ok(MapData::from(v1)),
-    }
-}
-
 /// A reader that hashes what passes through it.
-struct Crc32Reader<R> {
-    inner: R,
-    hasher: crc32fast::Hasher,
+pub(crate) struct Crc32Reader<R> {
+    pub(crate) inner: R,
+    pub(crate) hasher: crc32fast::Hasher,
 }
 
 impl<R: Read> Read for Crc32Reader<R> {
@@ -237,72 +115,6 @@ pub struct DumpBytes {
     pub manifest: Vec<u8>,
     pub graph: Vec<u8>,
     pub data: Vec<u8>,
-}
-
-const INDEX_SECTION_MAGIC: &[u8; 8] = b"SCONEIDX";
-const INDEX_SECTION_VERSION: u32 = 1;
-
-/// Encodes an export: the map's snapshot, followed (when `dump` is given) by the index section: magic
-/// `SCONEIDX`, section version (u32), the lengths of the manifest, the graph and the data file (u64 each),
-/// a CRC-32 of the three, then the three. An import loads that graph instead of building another (hnsw_rs
-/// inserts in parallel, so two builds of one map differ, and so would their answers).
-pub fn encode_export(data: &MapData, dump: Option<&DumpBytes>) -> Result<Vec<u8>, MapError> {
-    let mut out = encode_snapshot(data)?;
-    if let Some(d) = dump {
-        let parts = [&d.manifest, &d.graph, &d.data];
-        let mut crc = crc32fast::Hasher::new();
-        out.extend_from_slice(INDEX_SECTION_MAGIC);
-        out.extend_from_slice(&INDEX_SECTION_VERSION.to_le_bytes());
-        for p in parts {
-            out.extend_from_slice(&(p.len() as u64).to_le_bytes());
-            crc.update(p);
-        }
-        out.extend_from_slice(&crc.finalize().to_le_bytes());
-        for p in parts {
-            out.extend_from_slice(p);
-        }
-    }
-    Ok(out)
-}
-
-/// Decodes an export ([`encode_export`]): the map, and the index dump when the file carries one.
-pub fn decode_export(bytes: &[u8], path: &Path) -> Result<(MapData, Option<DumpBytes>), MapError> {
-    let declared = bytes.get(12..20).map_or(0, |b| u64::from_le_bytes(b.try_into().expect("8 bytes")));
-    let end = usize::try_from(declared).ok().and_then(|n| n.checked_add(24)).filter(|&e| e <= bytes.len());
-    let Some(end) = end else {
-        // Let the snapshot decoder say what is wrong.
-        return decode_snapshot(bytes, path).map(|d| (d, None));
-    };
-    let data = decode_snapshot(&bytes[..end], path)?;
-    let rest = &bytes[end..];
-    if rest.is_empty() {
-        return Ok((data, None));
-    }
-    let bad = |reason: &str| corrupt(path, format!("index section: {reason}"));
-    if rest.len() < 40 || &rest[..8] != INDEX_SECTION_MAGIC {
-        return Err(bad("bad magic after the map"));
-    }
-    let version = u32::from_le_bytes(rest[8..12].try_into().expect("4 bytes"));
-    if version != INDEX_SECTION_VERSION {
-        return Err(bad(&format!("version {version}, this build reads {INDEX_SECTION_VERSION}")));
-    }
-    let len = |at: usize| u64::from_le_bytes(rest[at..at + 8].try_into().expect("8 bytes"));
-    let lens = [len(12), len(20), len(28)];
-    let crc = u32::from_le_bytes(rest[36..40].try_into().expect("4 bytes"));
-    let body = &rest[40..];
-    if lens.iter().try_fold(0u64, |a, &n| a.checked_add(n)) != Some(body.len() as u64) {
-        return Err(bad("its lengths do not add up to its size"));
-    }
-    let (manifest, tail) = body.split_at(lens[0] as usize);
-    let (graph, file) = tail.split_at(lens[1] as usize);
-    let mut h = crc32fast::Hasher::new();
-    for p in [manifest, graph, file] {
-        h.update(p);
-    }
-    if h.finalize() != crc {
-        return Err(bad("checksum mismatch"));
-    }
-    Ok((data, Some(DumpBytes { manifest: manifest.to_vec(), graph: graph.to_vec(), data: file.to_vec() })))
 }
 
 /// Writes `bytes` to `path` atomically (temporary file, fsync, rename, fsync of the directory). On failure

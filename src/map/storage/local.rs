@@ -15,9 +15,13 @@
 //! durable; a failed create removes it, and one interrupted by a crash is removed at the next start (as are
 //! the remains of an interrupted delete).
 //!
-//! A format-1 log is folded into a current-format snapshot with a fresh log as soon as it is opened (the
-//! same crash-safe steps as compaction), so a record of a new kind never lands in a file whose header
-//! promises the old format.
+//! A map of an older format (its snapshot or its log) is folded into a current-format snapshot with a fresh
+//! log as soon as it is opened (the same crash-safe steps as compaction), so a record of a new kind never
+//! lands in a file whose header promises an older format.
+//!
+//! Keyframe payloads are read from `snapshot.bin` on demand ([`crate::map::payload`]): the keyframes of a
+//! loaded map point into the file that was the snapshot when they were stored, kept open across the
+//! compaction that replaces it until the store points them at the new one.
 
 use std::fs::{File, OpenOptions};
 use std::io::{Read, Seek, SeekFrom, Write};
@@ -25,11 +29,13 @@ use std::path::{Path, PathBuf};
 
 use crate::error::MapError;
 use crate::map::model::{validate_map_id, MapData, MapStats, Record};
+use crate::map::payload::StoredPayloads;
 use crate::map::storage::backend::{LoadReport, MapBackend, MapJournal};
 use crate::map::storage::format::{
-    corrupt, encode_record, encode_snapshot, injected, injected_full, io_err, io_error, read_frame, read_snapshot,
-    readable_version, sync_dir, unreadable, write_atomic, LogEntry, FORMAT_VERSION, LOG_HEADER, LOG_MAGIC,
+    corrupt, encode_record, injected, injected_full, io_err, io_error, read_frame, readable_version, sync_dir,
+    unreadable, write_atomic, LogEntry, FORMAT_VERSION, LOG_HEADER, LOG_MAGIC,
 };
+use crate::map::storage::snapshot::{encode_snapshot_spans, read_snapshot, snapshot_version, stored_payloads};
 
 /// The open log of one map.
 #[derive(Debug)]
@@ -42,6 +48,8 @@ pub struct LocalJournal {
     torn_tail: bool,
     records: usize,
     compact_every: usize,
+    /// Where the last snapshot written keeps each payload, until the store takes it.
+    stored: Option<StoredPayloads>,
 }
 
 impl LocalJournal {
@@ -65,29 +73,45 @@ impl LocalJournal {
     }
 
     fn new(dir: &Path, file: File, len: u64, records: usize, compact_every: usize) -> Self {
-        Self { dir: dir.to_path_buf(), file, len, torn_tail: false, records, compact_every }
+        Self { dir: dir.to_path_buf(), file, len, torn_tail: false, records, compact_every, stored: None }
+    }
+
+    /// Writes the snapshot of `data` (atomically); returns where it keeps each payload.
+    fn write_snapshot(dir: &Path, data: &MapData) -> Result<StoredPayloads, MapError> {
+        let path = Self::snapshot_path(dir);
+        let encoded = encode_snapshot_spans(data)?;
+        write_atomic(&path, &encoded.bytes)?;
+        stored_payloads(&path, &encoded, data.version)
     }
 
     /// Creates the directory, a snapshot of `data` and an empty log.
     pub fn create(dir: &Path, data: &MapData, compact_every: usize) -> Result<Self, MapError> {
         std::fs::create_dir_all(dir).map_err(io_err(dir))?;
-        write_atomic(&Self::snapshot_path(dir), &encode_snapshot(data)?)?;
+        let stored = Self::write_snapshot(dir, data)?;
         let file = Self::fresh_log(dir)?;
         if let Some(parent) = dir.parent() {
             sync_dir(parent)?;
         }
-        Ok(Self::new(dir, file, LOG_HEADER, 0, compact_every))
+        let mut log = Self::new(dir, file, LOG_HEADER, 0, compact_every);
+        log.stored = Some(stored);
+        Ok(log)
     }
 
-    /// Loads snapshot + log, cutting a torn tail.
+    /// Loads snapshot + log, cutting a torn tail; upgrades a map of an older format (see
+    /// [`crate::map::storage::format`]).
     pub fn open(dir: &Path, compact_every: usize) -> Result<(MapData, Self, LoadReport), MapError> {
         let snap_path = Self::snapshot_path(dir);
+        let snapshot_version = snapshot_version(&snap_path)?;
         let mut data = read_snapshot(&snap_path)?;
         let log_path = Self::log_path(dir);
         let mut report = LoadReport::default();
         if !log_path.exists() {
             let file = Self::fresh_log(dir)?;
-            return Ok((data, Self::new(dir, file, LOG_HEADER, 0, compact_every), report));
+            let mut log = Self::new(dir, file, LOG_HEADER, 0, compact_every);
+            if snapshot_version < FORMAT_VERSION {
+                log.upgrade(&mut data, snapshot_version)?;
+            }
+            return Ok((data, log, report));
         }
         let mut file = OpenOptions::new().read(true).append(true).open(&log_path).map_err(io_err(&log_path))?;
         let mut buf = Vec::new();
@@ -118,7 +142,7 @@ impl LocalJournal {
                     return Err(corrupt(&log_path, format!("record {seq} follows version {}", data.version)));
                 }
                 data.check(&record).map_err(|reason| corrupt(&log_path, format!("record {seq}: {reason}")))?;
-                data.apply(&record);
+                data.apply(&record)?;
                 report.replayed += 1;
             }
             records += 1;
@@ -132,12 +156,23 @@ impl LocalJournal {
         }
         file.seek(SeekFrom::End(0)).map_err(io_err(&log_path))?;
         let mut log = Self::new(dir, file, pos as u64, records, compact_every);
-        if version < FORMAT_VERSION {
-            // New kinds of record must not go into a file whose header promises the old format.
-            log.compact(&data)?;
-            tracing::info!(map = %dir.display(), from = version, to = FORMAT_VERSION, "upgraded the map's files");
+        if version.min(snapshot_version) < FORMAT_VERSION {
+            log.upgrade(&mut data, version.min(snapshot_version))?;
         }
         Ok((data, log, report))
+    }
+
+    /// Rewrites an older map in the current format, by a compaction (crash-safe at every step: the old
+    /// snapshot and log stay whole until the new snapshot is renamed over the old one, and records it covers
+    /// are skipped at load; a crash before the fresh log upgrades again at the next open). New kinds of record
+    /// must not go into a file whose header promises an older format; the map's payloads then leave memory.
+    fn upgrade(&mut self, data: &mut MapData, from: u32) -> Result<(), MapError> {
+        self.compact(data)?;
+        if let Some(stored) = self.stored.take() {
+            data.store_payloads(&stored);
+        }
+        tracing::info!(map = %self.dir.display(), from, to = FORMAT_VERSION, "upgraded the map's files");
+        Ok(())
     }
 
     /// Appends the record that takes `data` to version `seq` and waits until it is on disk. On failure the
@@ -184,7 +219,8 @@ impl LocalJournal {
     /// Snapshots `data` and restarts the log. Safe at any crash point: records not newer than the snapshot
     /// are skipped at load.
     pub fn compact(&mut self, data: &MapData) -> Result<(), MapError> {
-        write_atomic(&Self::snapshot_path(&self.dir), &encode_snapshot(data)?)?;
+        let stored = Self::write_snapshot(&self.dir, data)?;
+        self.stored = Some(stored);
         self.file = Self::fresh_log(&self.dir)?;
         self.len = LOG_HEADER;
         self.torn_tail = false;
@@ -254,6 +290,10 @@ impl MapJournal for LocalJournal {
 
     fn index_dir(&self) -> &Path {
         self.dir()
+    }
+
+    fn take_stored_payloads(&mut self) -> Option<StoredPayloads> {
+        self.stored.take()
     }
 }
 

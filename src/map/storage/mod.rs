@@ -5,13 +5,15 @@
 //! [`BackendSettings`], [`open_backend`]).
 //!
 //! Who imports whom, top to bottom (each module imports only from those after it; `tools/check_imports.py`
-//! checks it): this file -> [`local`] / [`s3`] -> [`backend`] / [`format`](mod@format). Outside this
-//! directory, storage imports only [`crate::map::model`] of the map (the order in [`crate::map`]).
+//! checks it): this file -> [`local`] / [`s3`] -> [`backend`] / [`snapshot`] -> [`format`](mod@format). Outside this
+//! directory, storage imports only [`crate::map::model`] and [`crate::map::payload`] of the map (the order in
+//! [`crate::map`]).
 
 pub mod backend;
 pub mod format;
 pub mod local;
 pub mod s3;
+pub mod snapshot;
 
 use std::path::Path;
 use std::sync::Arc;

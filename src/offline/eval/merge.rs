@@ -131,7 +131,7 @@ pub fn evaluate(scene: &Scene, split: Split, seed: u64, embedder: &Embedder) -> 
             };
             let record = plan_keyframe(&data, &input, &BuildSettings::default())?;
             data.check(&record)?;
-            data.apply(&record);
+            data.apply(&record)?;
         }
         Ok(data)
     };
@@ -201,7 +201,7 @@ pub fn evaluate(scene: &Scene, split: Split, seed: u64, embedder: &Embedder) -> 
         })
         .collect();
     let a_ids: std::collections::HashSet<u64> = a.keyframes.keys().copied().collect();
-    a.apply(&plan.record);
+    a.apply(&plan.record)?;
     // A merged keyframe's frame: its own id for the first run's, less the offset for the second run's.
     let keyframe_rotations: Vec<f64> = a
         .keyframes

@@ -20,6 +20,7 @@ use crate::map::storage::format::{install_dump, read_dump, DumpBytes, DUMP_MANIF
 use crate::map::storage::format::{io_error, readable_version, write_atomic, FORMAT_VERSION, OLDEST_FORMAT_VERSION};
 use crate::map::storage::s3::manifest::{
     nonce, number_of, IndexRef, Manifest, CACHE_MARKER, INDEX_FILES, MANIFEST, MAX_MANIFEST_BYTES, PARALLEL_GETS,
+    SNAPSHOT_COPY,
 };
 
 /// Settings of the S3 backend.
@@ -388,6 +389,28 @@ impl Shared {
             self.put(&path, bytes, PutMode::Create).await.map_err(|e| self.io(&path, e))?;
         }
         Ok(Some(IndexRef { dir, version }))
+    }
+
+    /// A snapshot object copied into the map's cache directory, as `snapshot-<the object's file name>`: the
+    /// file the loaded map reads its keyframes' payloads from ([`crate::map::payload`]). Not fsync'd: only
+    /// this process reads it, and each load writes it anew. The other copies there are removed (a map that
+    /// still reads one keeps it open, so its reads go on).
+    pub(super) fn keep_snapshot(&self, cache_dir: &Path, object: &str, bytes: &[u8]) -> Result<PathBuf, MapError> {
+        let file = object.rsplit('/').next().unwrap_or(object);
+        let path = cache_dir.join(format!("{SNAPSHOT_COPY}{file}"));
+        let tmp = path.with_extension("tmp");
+        let written = std::fs::write(&tmp, bytes).and_then(|()| std::fs::rename(&tmp, &path));
+        if let Err(e) = written {
+            let _ = std::fs::remove_file(&tmp);
+            return Err(io_error(&path, e));
+        }
+        for entry in std::fs::read_dir(cache_dir).map_err(|e| io_error(cache_dir, e))?.flatten() {
+            let name = entry.file_name().to_string_lossy().into_owned();
+            if name.starts_with(SNAPSHOT_COPY) && entry.path() != path {
+                let _ = std::fs::remove_file(entry.path());
+            }
+        }
+        Ok(path)
     }
 
     /// Makes the cache directory of a map belong to this incarnation of it (`map_uid`), emptying it otherwise.

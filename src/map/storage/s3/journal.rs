@@ -9,10 +9,12 @@ use object_store::{PutMode, UpdateVersion};
 
 use crate::error::MapError;
 use crate::map::model::{MapData, MapStats, Record};
+use crate::map::payload::StoredPayloads;
 use crate::map::storage::backend::{Freshness, MapJournal};
-use crate::map::storage::format::{decode_segment, encode_segment, encode_snapshot, FORMAT_VERSION};
+use crate::map::storage::format::{decode_segment, encode_segment, FORMAT_VERSION};
 use crate::map::storage::s3::client::Shared;
 use crate::map::storage::s3::manifest::{nonce, number_of, Manifest, SnapshotRef, INDEX_FILES, MANIFEST};
+use crate::map::storage::snapshot::{encode_snapshot_spans, stored_payloads};
 
 /// How a conditional manifest PUT ended.
 pub(super) enum Outcome {
@@ -41,6 +43,9 @@ pub(super) struct ObjectJournal {
     pub(super) fenced: Option<String>,
     /// Whether this journal wrote a record: a replica that only loaded the map does not compact it.
     pub(super) wrote: bool,
+    /// Where the snapshot written last keeps each payload (its copy in the cache directory), until the store
+    /// takes it.
+    pub(super) stored: Option<StoredPayloads>,
 }
 
 impl std::fmt::Debug for ObjectJournal {
@@ -70,6 +75,7 @@ impl ObjectJournal {
             cache_dir,
             fenced: None,
             wrote: false,
+            stored: None,
         }
     }
 
@@ -193,7 +199,8 @@ impl MapJournal for ObjectJournal {
         let s = Arc::clone(&self.shared);
         let name = format!("snapshots/{:020}-{}.bin", data.version, nonce());
         let path = s.object(&self.id, &name);
-        s.block_on(s.put_new(&path, encode_snapshot(data)?)).map_err(|e| s.io(&path, e))?;
+        let encoded = encode_snapshot_spans(data)?;
+        s.block_on(s.put_new(&path, encoded.bytes.clone())).map_err(|e| s.io(&path, e))?;
         // The dump is an optimisation for other replicas: a failed upload leaves the map without one.
         let index = s.block_on(s.upload_index(&self.id, data.version, &self.cache_dir)).unwrap_or_else(|e| {
             tracing::warn!(map = %self.id, error = %e, "cannot upload the index dump; replicas will rebuild it");
@@ -216,6 +223,12 @@ impl MapJournal for ObjectJournal {
             }
         }
         self.settle(next, outcome, &name)?;
+        // The copy holds this map's payloads whatever becomes of the object: the keyframes may point there.
+        match s.keep_snapshot(&self.cache_dir, &name, &encoded.bytes) {
+            Ok(copy) => self.stored = Some(stored_payloads(&copy, &encoded, data.version)?),
+            Err(e) => tracing::warn!(map = %self.id, error = %e, "cannot copy the snapshot; payloads stay in memory"),
+        }
+        drop(encoded);
         // The new manifest is in place: the replaced objects, and orphans it covers, are garbage. No valid
         // manifest can name a segment numbered <= data.version or a snapshot older than this one again.
         let prefix = s.map_prefix(&self.id);
@@ -253,6 +266,10 @@ impl MapJournal for ObjectJournal {
 
     fn index_dir(&self) -> &Path {
         &self.cache_dir
+    }
+
+    fn take_stored_payloads(&mut self) -> Option<StoredPayloads> {
+        self.stored.take()
     }
 
     /// A GET of the manifest conditional on its ETag (`If-None-Match`): not modified, the copy is current;

@@ -11,6 +11,8 @@ pub(super) const MAX_MANIFEST_BYTES: u64 = 16 << 20;
 pub(super) const PARALLEL_GETS: usize = 16;
 pub(super) const MANIFEST: &str = "manifest.json";
 pub(super) const CACHE_MARKER: &str = "map.json";
+/// Prefix of the local copy of the current snapshot in a map's cache directory.
+pub(super) const SNAPSHOT_COPY: &str = "snapshot-";
 /// The objects of an index dump ([`EmbeddingIndex::dump`](crate::map::index::EmbeddingIndex::dump)) under
 /// `index/<version>-<nonce>/`: the graph file, the data file and the manifest (which names the base the files
 /// take in a local directory). The manifest goes last on upload and is compared first on download.

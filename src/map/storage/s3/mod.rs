@@ -9,7 +9,7 @@
 //!   for listings by replicas that have not loaded it) and `index` (the dump of the snapshot's HNSW graph)
 //!   are optional: manifests written before them still read.
 //! * `snapshots/<version:020>-<nonce:016x>.bin`: the whole map in the snapshot/export format
-//!   ([`encode_snapshot`]), written once.
+//!   ([`encode_snapshot`](crate::map::storage::snapshot::encode_snapshot)), written once.
 //! * `segments/<seq:020>-<nonce:016x>.rec`: one record each, with the local log's framing and CRC
 //!   ([`encode_segment`](crate::map::storage::format::encode_segment)), written once.
 //! * `index/<version:020>-<nonce:016x>/{index.hnsw.graph, index.hnsw.data, index.json}`: the index dump of
@@ -81,7 +81,8 @@ use object_store::{ObjectStore, PutMode};
 use crate::error::MapError;
 use crate::map::model::{validate_map_id, MapData, MapStats};
 use crate::map::storage::backend::{LoadReport, MapBackend, MapJournal, OperationStats};
-use crate::map::storage::format::{decode_segment, decode_snapshot, encode_snapshot, io_err, FORMAT_VERSION};
+use crate::map::storage::format::{decode_segment, io_err, FORMAT_VERSION};
+use crate::map::storage::snapshot::{encode_snapshot_spans, read_snapshot, snapshot_version, stored_payloads};
 
 use client::{OpCounters, Shared, OPS};
 pub use client::{S3Credentials, S3Settings};
@@ -239,7 +240,8 @@ impl MapBackend for ObjectStorageBackend {
         let s = &self.shared;
         let snapshot = format!("snapshots/{:020}-{}.bin", data.version, nonce());
         let snapshot_path = s.object(id, &snapshot);
-        s.block_on(s.put(&snapshot_path, encode_snapshot(data)?, PutMode::Create))
+        let encoded = encode_snapshot_spans(data)?;
+        s.block_on(s.put(&snapshot_path, encoded.bytes.clone(), PutMode::Create))
             .map_err(|e| s.io(&snapshot_path, e))?;
         let manifest = Manifest {
             format_version: FORMAT_VERSION,
@@ -264,7 +266,10 @@ impl MapBackend for ObjectStorageBackend {
             }
         };
         let cache_dir = s.claim_cache(id, &manifest.map_uid)?;
-        Ok(Box::new(ObjectJournal::new(s, id, manifest, version, cache_dir)))
+        let copy = s.keep_snapshot(&cache_dir, &manifest.snapshot.object, &encoded.bytes)?;
+        let mut journal = ObjectJournal::new(s, id, manifest, version, cache_dir);
+        journal.stored = Some(stored_payloads(&copy, &encoded, data.version)?);
+        Ok(Box::new(journal))
     }
 
     fn open(&self, id: &str) -> Result<(MapData, Box<dyn MapJournal>, LoadReport), MapError> {
@@ -277,13 +282,28 @@ impl MapBackend for ObjectStorageBackend {
             object_store::Error::NotFound { .. } => s.corrupt(&snapshot_path, "named by the manifest but missing"),
             e => s.io(&snapshot_path, e),
         })?;
-        let mut data = decode_snapshot(&bytes, &s.name(&snapshot_path))?;
+        // The keyframes' payloads are read from a copy of the snapshot in the cache directory; what is wrong
+        // with it is named by the object.
+        let cache_dir = s.claim_cache(id, &manifest.map_uid)?;
+        let copy = s.keep_snapshot(&cache_dir, &manifest.snapshot.object, &bytes)?;
         drop(bytes);
+        let mut data = read_snapshot(&copy).map_err(|e| match e {
+            MapError::Corrupt { reason, .. } => s.corrupt(&snapshot_path, reason),
+            e => e,
+        })?;
         if data.version != manifest.snapshot.version {
             return Err(s.corrupt(
                 &snapshot_path,
                 format!("holds version {}, the manifest says {}", data.version, manifest.snapshot.version),
             ));
+        }
+        if snapshot_version(&copy)? < FORMAT_VERSION {
+            // An older snapshot (its payloads decoded into memory): the copy is written in the current format,
+            // and the payloads leave memory. The bucket's objects are left to the writer, whose next compaction
+            // rewrites them (a replica that rewrote them would fence it).
+            let encoded = encode_snapshot_spans(&data)?;
+            let copy = s.keep_snapshot(&cache_dir, &manifest.snapshot.object, &encoded.bytes)?;
+            data.store_payloads(&stored_payloads(&copy, &encoded, data.version)?);
         }
         let fetched = s.fetch_all(id, &manifest.segments)?;
         let mut report = LoadReport::default();
@@ -293,10 +313,9 @@ impl MapBackend for ObjectStorageBackend {
                 return Err(s.corrupt(&path, format!("holds record {seq}, expected {}", data.version + 1)));
             }
             data.check(&record).map_err(|reason| s.corrupt(&path, format!("record {seq}: {reason}")))?;
-            data.apply(&record);
+            data.apply(&record)?;
             report.replayed += 1;
         }
-        let cache_dir = s.claim_cache(id, &manifest.map_uid)?;
         if let Some(index) = &manifest.index {
             if let Err(e) = s.block_on(s.fetch_index(id, index, &cache_dir)) {
                 tracing::warn!(map = %id, error = %e, "cannot download the index dump; it is rebuilt");
@@ -404,7 +423,7 @@ mod tests {
     fn write(j: &mut dyn MapJournal, data: &mut MapData, r: Record) -> Result<(), MapError> {
         data.check(&r).unwrap();
         j.append(data.version + 1, &r, &data.stats_after(&r))?;
-        data.apply(&r);
+        data.apply(&r).unwrap();
         Ok(())
     }
 

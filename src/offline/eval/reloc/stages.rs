@@ -157,7 +157,7 @@ impl<'a> MethodView<'a> {
             };
             let record = plan_keyframe(&data, &input, build)?;
             data.check(&record).map_err(|e| format!("frame {i}: {e}"))?;
-            data.apply(&record);
+            data.apply(&record).map_err(|e| format!("frame {i}: {e}"))?;
         }
         let scene_observations = data.observations.len();
         for (si, dir) in cfg.distractors.iter().enumerate() {
@@ -341,7 +341,7 @@ fn add_distractors(
         };
         let record = plan_keyframe(data, &input, build)?;
         data.check(&record).map_err(|e| format!("distractor frame {fi}: {e}"))?;
-        data.apply(&record);
+        data.apply(&record).map_err(|e| format!("distractor frame {fi}: {e}"))?;
     }
     Ok(())
 }
