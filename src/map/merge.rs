@@ -19,6 +19,7 @@
 //!    the target is either as it was or merged, and the source is never written.
 
 use std::collections::{BTreeMap, HashMap};
+use std::sync::Arc;
 
 use nalgebra::{Matrix3, Point3, Rotation3, Similarity3, Translation3, UnitQuaternion, Vector3};
 use opencv::core::{Mat, Point3d, Vector};
@@ -238,13 +239,9 @@ pub fn plan_merge(
             reason: "the source map has no keyframes".into(),
         });
     }
-    let mut located_keyframes = Vec::new();
-    for kf in source.keyframes.values() {
-        if let Some(l) = located(target, index, &*kf.load()?, params) {
-            located_keyframes.push(l);
-        }
-    }
-    let located = located_keyframes;
+    // The source's payloads, read once (where they are stored) for both the localisations and the record.
+    let source_keyframes: Vec<Arc<Keyframe>> = source.keyframes.values().map(|k| k.load()).collect::<Result<_, _>>()?;
+    let located: Vec<Located> = source_keyframes.iter().filter_map(|kf| located(target, index, kf, params)).collect();
     let (transform, agree, estimated) = match transform {
         Some(t) => {
             // A given transform: the keyframes whose localisation agrees with it vote for fusions.
@@ -298,13 +295,14 @@ pub fn plan_merge(
     } else {
         0
     };
-    let keyframes: Vec<Keyframe> = source
-        .keyframes
-        .values()
+    // Each payload read from disk is moved into the record, not copied (a payload in memory is shared with the
+    // source map, and copied).
+    let keyframes: Vec<Keyframe> = source_keyframes
+        .into_iter()
         .map(|kf| {
             let id = kf.id.checked_add(offset).ok_or_else(id_overflow)?;
             let pose = Pose::from_isometry(&moved_pose(&transform, &kf.pose.isometry()));
-            Ok(Keyframe { id, pose, ..Keyframe::clone(&*kf.load()?) })
+            Ok(Keyframe { id, pose, ..Arc::unwrap_or_clone(kf) })
         })
         .collect::<Result<_, MapError>>()?;
     let mut new_ids: HashMap<u64, u64> = HashMap::new();

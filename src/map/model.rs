@@ -15,7 +15,7 @@ use serde::{Deserialize, Serialize};
 
 use crate::error::MapError;
 use crate::features::DESCRIPTOR_BYTES;
-use crate::map::payload::StoredPayloads;
+use crate::map::payload::{inline_memory_bytes, StoredPayloads};
 pub use crate::map::payload::{Keyframe, MapKeyframe};
 
 /// Map ids: 1-64 characters from `[A-Za-z0-9_-]`.
@@ -266,7 +266,7 @@ impl MapData {
     /// What a record adding `keyframes` (their payloads in memory until the next snapshot), `landmarks` and
     /// `observations` adds to [`MapData::memory_bytes`].
     fn added_bytes(&self, keyframes: &[Keyframe], landmarks: usize, observations: usize) -> u64 {
-        (keyframes.iter().map(|k| MapKeyframe::inline(k.clone()).memory_bytes()).sum::<usize>()
+        (keyframes.iter().map(inline_memory_bytes).sum::<usize>()
             + observations * (Self::OBSERVATION_BYTES + self.meta.dim * 4)
             + landmarks * Self::LANDMARK_BYTES) as u64
     }
@@ -282,18 +282,28 @@ impl MapData {
             + self.embeddings.len() * 4
     }
 
+    /// Keyframe `id` with its payload, read where it is stored at most once per `loaded`; `None` when the map
+    /// has no such keyframe.
+    fn load_once<'a>(
+        &self,
+        loaded: &'a mut HashMap<u64, Arc<Keyframe>>,
+        id: u64,
+    ) -> Result<Option<&'a Keyframe>, MapError> {
+        let Some(k) = self.keyframes.get(&id) else { return Ok(None) };
+        Ok(Some(match loaded.entry(id) {
+            std::collections::hash_map::Entry::Occupied(e) => e.into_mut(),
+            std::collections::hash_map::Entry::Vacant(e) => e.insert(k.load()?),
+        }))
+    }
+
     /// The FREAK bits of observations `views`, in order, read from their keyframes' payloads (where those are
     /// stored); `None` when one of those keyframes has no descriptors (keypoints of another detector).
     pub fn observation_descriptors(&self, views: &[usize]) -> Result<Option<Vec<u8>>, MapError> {
-        let mut loaded: HashMap<u64, Arc<Keyframe>> = HashMap::new();
+        let mut loaded = HashMap::new();
         let mut out = Vec::with_capacity(views.len() * DESCRIPTOR_BYTES);
         for &o in views {
             let ob = &self.observations[o];
-            let Some(k) = self.keyframes.get(&ob.keyframe) else { return Ok(None) };
-            let k = match loaded.entry(ob.keyframe) {
-                std::collections::hash_map::Entry::Occupied(e) => e.into_mut(),
-                std::collections::hash_map::Entry::Vacant(e) => e.insert(k.load()?),
-            };
+            let Some(k) = self.load_once(&mut loaded, ob.keyframe)? else { return Ok(None) };
             if k.descriptors.len() != k.keypoints.len() * DESCRIPTOR_BYTES {
                 return Ok(None);
             }
@@ -460,21 +470,15 @@ impl MapData {
         observations: &[NewObservation],
     ) -> Result<Vec<f32>, MapError> {
         let dim = self.meta.dim;
-        let mut loaded: HashMap<u64, Arc<Keyframe>> = HashMap::new();
+        let mut loaded = HashMap::new();
         let mut out = Vec::with_capacity(observations.len() * dim);
         for o in observations {
             let keyframe = match keyframes.iter().find(|k| k.id == o.keyframe) {
                 Some(k) => k,
-                None => match loaded.entry(o.keyframe) {
-                    std::collections::hash_map::Entry::Occupied(e) => &**e.into_mut(),
-                    std::collections::hash_map::Entry::Vacant(e) => {
-                        let k = self.keyframes.get(&o.keyframe).ok_or_else(|| MapError::Corrupt {
-                            path: self.meta.id.clone().into(),
-                            reason: format!("an observation names keyframe {}, which the map lacks", o.keyframe),
-                        })?;
-                        &**e.insert(k.load()?)
-                    }
-                },
+                None => self.load_once(&mut loaded, o.keyframe)?.ok_or_else(|| MapError::Corrupt {
+                    path: self.meta.id.clone().into(),
+                    reason: format!("an observation names keyframe {}, which the map lacks", o.keyframe),
+                })?,
             };
             out.extend_from_slice(keyframe.embedding(o.keypoint as usize, dim));
         }
@@ -540,12 +544,12 @@ impl MapData {
                     if let Some(kf) = self.keyframes.get(id) {
                         let mut whole = Keyframe::clone(&*kf.load()?);
                         whole.embeddings = e.clone();
-                        replaced.insert(*id, MapKeyframe::inline(whole));
+                        replaced.insert(*id, whole);
                     }
                 }
                 let mut embeddings = Vec::with_capacity(self.observations.len() * dim);
                 for o in &self.observations {
-                    match replaced.get(&o.keyframe).and_then(|k| k.inline_keyframe()) {
+                    match replaced.get(&o.keyframe) {
                         Some(kf) => embeddings.extend_from_slice(kf.embedding(o.keypoint as usize, *dim)),
                         None => embeddings.extend(std::iter::repeat_n(0.0, *dim)),
                     }
@@ -553,7 +557,7 @@ impl MapData {
                 self.meta.model_id = model_id.clone();
                 self.meta.k = *k;
                 self.meta.dim = *dim;
-                self.keyframes.extend(replaced);
+                self.keyframes.extend(replaced.into_iter().map(|(id, k)| (id, MapKeyframe::inline(k))));
                 self.embeddings = embeddings;
             }
         }

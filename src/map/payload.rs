@@ -4,9 +4,9 @@
 //! on a keyframe keeps where its payload is in that snapshot's file (a [`Span`] of its payload section), and
 //! reads it from there when asked ([`MapKeyframe::load`]).
 //!
-//! A payload in memory is [`Payload::Inline`]: a keyframe written since the last snapshot (at most the
+//! A payload is in memory for a keyframe written since the last snapshot (at most the
 //! journal's `compact_every` records of them), or one of a map decoded from bytes (an import, a format-2
-//! snapshot) until its first snapshot. A stored one is [`Payload::Stored`]: the file stays open, so a snapshot
+//! snapshot) until its first snapshot. Once stored, its file stays open, so a snapshot
 //! replaced by a compaction is still read until every keyframe points into the new one. Every payload's CRC-32
 //! is checked when the snapshot loads, and again at each read, so a payload damaged later is an error of that
 //! read, never a wrong keypoint.
@@ -143,14 +143,14 @@ impl PayloadFile {
 
 /// Where a keyframe's payload is.
 #[derive(Debug, Clone)]
-pub enum Payload {
+enum Payload {
     /// In memory.
     Inline(Arc<Keyframe>),
     /// In a payload section on disk.
     Stored { file: Arc<PayloadFile>, span: Span },
 }
 
-/// A keyframe of a loaded map: pose, camera and keypoint count in memory, the payload where [`Payload`] says.
+/// A keyframe of a loaded map: pose, camera and keypoint count in memory, the payload in memory or on disk.
 #[derive(Debug, Clone)]
 pub struct MapKeyframe {
     pub id: u64,
@@ -164,26 +164,18 @@ pub struct MapKeyframe {
 impl MapKeyframe {
     /// A keyframe whose payload is in memory.
     pub fn inline(keyframe: Keyframe) -> Self {
-        Self::from_shared(Arc::new(keyframe))
-    }
-
-    pub fn from_shared(keyframe: Arc<Keyframe>) -> Self {
         Self {
             id: keyframe.id,
             pose: keyframe.pose,
             camera: keyframe.camera,
             keypoints: keyframe.keypoints.len(),
-            payload: Payload::Inline(keyframe),
+            payload: Payload::Inline(Arc::new(keyframe)),
         }
     }
 
     /// A keyframe whose payload is `span` of `file`.
     pub fn stored(id: u64, pose: Pose, camera: Camera, keypoints: usize, file: Arc<PayloadFile>, span: Span) -> Self {
         Self { id, pose, camera, keypoints, payload: Payload::Stored { file, span } }
-    }
-
-    pub fn payload(&self) -> &Payload {
-        &self.payload
     }
 
     /// The keyframe when its payload is in memory.
@@ -231,17 +223,21 @@ impl MapKeyframe {
 
     /// Memory the keyframe takes while loaded: its head, and its payload when that is in memory.
     pub fn memory_bytes(&self) -> usize {
-        std::mem::size_of::<Self>()
-            + match &self.payload {
-                Payload::Inline(k) => {
-                    std::mem::size_of::<Keyframe>()
-                        + k.keypoints.len() * std::mem::size_of::<Keypoint>()
-                        + k.descriptors.len()
-                        + k.embeddings.len() * 4
-                }
-                Payload::Stored { .. } => 0,
-            }
+        match &self.payload {
+            Payload::Inline(k) => inline_memory_bytes(k),
+            Payload::Stored { .. } => std::mem::size_of::<Self>(),
+        }
     }
+}
+
+/// Memory a keyframe takes while loaded with its payload in memory (a keyframe written since the last
+/// snapshot).
+pub fn inline_memory_bytes(k: &Keyframe) -> usize {
+    std::mem::size_of::<MapKeyframe>()
+        + std::mem::size_of::<Keyframe>()
+        + k.keypoints.len() * std::mem::size_of::<Keypoint>()
+        + k.descriptors.len()
+        + k.embeddings.len() * 4
 }
 
 /// Two keyframes are equal when their heads and payloads are, wherever the payloads are (an unreadable

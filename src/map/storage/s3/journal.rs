@@ -200,7 +200,16 @@ impl MapJournal for ObjectJournal {
         let name = format!("snapshots/{:020}-{}.bin", data.version, nonce());
         let path = s.object(&self.id, &name);
         let encoded = encode_snapshot_spans(data)?;
-        s.block_on(s.put_new(&path, encoded.bytes.clone())).map_err(|e| s.io(&path, e))?;
+        // The local copy first, so that the bytes then go to the PUT without a copy in memory. It holds this
+        // map's payloads whatever becomes of the object: the keyframes point there once the compaction is done.
+        let stored = match s.keep_snapshot(&self.cache_dir, &name, &encoded.bytes) {
+            Ok(copy) => Some(stored_payloads(&copy, &encoded, data.version)?),
+            Err(e) => {
+                tracing::warn!(map = %self.id, error = %e, "cannot copy the snapshot; payloads stay in memory");
+                None
+            }
+        };
+        s.block_on(s.put_new(&path, encoded.bytes)).map_err(|e| s.io(&path, e))?;
         // The dump is an optimisation for other replicas: a failed upload leaves the map without one.
         let index = s.block_on(s.upload_index(&self.id, data.version, &self.cache_dir)).unwrap_or_else(|e| {
             tracing::warn!(map = %self.id, error = %e, "cannot upload the index dump; replicas will rebuild it");
@@ -223,12 +232,7 @@ impl MapJournal for ObjectJournal {
             }
         }
         self.settle(next, outcome, &name)?;
-        // The copy holds this map's payloads whatever becomes of the object: the keyframes may point there.
-        match s.keep_snapshot(&self.cache_dir, &name, &encoded.bytes) {
-            Ok(copy) => self.stored = Some(stored_payloads(&copy, &encoded, data.version)?),
-            Err(e) => tracing::warn!(map = %self.id, error = %e, "cannot copy the snapshot; payloads stay in memory"),
-        }
-        drop(encoded);
+        self.stored = stored;
         // The new manifest is in place: the replaced objects, and orphans it covers, are garbage. No valid
         // manifest can name a segment numbered <= data.version or a snapshot older than this one again.
         let prefix = s.map_prefix(&self.id);
