@@ -100,6 +100,9 @@ fn live_views(data: &MapData, landmark: &Landmark, limit: usize) -> usize {
 /// Extra neighbours an unfiltered search asks for, so that a few points that may not be results (tombstones,
 /// replaced representatives) do not force a filtered search.
 const SEARCH_SLACK: usize = 2;
+/// The fewest searches [`EmbeddingIndex::search_many`] gives one thread (64 before session 47, which left a
+/// capped stage 1's 100 searches on one thread).
+const SEARCH_CHUNK: usize = 16;
 
 /// Memory of one point of the graph beyond its vector: hnsw_rs's node (16 preallocated layer lists, two `Arc`s)
 /// and its links (each its own `Arc`, ~40 bytes with its pointer, 20-23 per point at m = 16), with what the
@@ -435,10 +438,12 @@ impl EmbeddingIndex {
     }
 
     /// [`EmbeddingIndex::search`] for every row of `queries` (`[n, dim]`), spread over rayon's threads: the
-    /// searches are independent, and a relocalisation has ~2,000 of them.
+    /// searches are independent. A relocalisation's capped stage 1 has 100 of them and its fallback ~2,000;
+    /// chunks of `SEARCH_CHUNK` (16) let the 100 use every thread too (each search takes 30-130 µs on the
+    /// bench maps, far more than a split costs).
     pub fn search_many(&self, data: &MapData, queries: &[f32], k: usize, accept: Accept) -> Vec<Vec<Hit>> {
         let dim = data.meta.dim;
-        queries.par_chunks_exact(dim).with_min_len(64).map(|q| self.search(data, q, k, accept)).collect()
+        queries.par_chunks_exact(dim).with_min_len(SEARCH_CHUNK).map(|q| self.search(data, q, k, accept)).collect()
     }
 
     /// Writes the HNSW graph (if any) of `data` with its manifest into `dir`: hnsw_rs's two files under a

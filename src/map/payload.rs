@@ -9,11 +9,12 @@
 //! snapshot) until its first snapshot. Once stored, its file stays open, so a snapshot
 //! replaced by a compaction is still read until every keyframe points into the new one. Every payload's CRC-32
 //! is checked when the snapshot loads, and again at each read, so a payload damaged later is an error of that
-//! read, never a wrong keypoint.
+//! read, never a wrong keypoint. Object storage's copy of a snapshot gets its payload section after the map
+//! is loaded ([`PayloadFile::arriving`]): its checksums are checked when it arrives, and reads wait for it.
 
 use std::os::unix::fs::FileExt;
 use std::path::{Path, PathBuf};
-use std::sync::Arc;
+use std::sync::{Arc, Condvar, Mutex, MutexGuard, PoisonError};
 
 use serde::{Deserialize, Serialize};
 
@@ -89,12 +90,64 @@ pub struct PayloadFile {
     /// Byte offset of the section in the file, and its length.
     base: u64,
     len: u64,
+    /// The section when it is still to arrive (object storage's copy, whose map is ready before it).
+    pending: Option<Pending>,
+}
+
+/// What fetches a payload section into its file and checks it (every payload's CRC): object storage's
+/// download of the snapshot's section.
+pub type FetchSection = Box<dyn Fn() -> Result<(), MapError> + Send + Sync>;
+
+/// A payload section that arrives after its map is loaded: the first read (or the backend's own thread)
+/// fetches it, and every other read waits until it is there. A failed fetch is tried again by the next read,
+/// unless it found the section damaged, which every read then reports.
+struct Pending {
+    state: Mutex<Arrival>,
+    arrived: Condvar,
+    fetch: FetchSection,
+}
+
+#[derive(Debug, Clone, PartialEq)]
+enum Arrival {
+    Waiting,
+    Fetching,
+    Done,
+    Failed,
+    /// The fetch's error, as it named the damage (the object, not the copy).
+    Damaged(PathBuf, String),
+}
+
+impl std::fmt::Debug for Pending {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("Pending").field("state", &*lock(&self.state)).finish_non_exhaustive()
+    }
+}
+
+fn lock<T>(m: &Mutex<T>) -> MutexGuard<'_, T> {
+    m.lock().unwrap_or_else(PoisonError::into_inner)
+}
+
+/// Puts a fetch that did not finish (it panicked) back to [`Arrival::Failed`], so that readers do not wait for
+/// it forever.
+struct FetchGuard<'a>(&'a Pending, bool);
+
+impl Drop for FetchGuard<'_> {
+    fn drop(&mut self) {
+        if !self.1 {
+            *lock(&self.0.state) = Arrival::Failed;
+            self.0.arrived.notify_all();
+        }
+    }
 }
 
 impl PayloadFile {
     /// Opens `path`, whose payload section is `len` bytes from byte `base` (the file must hold them; the
     /// snapshot's core follows them).
     pub fn open(path: &Path, base: u64, len: u64) -> Result<Arc<Self>, MapError> {
+        Self::open_at(path, base, len).map(Arc::new)
+    }
+
+    fn open_at(path: &Path, base: u64, len: u64) -> Result<Self, MapError> {
         let file = std::fs::File::open(path).map_err(|source| MapError::Io { path: path.to_path_buf(), source })?;
         let size = file.metadata().map_err(|source| MapError::Io { path: path.to_path_buf(), source })?.len();
         if base.checked_add(len).is_none_or(|end| end > size) {
@@ -103,7 +156,43 @@ impl PayloadFile {
                 reason: format!("payload section of {len} bytes at byte {base}, but the file is {size} bytes"),
             });
         }
-        Ok(Arc::new(Self { path: path.to_path_buf(), file, base, len }))
+        Ok(Self { path: path.to_path_buf(), file, base, len, pending: None })
+    }
+
+    /// [`PayloadFile::open`] of a file whose section is still to arrive: `fetch` writes it there and checks
+    /// it, run by the first caller of [`PayloadFile::arrive`] (a read, or the backend's thread).
+    pub fn arriving(path: &Path, base: u64, len: u64, fetch: FetchSection) -> Result<Arc<Self>, MapError> {
+        let pending = Pending { state: Mutex::new(Arrival::Waiting), arrived: Condvar::new(), fetch };
+        Ok(Arc::new(Self { pending: Some(pending), ..Self::open_at(path, base, len)? }))
+    }
+
+    /// Returns once the section is in the file (at once for one that was always there), fetching it when no
+    /// one else is; the fetch's error otherwise.
+    pub fn arrive(&self) -> Result<(), MapError> {
+        let Some(p) = &self.pending else { return Ok(()) };
+        let mut state = lock(&p.state);
+        loop {
+            match &*state {
+                Arrival::Done => return Ok(()),
+                Arrival::Damaged(path, reason) => {
+                    return Err(MapError::Corrupt { path: path.clone(), reason: reason.clone() })
+                }
+                Arrival::Fetching => state = p.arrived.wait(state).unwrap_or_else(PoisonError::into_inner),
+                Arrival::Waiting | Arrival::Failed => break,
+            }
+        }
+        *state = Arrival::Fetching;
+        drop(state);
+        let mut guard = FetchGuard(p, false);
+        let fetched = (p.fetch)();
+        *lock(&p.state) = match &fetched {
+            Ok(()) => Arrival::Done,
+            Err(MapError::Corrupt { path, reason }) => Arrival::Damaged(path.clone(), reason.clone()),
+            Err(_) => Arrival::Failed,
+        };
+        guard.1 = true;
+        p.arrived.notify_all();
+        fetched
     }
 
     pub fn path(&self) -> &Path {
@@ -125,8 +214,9 @@ impl PayloadFile {
         Ok(())
     }
 
-    /// The bytes of `span`, once their CRC matched.
+    /// The bytes of `span`, once their CRC matched (and the section arrived).
     pub fn read_raw(&self, span: Span) -> Result<Vec<u8>, MapError> {
+        self.arrive()?;
         if span.offset.checked_add(span.len).is_none_or(|end| end > self.len) {
             return Err(self.corrupt(format!("payload span {span:?} beyond the section's {} bytes", self.len)));
         }

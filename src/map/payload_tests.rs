@@ -237,3 +237,120 @@ fn object_storage_keeps_payloads_in_a_cached_copy_and_reads_a_format_2_snapshot(
     let stored = rt.block_on(async { mem.get(&key).await.unwrap().bytes().await.unwrap() });
     assert_eq!(stored.as_ref(), v2.as_slice());
 }
+
+#[test]
+fn a_section_still_to_arrive_is_waited_for_fetched_again_after_a_failure_and_never_after_damage() {
+    use crate::map::payload::{PayloadFile, Span};
+    use std::sync::atomic::{AtomicUsize, Ordering};
+    let dir = temp_dir("payload-arriving");
+    let path = dir.join("copy");
+    let section = b"first payload, then the second".to_vec();
+    std::fs::write(&path, vec![0u8; 4 + section.len()]).unwrap();
+    let span =
+        |a: usize, b: usize| Span { offset: a as u64, len: (b - a) as u64, crc: crc32fast::hash(&section[a..b]) };
+    let spans = [span(0, 13), span(13, section.len())];
+    // The first fetch fails (storage down), the second writes the section; each takes a while, so that the
+    // readers below arrive while it runs.
+    let calls = Arc::new(AtomicUsize::new(0));
+    let fetch = {
+        let (calls, path, section) = (Arc::clone(&calls), path.clone(), section.clone());
+        Box::new(move || {
+            let n = calls.fetch_add(1, Ordering::SeqCst);
+            std::thread::sleep(std::time::Duration::from_millis(50));
+            if n == 0 {
+                return Err(MapError::Io { path: path.clone(), source: std::io::Error::other("storage down") });
+            }
+            let file = std::fs::File::options().write(true).open(&path);
+            let written = file.and_then(|f| std::os::unix::fs::FileExt::write_all_at(&f, &section, 4));
+            written.map_err(|source| MapError::Io { path: path.clone(), source })
+        })
+    };
+    let file = PayloadFile::arriving(&path, 4, section.len() as u64, fetch).unwrap();
+    assert!(matches!(file.read_raw(spans[0]), Err(MapError::Io { .. })));
+    let read: Vec<Vec<u8>> = std::thread::scope(|s| {
+        let readers: Vec<_> = (0..6)
+            .map(|i| {
+                s.spawn({
+                    let file = &file;
+                    move || file.read_raw(spans[i % 2])
+                })
+            })
+            .collect();
+        readers.into_iter().map(|r| r.join().unwrap().unwrap()).collect()
+    });
+    assert_eq!(calls.load(Ordering::SeqCst), 2, "the readers shared one fetch");
+    for (i, bytes) in read.iter().enumerate() {
+        let s = spans[i % 2];
+        assert_eq!(bytes.as_slice(), &section[s.offset as usize..(s.offset + s.len) as usize]);
+    }
+    file.arrive().unwrap();
+    assert_eq!(calls.load(Ordering::SeqCst), 2);
+
+    // A fetch that finds the section damaged is final: every read says so, none fetches again.
+    let damaged_calls = Arc::new(AtomicUsize::new(0));
+    let fetch = {
+        let (calls, path) = (Arc::clone(&damaged_calls), path.clone());
+        Box::new(move || {
+            calls.fetch_add(1, Ordering::SeqCst);
+            Err(MapError::Corrupt { path: path.clone(), reason: "payload at byte 4: bad span or checksum".into() })
+        })
+    };
+    let file = PayloadFile::arriving(&path, 4, section.len() as u64, fetch).unwrap();
+    for s in spans.iter().chain(&spans) {
+        let e = file.read_raw(*s).unwrap_err();
+        assert!(matches!(&e, MapError::Corrupt { reason, .. } if reason.contains("bad span")), "{e}");
+    }
+    assert_eq!(damaged_calls.load(Ordering::SeqCst), 1);
+}
+
+#[test]
+fn object_storage_loads_a_map_before_its_payload_section_and_reports_a_damaged_one_at_each_read() {
+    use object_store::memory::InMemory;
+    use object_store::{ObjectStore, ObjectStoreExt};
+    let mem = Arc::new(InMemory::new());
+    let cache = temp_dir("payload-section-later");
+    let b = ObjectStorageBackend::new(Arc::clone(&mem) as Arc<dyn ObjectStore>, "memory://", "p", &cache, 0).unwrap();
+    let mut data = MapData::new(meta(DIM));
+    data.apply(&seen_keyframe(80, 80)).unwrap();
+    data.apply(&keyframe_record(1, 30, 500, DIM, 2)).unwrap();
+    b.create("m", &data).unwrap();
+    let answer = localized(&data);
+
+    // One byte of a payload damaged in the bucket: the map loads from its core and localises as before; each
+    // read of a payload names the object and the damage.
+    let rt = tokio::runtime::Builder::new_current_thread().build().unwrap();
+    let under = object_store::path::Path::from("p/maps/m/snapshots");
+    let objects: Vec<_> =
+        rt.block_on(futures_util::TryStreamExt::try_collect::<Vec<_>>(mem.list(Some(&under)))).unwrap();
+    let key = objects[0].location.clone();
+    let mut bytes = rt.block_on(async { mem.get(&key).await.unwrap().bytes().await.unwrap() }).to_vec();
+    bytes[32 + 40] ^= 0x20;
+    rt.block_on(mem.put(&key, bytes.into())).unwrap();
+    let (loaded, _, _) = b.open("m").unwrap();
+    assert_eq!(parts(&loaded), parts(&data));
+    assert!(stored_everywhere(&loaded));
+    let index = {
+        let mut i = EmbeddingIndex::new(IndexSettings::default());
+        i.sync(&loaded);
+        i
+    };
+    let k = data.keyframes[&0].load().unwrap();
+    let features = Features {
+        width: 640,
+        height: 480,
+        keypoints: k.keypoints.clone(),
+        descriptors: Vec::new(),
+        context: Vec::new(),
+    };
+    let out =
+        localize(&loaded, &index, &features, &k.embeddings, &camera(), None, &LocalizeSettings::default()).unwrap();
+    assert_eq!(out.matches.iter().map(|m| (m.keypoint, m.landmark)).collect::<Vec<_>>(), answer.0);
+    for _ in 0..2 {
+        for id in [0, 1] {
+            let e = loaded.keyframes[&id].load().unwrap_err();
+            let named = format!("{e}");
+            assert!(matches!(&e, MapError::Corrupt { .. }) && named.contains("bad span or checksum"), "{named}");
+            assert!(named.contains("snapshots/"), "the error names the object: {named}");
+        }
+    }
+}

@@ -29,7 +29,7 @@ use crate::map::localize::{localize, Localization, LocalizeSettings, Prior};
 use crate::map::merge::plan_merge;
 pub use crate::map::merge::MergePlan;
 use crate::map::model::{validate_map_id, MapData, MapMeta, MapStats, Record};
-use crate::map::storage::backend::{LoadReport, MapBackend, MapJournal, OperationStats};
+use crate::map::storage::backend::{EarlyIndex, LoadReport, MapBackend, MapJournal, OperationStats};
 use crate::map::storage::format::{install_dump, read_dump, write_atomic};
 use crate::map::storage::snapshot::{decode_export, encode_export};
 use crate::map::storage::{open_backend, BackendSettings};
@@ -155,20 +155,24 @@ impl MapStore {
     fn load_map(&self, id: &str) -> Result<(Map, LoadReport), MapError> {
         let t = Instant::now();
         let params = self.config.index;
-        // Where the dump is known beforehand, hnsw_rs reads the graph on a second thread while the snapshot
-        // decodes (the two largest parts of a load); the dump is checked against the map data afterwards. Not
-        // for a map held back after a failed load: its next try would read a graph it may not get to use.
-        let early_dir = if self.cache.is_held_back(id) { None } else { self.backend.index_dir_before_open(id) };
-        let (opened, early, open_s, graph_s) = match &early_dir {
-            Some(dir) => std::thread::scope(|s| {
-                let reader = std::thread::Builder::new().name("scone-dump-read".into()).spawn_scoped(s, || {
+        // Where the dump is known beforehand, a second thread fetches it (object storage) and hnsw_rs reads
+        // the graph while the snapshot downloads and decodes (the largest parts of a load); the dump is
+        // checked against the map data afterwards. Not for a map held back after a failed load: its next try
+        // would read a graph it may not get to use.
+        let early = if self.cache.is_held_back(id) { None } else { self.backend.index_before_open(id) };
+        let early_dir = early.as_ref().map(|e| e.dir.clone());
+        let (opened, early, open_s, graph_s) = match early {
+            Some(EarlyIndex { dir, fetch }) => std::thread::scope(|s| {
+                let reader = std::thread::Builder::new().name("scone-dump-read".into()).spawn_scoped(s, move || {
                     let t = Instant::now();
-                    (DumpRead::read(dir, params.points), t.elapsed().as_secs_f64())
+                    // A dump that did not arrive is left to the open, which fetches it as it always could.
+                    fetch.is_none_or(|f| f()).then(|| (DumpRead::read(&dir, params.points), t.elapsed().as_secs_f64()))
                 });
                 let opened = self.backend.open(id);
                 let open_s = t.elapsed().as_secs_f64();
                 // Without a second thread, the index reads its dump after the open, as it always could.
-                let read = reader.ok().map(|r| r.join().map_err(|_| "reading it panicked".to_string()));
+                let read =
+                    reader.ok().and_then(|r| r.join().map_err(|_| "reading it panicked".to_string()).transpose());
                 let graph_s = read.as_ref().and_then(|r| r.as_ref().ok()).map(|r| r.1);
                 (opened, read.map(|r| r.and_then(|r| r.0)), open_s, graph_s)
             }),

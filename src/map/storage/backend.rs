@@ -15,11 +15,19 @@
 //! Both are synchronous: the store calls them on blocking threads (the CPU pool, `spawn_blocking`), never on
 //! async worker threads.
 
-use std::path::Path;
+use std::path::{Path, PathBuf};
 
 use crate::error::MapError;
 use crate::map::model::{MapData, MapStats, Record};
 use crate::map::payload::StoredPayloads;
+
+/// Where a map's index dump is to be read before its open ([`MapBackend::index_before_open`]).
+pub struct EarlyIndex {
+    pub dir: PathBuf,
+    /// Brings the dump into `dir` (object storage's download), run before it is read: `false` when it could
+    /// not, and the open then fetches it as it always could. `None` where the dump is there already.
+    pub fetch: Option<Box<dyn FnOnce() -> bool + Send>>,
+}
 
 /// The collection of stored maps.
 pub trait MapBackend: Send + Sync {
@@ -42,9 +50,9 @@ pub trait MapBackend: Send + Sync {
     fn delete(&self, id: &str) -> Result<(), MapError>;
 
     /// Where the map's index dump is before [`MapBackend::open`] (a local map's directory; object storage's
-    /// cache directory, the dump fetched first): the store then reads the graph while the map data loads and
-    /// decodes. `None` where the dump comes with the open.
-    fn index_dir_before_open(&self, _id: &str) -> Option<std::path::PathBuf> {
+    /// cache directory, with what fetches the dump there): the store then fetches and reads the graph on a
+    /// thread of its own while the map data loads and decodes. `None` where the dump comes with the open.
+    fn index_before_open(&self, _id: &str) -> Option<EarlyIndex> {
         None
     }
 

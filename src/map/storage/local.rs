@@ -30,7 +30,7 @@ use std::path::{Path, PathBuf};
 use crate::error::MapError;
 use crate::map::model::{validate_map_id, MapData, MapStats, Record};
 use crate::map::payload::StoredPayloads;
-use crate::map::storage::backend::{LoadReport, MapBackend, MapJournal};
+use crate::map::storage::backend::{EarlyIndex, LoadReport, MapBackend, MapJournal};
 use crate::map::storage::format::{
     corrupt, encode_record, injected, injected_full, io_err, io_error, read_frame, readable_version, sync_dir,
     unreadable, write_atomic, LogEntry, FORMAT_VERSION, LOG_HEADER, LOG_MAGIC,
@@ -358,8 +358,8 @@ impl MapBackend for LocalBackend {
     }
 
     /// The map's directory, which holds its index dump ([`LocalJournal`]'s `index_dir`).
-    fn index_dir_before_open(&self, id: &str) -> Option<PathBuf> {
-        Some(self.dir(id))
+    fn index_before_open(&self, id: &str) -> Option<EarlyIndex> {
+        Some(EarlyIndex { dir: self.dir(id), fetch: None })
     }
 
     /// Renames the directory away (atomic), then removes it.

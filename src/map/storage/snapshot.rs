@@ -416,6 +416,59 @@ pub fn snapshot_version(path: &Path) -> Result<u32, MapError> {
     Ok(u32::from_le_bytes(first[8..12].try_into().expect("4 bytes")))
 }
 
+/// Where a format-3 snapshot's parts are (object storage fetches them apart: the core first, the payload
+/// section after the map is ready).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct SplitLayout {
+    pub section_len: u64,
+    pub core_len: u64,
+    core_crc: u32,
+}
+
+impl SplitLayout {
+    /// How many bytes of a snapshot [`split_layout`] reads.
+    pub const HEADER_LEN: u64 = HEADER_V3 as u64;
+
+    /// The payload section's bytes in the file.
+    pub fn section(&self) -> std::ops::Range<u64> {
+        Self::HEADER_LEN..Self::HEADER_LEN + self.section_len
+    }
+
+    /// The core's bytes in the file.
+    pub fn core(&self) -> std::ops::Range<u64> {
+        self.section().end..self.section().end + self.core_len
+    }
+}
+
+/// A snapshot's layout from its first bytes (the whole object when shorter than [`SplitLayout::HEADER_LEN`])
+/// and its size: `None` for formats 1 and 2 (one piece). Checks magic, version and lengths as a load does.
+pub fn split_layout(first: &[u8], size: u64, path: &Path) -> Result<Option<SplitLayout>, MapError> {
+    Ok(match snapshot_header(first, size, path)? {
+        Header::Whole { .. } => None,
+        Header::Split { section_len, core_len, core_crc } => Some(SplitLayout { section_len, core_len, core_crc }),
+    })
+}
+
+/// A format-3 map from its core's bytes (`path` names the snapshot in errors). `payloads` gets every
+/// keyframe's span in the section and gives the file the keyframes are to read their payloads from; its
+/// section may still be on its way ([`PayloadFile::arriving`]), so nothing of it is read here.
+pub fn map_from_core(
+    layout: &SplitLayout,
+    core: &[u8],
+    path: &Path,
+    payloads: impl FnOnce(Vec<Span>) -> Result<Arc<PayloadFile>, MapError>,
+) -> Result<MapData, MapError> {
+    if core.len() as u64 != layout.core_len || crc32fast::hash(core) != layout.core_crc {
+        return Err(corrupt(path, "checksum mismatch"));
+    }
+    let core: Core = bincode::deserialize(core).map_err(|e| corrupt(path, format!("cannot decode: {e}")))?;
+    let file = payloads(core.keyframes.iter().map(|h| h.span).collect())?;
+    core.into_map(|h| {
+        let keypoints = usize::try_from(h.keypoints).map_err(|_| corrupt(path, "keypoint count"))?;
+        Ok(MapKeyframe::stored(h.id, h.pose, h.camera, keypoints, Arc::clone(&file), h.span))
+    })
+}
+
 /// The payloads of a snapshot of map version `version` just written to `path` ([`encode_snapshot_spans`]),
 /// for the map it was encoded from to point into ([`MapData::store_payloads`]).
 pub fn stored_payloads(path: &Path, encoded: &EncodedSnapshot, version: u64) -> Result<StoredPayloads, MapError> {

@@ -99,6 +99,8 @@ pub(super) struct Shared {
     pub(super) writer: String,
     pub(super) ops: OpCounters,
     pub(super) runtime: Option<tokio::runtime::Runtime>,
+    /// One lock per cache directory that index dumps are fetched into ([`Shared::fetch_index`]).
+    pub(super) fetching: std::sync::Mutex<std::collections::HashMap<PathBuf, Arc<tokio::sync::Mutex<()>>>>,
 }
 
 impl Drop for Shared {
@@ -193,6 +195,16 @@ impl Shared {
             Ok((r.bytes().await?.to_vec(), version))
         })
         .await
+    }
+
+    /// Bytes `range` of an object (a ranged GET).
+    pub(super) async fn get_range(
+        &self,
+        path: &ObjectPath,
+        range: std::ops::Range<u64>,
+    ) -> Result<Vec<u8>, object_store::Error> {
+        let options = GetOptions { range: Some(range.into()), ..Default::default() };
+        Ok(self.get_with(path, options).await?.0)
     }
 
     /// A GET conditional on the object's ETag no longer being `known`: `None` when it still is.
@@ -354,21 +366,28 @@ impl Shared {
     /// Puts the index dump the manifest names into the map's cache directory, unless the dump there is that
     /// one already (same `index.json`, which holds the files' checksums). The files are written atomically,
     /// `index.json` last ([`install_dump`]); the index loader checks the dump against the map, so one that
-    /// does not match is rebuilt.
+    /// does not match is rebuilt. The two files are fetched at once, and one fetch into a directory waits for
+    /// another in flight there (a load fetches the dump beside its open, and the open after it).
     pub(super) async fn fetch_index(&self, id: &str, index: &IndexRef, cache_dir: &Path) -> Result<(), MapError> {
+        let lock = Arc::clone(
+            self.fetching
+                .lock()
+                .unwrap_or_else(std::sync::PoisonError::into_inner)
+                .entry(cache_dir.into())
+                .or_default(),
+        );
+        let _one_at_a_time = lock.lock().await;
         let remote = |file: &str| self.object(id, &format!("{}/{file}", index.dir));
         let manifest_path = remote(INDEX_FILES[2]);
         let (manifest, _) = self.get(&manifest_path).await.map_err(|e| self.io(&manifest_path, e))?;
         if std::fs::read(cache_dir.join(DUMP_MANIFEST)).ok().as_deref() == Some(manifest.as_slice()) {
             return Ok(());
         }
-        let mut files = Vec::with_capacity(2);
-        for file in &INDEX_FILES[..2] {
+        let fetch = |file: &str| {
             let path = remote(file);
-            files.push(self.get(&path).await.map_err(|e| self.io(&path, e))?.0);
-        }
-        let data = files.pop().expect("two files");
-        let graph = files.pop().expect("two files");
+            async move { self.get(&path).await.map(|r| r.0).map_err(|e| self.io(&path, e)) }
+        };
+        let (graph, data) = futures_util::try_join!(fetch(INDEX_FILES[0]), fetch(INDEX_FILES[1]))?;
         install_dump(cache_dir, &DumpBytes { manifest, graph, data })
     }
 
@@ -396,21 +415,45 @@ impl Shared {
     /// this process reads it, and each load writes it anew. The other copies there are removed (a map that
     /// still reads one keeps it open, so its reads go on).
     pub(super) fn keep_snapshot(&self, cache_dir: &Path, object: &str, bytes: &[u8]) -> Result<PathBuf, MapError> {
+        Ok(self.copy_snapshot(cache_dir, object, bytes.len() as u64, &[(0, bytes)])?.0)
+    }
+
+    /// [`Shared::keep_snapshot`] of a snapshot of `size` bytes of which only `parts` (offset, bytes) are here
+    /// yet: the file has its size, and the rest is written later through the handle returned with its path.
+    pub(super) fn copy_snapshot(
+        &self,
+        cache_dir: &Path,
+        object: &str,
+        size: u64,
+        parts: &[(u64, &[u8])],
+    ) -> Result<(PathBuf, std::fs::File), MapError> {
+        use std::os::unix::fs::FileExt;
         let file = object.rsplit('/').next().unwrap_or(object);
         let path = cache_dir.join(format!("{SNAPSHOT_COPY}{file}"));
         let tmp = path.with_extension("tmp");
-        let written = std::fs::write(&tmp, bytes).and_then(|()| std::fs::rename(&tmp, &path));
-        if let Err(e) = written {
-            let _ = std::fs::remove_file(&tmp);
-            return Err(io_error(&path, e));
-        }
+        let written =
+            std::fs::File::options().read(true).write(true).create(true).truncate(true).open(&tmp).and_then(|f| {
+                f.set_len(size)?;
+                for (offset, bytes) in parts {
+                    f.write_all_at(bytes, *offset)?;
+                }
+                std::fs::rename(&tmp, &path)?;
+                Ok(f)
+            });
+        let handle = match written {
+            Ok(f) => f,
+            Err(e) => {
+                let _ = std::fs::remove_file(&tmp);
+                return Err(io_error(&path, e));
+            }
+        };
         for entry in std::fs::read_dir(cache_dir).map_err(|e| io_error(cache_dir, e))?.flatten() {
             let name = entry.file_name().to_string_lossy().into_owned();
             if name.starts_with(SNAPSHOT_COPY) && entry.path() != path {
                 let _ = std::fs::remove_file(entry.path());
             }
         }
-        Ok(path)
+        Ok((path, handle))
     }
 
     /// Makes the cache directory of a map belong to this incarnation of it (`map_uid`), emptying it otherwise.

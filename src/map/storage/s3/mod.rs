@@ -80,9 +80,12 @@ use object_store::{ObjectStore, PutMode};
 
 use crate::error::MapError;
 use crate::map::model::{validate_map_id, MapData, MapStats};
-use crate::map::storage::backend::{LoadReport, MapBackend, MapJournal, OperationStats};
+use crate::map::payload::{FetchSection, PayloadFile, Span};
+use crate::map::storage::backend::{EarlyIndex, LoadReport, MapBackend, MapJournal, OperationStats};
 use crate::map::storage::format::{decode_segment, io_err, FORMAT_VERSION};
-use crate::map::storage::snapshot::{encode_snapshot_spans, read_snapshot, snapshot_version, stored_payloads};
+use crate::map::storage::snapshot::{
+    decode_snapshot, encode_snapshot_spans, map_from_core, split_layout, stored_payloads, SplitLayout,
+};
 
 use client::{OpCounters, Shared, OPS};
 pub use client::{S3Credentials, S3Settings};
@@ -184,6 +187,7 @@ impl ObjectStorageBackend {
                 writer: writer_id(),
                 ops: OpCounters::default(),
                 runtime: Some(runtime),
+                fetching: Default::default(),
             }),
         })
     }
@@ -192,6 +196,88 @@ impl ObjectStorageBackend {
     pub fn writer(&self) -> &str {
         &self.shared.writer
     }
+
+    /// The snapshot object `path` (`object` in the manifest) as a map, its keyframes' payloads read from a
+    /// copy in `cache_dir`. Format 3: the header and the core by ranged GETs, so the map is ready once its
+    /// core is; the payload section is still to arrive in the file returned with it
+    /// ([`PayloadFile::arriving`]: a read of a payload before it is there fetches it or waits for it). Older
+    /// formats: the whole object, its copy written in the current format.
+    fn open_snapshot(
+        &self,
+        path: &ObjectPath,
+        object: &str,
+        cache_dir: &Path,
+    ) -> Result<(MapData, Option<Arc<PayloadFile>>), MapError> {
+        let s = &self.shared;
+        let fetch_error = |e| match e {
+            object_store::Error::NotFound { .. } => s.corrupt(path, "named by the manifest but missing"),
+            e => s.io(path, e),
+        };
+        let size = s.block_on(s.head(path)).map_err(fetch_error)?.size;
+        let first = match size.min(SplitLayout::HEADER_LEN) {
+            0 => Vec::new(),
+            n => s.block_on(s.get_range(path, 0..n)).map_err(fetch_error)?,
+        };
+        let name = s.name(path);
+        let Some(layout) = split_layout(&first, size, &name)? else {
+            return Ok((self.open_whole_snapshot(path, object, cache_dir)?, None));
+        };
+        let core = s.block_on(s.get_range(path, layout.core())).map_err(fetch_error)?;
+        let (copy, handle) = s.copy_snapshot(cache_dir, object, size, &[(0, &first), (layout.core().start, &core)])?;
+        let mut arriving = None;
+        let data = map_from_core(&layout, &core, &name, |spans| {
+            let fetch = fetch_section(Arc::clone(s), path.clone(), layout, spans, handle, copy.clone());
+            let file = PayloadFile::arriving(&copy, layout.section().start, layout.section_len, fetch)?;
+            arriving = Some(Arc::clone(&file));
+            Ok(file)
+        })?;
+        Ok((data, arriving))
+    }
+
+    /// A format-1/2 snapshot object: fetched and decoded whole, its copy in `cache_dir` written in the current
+    /// format (the payloads leave memory). The bucket's objects are left to the writer, whose next compaction
+    /// rewrites them (a replica that rewrote them would fence it).
+    fn open_whole_snapshot(&self, path: &ObjectPath, object: &str, cache_dir: &Path) -> Result<MapData, MapError> {
+        let s = &self.shared;
+        let (bytes, _) = s.block_on(s.get(path)).map_err(|e| match e {
+            object_store::Error::NotFound { .. } => s.corrupt(path, "named by the manifest but missing"),
+            e => s.io(path, e),
+        })?;
+        let mut data = decode_snapshot(&bytes, &s.name(path))?;
+        drop(bytes);
+        let encoded = encode_snapshot_spans(&data)?;
+        let copy = s.keep_snapshot(cache_dir, object, &encoded.bytes)?;
+        data.store_payloads(&stored_payloads(&copy, &encoded, data.version)?);
+        Ok(data)
+    }
+}
+
+/// What fetches a format-3 snapshot's payload section (`layout`) from the object at `path` into its copy
+/// (`file`, at `copy`), once every payload's span and CRC (`spans`) is checked against what arrived.
+fn fetch_section(
+    s: Arc<Shared>,
+    path: ObjectPath,
+    layout: SplitLayout,
+    spans: Vec<Span>,
+    file: std::fs::File,
+    copy: PathBuf,
+) -> FetchSection {
+    Box::new(move || {
+        use std::os::unix::fs::FileExt;
+        let bytes = s.block_on(s.get_range(&path, layout.section())).map_err(|e| s.io(&path, e))?;
+        if bytes.len() as u64 != layout.section_len {
+            let reason = format!("payload section of {} bytes, the header says {}", bytes.len(), layout.section_len);
+            return Err(s.corrupt(&path, reason));
+        }
+        for span in &spans {
+            let part = span.offset.checked_add(span.len).filter(|&end| end <= layout.section_len);
+            if part.is_none_or(|end| crc32fast::hash(&bytes[span.offset as usize..end as usize]) != span.crc) {
+                let at = layout.section().start + span.offset;
+                return Err(s.corrupt(&path, format!("payload at byte {at}: bad span or checksum")));
+            }
+        }
+        file.write_all_at(&bytes, layout.section().start).map_err(io_err(&copy))
+    })
 }
 
 impl MapBackend for ObjectStorageBackend {
@@ -278,32 +364,13 @@ impl MapBackend for ObjectStorageBackend {
             return Err(MapError::UnknownMap { map: id.to_string() });
         };
         let snapshot_path = s.object(id, &manifest.snapshot.object);
-        let (bytes, _) = s.block_on(s.get(&snapshot_path)).map_err(|e| match e {
-            object_store::Error::NotFound { .. } => s.corrupt(&snapshot_path, "named by the manifest but missing"),
-            e => s.io(&snapshot_path, e),
-        })?;
-        // The keyframes' payloads are read from a copy of the snapshot in the cache directory; what is wrong
-        // with it is named by the object.
         let cache_dir = s.claim_cache(id, &manifest.map_uid)?;
-        let copy = s.keep_snapshot(&cache_dir, &manifest.snapshot.object, &bytes)?;
-        drop(bytes);
-        let mut data = read_snapshot(&copy).map_err(|e| match e {
-            MapError::Corrupt { reason, .. } => s.corrupt(&snapshot_path, reason),
-            e => e,
-        })?;
+        let (mut data, arriving) = self.open_snapshot(&snapshot_path, &manifest.snapshot.object, &cache_dir)?;
         if data.version != manifest.snapshot.version {
             return Err(s.corrupt(
                 &snapshot_path,
                 format!("holds version {}, the manifest says {}", data.version, manifest.snapshot.version),
             ));
-        }
-        if snapshot_version(&copy)? < FORMAT_VERSION {
-            // An older snapshot (its payloads decoded into memory): the copy is written in the current format,
-            // and the payloads leave memory. The bucket's objects are left to the writer, whose next compaction
-            // rewrites them (a replica that rewrote them would fence it).
-            let encoded = encode_snapshot_spans(&data)?;
-            let copy = s.keep_snapshot(&cache_dir, &manifest.snapshot.object, &encoded.bytes)?;
-            data.store_payloads(&stored_payloads(&copy, &encoded, data.version)?);
         }
         let fetched = s.fetch_all(id, &manifest.segments)?;
         let mut report = LoadReport::default();
@@ -320,6 +387,17 @@ impl MapBackend for ObjectStorageBackend {
             if let Err(e) = s.block_on(s.fetch_index(id, index, &cache_dir)) {
                 tracing::warn!(map = %id, error = %e, "cannot download the index dump; it is rebuilt");
             }
+        }
+        if let Some(file) = arriving {
+            // The payload section arrives on a thread of its own; without one, the first read of a payload
+            // fetches it.
+            let map = id.to_string();
+            let fetched = std::thread::Builder::new().name("scone-payloads".into()).spawn(move || {
+                if let Err(e) = file.arrive() {
+                    tracing::warn!(%map, error = %e, "cannot fetch the payload section; a read of a payload tries again");
+                }
+            });
+            drop(fetched);
         }
         Ok((data, Box::new(ObjectJournal::new(s, id, manifest, version, cache_dir)), report))
     }
@@ -343,23 +421,27 @@ impl MapBackend for ObjectStorageBackend {
         Ok(())
     }
 
-    /// The map's cache directory, once the dump its manifest names is there (downloaded now unless it is there
-    /// already), so that the store reads the graph while the snapshot downloads and decodes. The open then
-    /// finds that dump in place and does not fetch it again. `None` when the map has no dump or a request
-    /// fails: the open fetches it as before. Whatever changes in between (another writer's compaction, the
-    /// map deleted and made again) is caught where the graph is checked against the map data, and rebuilt.
-    fn index_dir_before_open(&self, id: &str) -> Option<PathBuf> {
+    /// The map's cache directory (claimed for the manifest's map now) and the download of the dump its
+    /// manifest names (unless it is there already), which the store runs beside the open, so that the
+    /// dump's and the snapshot's downloads overlap, and the graph is read while the snapshot decodes. The
+    /// open's own fetch of the dump waits for this one and then finds it in place. `None` when the map has
+    /// no dump or the manifest cannot be read; a failed download makes the open fetch it as before. Whatever
+    /// changes in between (another writer's compaction, the map deleted and made again) is caught where the
+    /// graph is checked against the map data, and rebuilt.
+    fn index_before_open(&self, id: &str) -> Option<EarlyIndex> {
         let s = &self.shared;
         let (manifest, _, _) = s.block_on(s.read_manifest(id)).ok()??;
-        let index = manifest.index.as_ref()?;
-        let cache_dir = s.claim_cache(id, &manifest.map_uid).ok()?;
-        match s.block_on(s.fetch_index(id, index, &cache_dir)) {
-            Ok(()) => Some(cache_dir),
+        let index = manifest.index?;
+        let dir = s.claim_cache(id, &manifest.map_uid).ok()?;
+        let (shared, id, cache_dir) = (Arc::clone(s), id.to_string(), dir.clone());
+        let fetch = move || match shared.block_on(shared.fetch_index(&id, &index, &cache_dir)) {
+            Ok(()) => true,
             Err(e) => {
                 tracing::debug!(map = %id, error = %e, "index dump not fetched before the open");
-                None
+                false
             }
-        }
+        };
+        Some(EarlyIndex { dir, fetch: Some(Box::new(fetch)) })
     }
 
     /// The ids, then every manifest (in parallel) for the counts it records. A manifest that cannot be read
