@@ -207,6 +207,40 @@ impl Shared {
         Ok(self.get_with(path, options).await?.0)
     }
 
+    /// Bytes `range` of an object written into `file` from byte `at` as they arrive (a ranged GET that never
+    /// holds the range in memory; `copy` names the file in errors): how many bytes came.
+    pub(super) async fn get_range_into(
+        &self,
+        path: &ObjectPath,
+        range: std::ops::Range<u64>,
+        file: &std::fs::File,
+        at: u64,
+        copy: &Path,
+    ) -> Result<u64, MapError> {
+        use std::os::unix::fs::FileExt;
+        let options = GetOptions { range: Some(range.into()), ..Default::default() };
+        let (mut written, mut failed_write) = (0u64, None);
+        let got = self
+            .timed(Op::Get, async {
+                let mut stream = self.store.get_opts(path, options).await?.into_stream();
+                while let Some(chunk) = stream.next().await {
+                    let chunk = chunk?;
+                    if let Err(e) = file.write_all_at(&chunk, at + written) {
+                        failed_write = Some(e);
+                        break;
+                    }
+                    written += chunk.len() as u64;
+                }
+                Ok(())
+            })
+            .await;
+        got.map_err(|e| self.io(path, e))?;
+        match failed_write {
+            Some(e) => Err(io_error(copy, e)),
+            None => Ok(written),
+        }
+    }
+
     /// A GET conditional on the object's ETag no longer being `known`: `None` when it still is.
     pub(super) async fn get_changed(
         &self,

@@ -253,7 +253,7 @@ impl ObjectStorageBackend {
 }
 
 /// What fetches a format-3 snapshot's payload section (`layout`) from the object at `path` into its copy
-/// (`file`, at `copy`), once every payload's span and CRC (`spans`) is checked against what arrived.
+/// (`file`, at `copy`) as it arrives, then checks every payload's span and CRC (`spans`) there.
 fn fetch_section(
     s: Arc<Shared>,
     path: ObjectPath,
@@ -264,19 +264,25 @@ fn fetch_section(
 ) -> FetchSection {
     Box::new(move || {
         use std::os::unix::fs::FileExt;
-        let bytes = s.block_on(s.get_range(&path, layout.section())).map_err(|e| s.io(&path, e))?;
-        if bytes.len() as u64 != layout.section_len {
-            let reason = format!("payload section of {} bytes, the header says {}", bytes.len(), layout.section_len);
+        let section = layout.section();
+        let got = s.block_on(s.get_range_into(&path, section.clone(), &file, section.start, &copy))?;
+        if got != layout.section_len {
+            let reason = format!("payload section of {got} bytes, the header says {}", layout.section_len);
             return Err(s.corrupt(&path, reason));
         }
+        let mut bytes = Vec::new();
         for span in &spans {
-            let part = span.offset.checked_add(span.len).filter(|&end| end <= layout.section_len);
-            if part.is_none_or(|end| crc32fast::hash(&bytes[span.offset as usize..end as usize]) != span.crc) {
-                let at = layout.section().start + span.offset;
+            let at = section.start + span.offset;
+            let checked = span.offset.checked_add(span.len).filter(|&end| end <= layout.section_len).is_some() && {
+                bytes.resize(span.len as usize, 0);
+                file.read_exact_at(&mut bytes, at).map_err(io_err(&copy))?;
+                crc32fast::hash(&bytes) == span.crc
+            };
+            if !checked {
                 return Err(s.corrupt(&path, format!("payload at byte {at}: bad span or checksum")));
             }
         }
-        file.write_all_at(&bytes, layout.section().start).map_err(io_err(&copy))
+        Ok(())
     })
 }
 
