@@ -99,8 +99,9 @@ pub struct PayloadFile {
 pub type FetchSection = Box<dyn Fn() -> Result<(), MapError> + Send + Sync>;
 
 /// A payload section that arrives after its map is loaded: the first read (or the backend's own thread)
-/// fetches it, and every other read waits until it is there. A failed fetch is tried again by the next read,
-/// unless it found the section damaged, which every read then reports.
+/// fetches it, and every other read waits until it is there. A failed fetch fails the reads that waited for
+/// it and is tried again by the next read, unless it found the section damaged, which every read then
+/// reports.
 struct Pending {
     state: Mutex<Arrival>,
     arrived: Condvar,
@@ -110,9 +111,11 @@ struct Pending {
 #[derive(Debug, Clone, PartialEq)]
 enum Arrival {
     Waiting,
-    Fetching,
+    /// Fetch number n (from 1) is running.
+    Fetching(u64),
     Done,
-    Failed,
+    /// Fetch number n failed, as the message says.
+    Failed(u64, String),
     /// The fetch's error, as it named the damage (the object, not the copy).
     Damaged(PathBuf, String),
 }
@@ -127,14 +130,14 @@ fn lock<T>(m: &Mutex<T>) -> MutexGuard<'_, T> {
     m.lock().unwrap_or_else(PoisonError::into_inner)
 }
 
-/// Puts a fetch that did not finish (it panicked) back to [`Arrival::Failed`], so that readers do not wait for
-/// it forever.
-struct FetchGuard<'a>(&'a Pending, bool);
+/// Puts a fetch that did not finish (it panicked) to [`Arrival::Failed`], so that readers do not wait for it
+/// forever: the pending section, the fetch's number, and whether it finished.
+struct FetchGuard<'a>(&'a Pending, u64, bool);
 
 impl Drop for FetchGuard<'_> {
     fn drop(&mut self) {
-        if !self.1 {
-            *lock(&self.0.state) = Arrival::Failed;
+        if !self.2 {
+            *lock(&self.0.state) = Arrival::Failed(self.1, "the fetch panicked".into());
             self.0.arrived.notify_all();
         }
     }
@@ -171,26 +174,37 @@ impl PayloadFile {
     pub fn arrive(&self) -> Result<(), MapError> {
         let Some(p) = &self.pending else { return Ok(()) };
         let mut state = lock(&p.state);
-        loop {
+        let mut waited_for = None;
+        let attempt = loop {
             match &*state {
                 Arrival::Done => return Ok(()),
                 Arrival::Damaged(path, reason) => {
                     return Err(MapError::Corrupt { path: path.clone(), reason: reason.clone() })
                 }
-                Arrival::Fetching => state = p.arrived.wait(state).unwrap_or_else(PoisonError::into_inner),
-                Arrival::Waiting | Arrival::Failed => break,
+                Arrival::Fetching(n) => {
+                    waited_for = Some(*n);
+                    state = p.arrived.wait(state).unwrap_or_else(PoisonError::into_inner);
+                }
+                // The fetch this read waited for failed: so does the read (the next one tries again).
+                Arrival::Failed(n, detail) if waited_for == Some(*n) => {
+                    return Err(MapError::StorageUnavailable {
+                        detail: format!("the payload section did not arrive: {detail}"),
+                    })
+                }
+                Arrival::Failed(n, _) => break n + 1,
+                Arrival::Waiting => break 1,
             }
-        }
-        *state = Arrival::Fetching;
+        };
+        *state = Arrival::Fetching(attempt);
         drop(state);
-        let mut guard = FetchGuard(p, false);
+        let mut guard = FetchGuard(p, attempt, false);
         let fetched = (p.fetch)();
         *lock(&p.state) = match &fetched {
             Ok(()) => Arrival::Done,
             Err(MapError::Corrupt { path, reason }) => Arrival::Damaged(path.clone(), reason.clone()),
-            Err(_) => Arrival::Failed,
+            Err(e) => Arrival::Failed(attempt, e.to_string()),
         };
-        guard.1 = true;
+        guard.2 = true;
         p.arrived.notify_all();
         fetched
     }

@@ -249,14 +249,14 @@ fn a_section_still_to_arrive_is_waited_for_fetched_again_after_a_failure_and_nev
     let span =
         |a: usize, b: usize| Span { offset: a as u64, len: (b - a) as u64, crc: crc32fast::hash(&section[a..b]) };
     let spans = [span(0, 13), span(13, section.len())];
-    // The first fetch fails (storage down), the second writes the section; each takes a while, so that the
-    // readers below arrive while it runs.
+    // The first fetch fails (storage down) after 300 ms, the second writes the section after 50; the readers
+    // below arrive while they run.
     let calls = Arc::new(AtomicUsize::new(0));
     let fetch = {
         let (calls, path, section) = (Arc::clone(&calls), path.clone(), section.clone());
         Box::new(move || {
             let n = calls.fetch_add(1, Ordering::SeqCst);
-            std::thread::sleep(std::time::Duration::from_millis(50));
+            std::thread::sleep(std::time::Duration::from_millis(if n == 0 { 300 } else { 50 }));
             if n == 0 {
                 return Err(MapError::Io { path: path.clone(), source: std::io::Error::other("storage down") });
             }
@@ -266,7 +266,23 @@ fn a_section_still_to_arrive_is_waited_for_fetched_again_after_a_failure_and_nev
         })
     };
     let file = PayloadFile::arriving(&path, 4, section.len() as u64, fetch).unwrap();
-    assert!(matches!(file.read_raw(spans[0]), Err(MapError::Io { .. })));
+    // Readers at once while the first fetch fails: the one that ran it gets its error, the others that waited
+    // for it fail too, and none fetches again.
+    let failed: Vec<MapError> = std::thread::scope(|s| {
+        let readers: Vec<_> = (0..4)
+            .map(|i| {
+                let file = &file;
+                s.spawn(move || {
+                    std::thread::sleep(std::time::Duration::from_millis(10 * i));
+                    file.read_raw(spans[0]).unwrap_err()
+                })
+            })
+            .collect();
+        readers.into_iter().map(|r| r.join().unwrap()).collect()
+    });
+    assert_eq!(calls.load(Ordering::SeqCst), 1, "{failed:?}");
+    assert_eq!(failed.iter().filter(|e| matches!(e, MapError::Io { .. })).count(), 1, "{failed:?}");
+    assert!(failed.iter().all(|e| matches!(e, MapError::Io { .. } | MapError::StorageUnavailable { .. })));
     let read: Vec<Vec<u8>> = std::thread::scope(|s| {
         let readers: Vec<_> = (0..6)
             .map(|i| {
