@@ -78,7 +78,11 @@ fn stored_everywhere(data: &MapData) -> bool {
 
 /// What `localize` finds for a query of keyframe 0's own keypoints and embeddings (exact search).
 fn localized(data: &MapData) -> (Vec<(usize, u64)>, Option<[f64; 7]>) {
-    let k = data.keyframes[&0].load().unwrap();
+    localized_by(data, &data.keyframes[&0].load().unwrap())
+}
+
+/// What `localize` finds in `data` for a query of `k`'s keypoints and embeddings (exact search).
+fn localized_by(data: &MapData, k: &crate::map::model::Keyframe) -> (Vec<(usize, u64)>, Option<[f64; 7]>) {
     let features = Features {
         width: 640,
         height: 480,
@@ -345,22 +349,7 @@ fn object_storage_loads_a_map_before_its_payload_section_and_reports_a_damaged_o
     let (loaded, _, _) = b.open("m").unwrap();
     assert_eq!(parts(&loaded), parts(&data));
     assert!(stored_everywhere(&loaded));
-    let index = {
-        let mut i = EmbeddingIndex::new(IndexSettings::default());
-        i.sync(&loaded);
-        i
-    };
-    let k = data.keyframes[&0].load().unwrap();
-    let features = Features {
-        width: 640,
-        height: 480,
-        keypoints: k.keypoints.clone(),
-        descriptors: Vec::new(),
-        context: Vec::new(),
-    };
-    let out =
-        localize(&loaded, &index, &features, &k.embeddings, &camera(), None, &LocalizeSettings::default()).unwrap();
-    assert_eq!(out.matches.iter().map(|m| (m.keypoint, m.landmark)).collect::<Vec<_>>(), answer.0);
+    assert_eq!(localized_by(&loaded, &data.keyframes[&0].load().unwrap()), answer);
     for _ in 0..2 {
         for id in [0, 1] {
             let e = loaded.keyframes[&id].load().unwrap_err();
