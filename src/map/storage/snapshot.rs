@@ -149,6 +149,14 @@ impl Core {
         data.rebuild_derived();
         Ok(data)
     }
+
+    /// The map, each keyframe's payload in `file` where its head says (`path` names the snapshot in errors).
+    fn into_stored_map(self, file: &Arc<PayloadFile>, path: &Path) -> Result<MapData, MapError> {
+        self.into_map(|h| {
+            let keypoints = usize::try_from(h.keypoints).map_err(|_| corrupt(path, "keypoint count"))?;
+            Ok(MapKeyframe::stored(h.id, h.pose, h.camera, keypoints, Arc::clone(file), h.span))
+        })
+    }
 }
 
 /// Frames a format-1/2 snapshot payload behind its header (for tests of the upgrade).
@@ -392,10 +400,7 @@ pub fn read_snapshot(path: &Path) -> Result<MapData, MapError> {
             let Header::Split { section_len, .. } = header else { unreachable!("format 3 is split") };
             let payloads = PayloadFile::open(path, HEADER_V3 as u64, section_len)?;
             payloads.verify(core.keyframes.iter().map(|h| h.span))?;
-            core.into_map(|h| {
-                let keypoints = usize::try_from(h.keypoints).map_err(|_| corrupt(path, "keypoint count"))?;
-                Ok(MapKeyframe::stored(h.id, h.pose, h.camera, keypoints, Arc::clone(&payloads), h.span))
-            })
+            core.into_stored_map(&payloads, path)
         }
     }
 }
@@ -463,10 +468,7 @@ pub fn map_from_core(
     }
     let core: Core = bincode::deserialize(core).map_err(|e| corrupt(path, format!("cannot decode: {e}")))?;
     let file = payloads(core.keyframes.iter().map(|h| h.span).collect())?;
-    core.into_map(|h| {
-        let keypoints = usize::try_from(h.keypoints).map_err(|_| corrupt(path, "keypoint count"))?;
-        Ok(MapKeyframe::stored(h.id, h.pose, h.camera, keypoints, Arc::clone(&file), h.span))
-    })
+    core.into_stored_map(&file, path)
 }
 
 /// The payloads of a snapshot of map version `version` just written to `path` ([`encode_snapshot_spans`]),

@@ -153,6 +153,14 @@ impl Shared {
         MapError::Corrupt { path: self.name(path), reason: reason.into() }
     }
 
+    /// A failed call on an object the manifest names: one that is missing is corruption, as a damaged one is.
+    pub(super) fn named_error(&self, path: &ObjectPath, e: object_store::Error) -> MapError {
+        match e {
+            object_store::Error::NotFound { .. } => self.corrupt(path, "named by the manifest but missing"),
+            e => self.io(path, e),
+        }
+    }
+
     pub(super) fn cache_dir(&self, id: &str) -> PathBuf {
         self.cache_root.join(id)
     }
@@ -386,10 +394,7 @@ impl Shared {
             futures_util::stream::iter(paths.into_iter().map(|p| async move {
                 match self.get(&p).await {
                     Ok((bytes, _)) => Ok((p, bytes)),
-                    Err(object_store::Error::NotFound { .. }) => {
-                        Err(self.corrupt(&p, "named by the manifest but missing"))
-                    }
-                    Err(e) => Err(self.io(&p, e)),
+                    Err(e) => Err(self.named_error(&p, e)),
                 }
             }))
             .buffered(PARALLEL_GETS)

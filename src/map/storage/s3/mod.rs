@@ -209,10 +209,7 @@ impl ObjectStorageBackend {
         cache_dir: &Path,
     ) -> Result<(MapData, Option<Arc<PayloadFile>>), MapError> {
         let s = &self.shared;
-        let fetch_error = |e| match e {
-            object_store::Error::NotFound { .. } => s.corrupt(path, "named by the manifest but missing"),
-            e => s.io(path, e),
-        };
+        let fetch_error = |e| s.named_error(path, e);
         let size = s.block_on(s.head(path)).map_err(fetch_error)?.size;
         let first = match size.min(SplitLayout::HEADER_LEN) {
             0 => Vec::new(),
@@ -239,10 +236,7 @@ impl ObjectStorageBackend {
     /// rewrites them (a replica that rewrote them would fence it).
     fn open_whole_snapshot(&self, path: &ObjectPath, object: &str, cache_dir: &Path) -> Result<MapData, MapError> {
         let s = &self.shared;
-        let (bytes, _) = s.block_on(s.get(path)).map_err(|e| match e {
-            object_store::Error::NotFound { .. } => s.corrupt(path, "named by the manifest but missing"),
-            e => s.io(path, e),
-        })?;
+        let (bytes, _) = s.block_on(s.get(path)).map_err(|e| s.named_error(path, e))?;
         let mut data = decode_snapshot(&bytes, &s.name(path))?;
         drop(bytes);
         let encoded = encode_snapshot_spans(&data)?;
