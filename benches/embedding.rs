@@ -53,9 +53,27 @@ fn bench(c: &mut Criterion) {
             f
         })
     });
+    // The service's shape on 2 cores: two sessions of one thread. Embedding splits a set over both when both are
+    // idle; describing an image overlaps FREAK with the ring contexts and the model (`pipeline::describe_decoded`).
+    {
+        let e = Embedder::load(&EmbedderSettings {
+            model: model.clone(),
+            sessions: 2,
+            intra_threads: 1,
+            spinning: std::env::var_os("SCONE_BENCH_SPINNING").is_some_and(|v| v == "1"),
+            ..Default::default()
+        })
+        .unwrap();
+        let f = pipeline::extract_for(&img, &cfg, &e).unwrap();
+        g.bench_function("inference_2sessions", |b| b.iter(|| e.embed(black_box(&f)).unwrap()));
+        g.bench_function("path_pipelined_2sessions", |b| {
+            b.iter(|| pipeline::describe_decoded(black_box(&img), &cfg, &e, &mut Default::default()).unwrap())
+        });
+    }
     for threads in [1usize, 2] {
         let e = Embedder::load(&EmbedderSettings {
             model: model.clone(),
+            sessions: 1,
             intra_threads: threads,
             spinning: std::env::var_os("SCONE_BENCH_SPINNING").is_some_and(|v| v == "1"),
             ..Default::default()

@@ -104,14 +104,42 @@ pub fn sample(image: &GreyImage, keypoints: &[KeypointFrame]) -> Result<Vec<Cont
     if keypoints.is_empty() {
         return Ok(Vec::new());
     }
-    let mut integral = Mat::default();
-    let pixels = image.width() as u64 * image.height() as u64;
-    if pixels * 255 < i32::MAX as u64 {
-        imgproc::integral(image.mat(), &mut integral, CV_32S)?;
-        Ok(sample_sums(integral.data_typed::<i32>()?, integral.cols() as usize, image, keypoints))
-    } else {
-        imgproc::integral(image.mat(), &mut integral, CV_64F)?;
-        Ok(sample_sums(integral.data_typed::<f64>()?, integral.cols() as usize, image, keypoints))
+    Ok(RingSampler::new(image)?.sample(keypoints, true))
+}
+
+/// An image's integral, made once, from which the ring contexts of any of its keypoints are sampled: what
+/// [`sample`] does in one call, for a caller that samples an image's keypoints in parts (the pipelined
+/// describe, `crate::pipeline`).
+pub struct RingSampler<'a> {
+    image: &'a GreyImage,
+    integral: Mat,
+}
+
+impl<'a> RingSampler<'a> {
+    /// The integral of `image`: 32-bit where its largest sum fits, f64 beyond (see [`sample`]).
+    pub fn new(image: &'a GreyImage) -> Result<Self, FeatureError> {
+        let mut integral = Mat::default();
+        let pixels = image.width() as u64 * image.height() as u64;
+        let depth = if pixels * 255 < i32::MAX as u64 { CV_32S } else { CV_64F };
+        imgproc::integral(image.mat(), &mut integral, depth)?;
+        Ok(Self { image, integral })
+    }
+
+    /// The ring context of each of `keypoints`; `two_threads`: whether a large set may take a second thread
+    /// (see [`sample`]'s bands), which a caller that already runs parts on both cores turns off.
+    pub fn sample(&self, keypoints: &[KeypointFrame], two_threads: bool) -> Vec<Context> {
+        let stride = self.integral.cols() as usize;
+        match self.integral.data_typed::<i32>() {
+            Ok(sums) => sample_sums(sums, stride, self.image, keypoints, two_threads),
+            // Not 32-bit: `new` made it f64.
+            Err(_) => sample_sums(
+                self.integral.data_typed::<f64>().expect("the integral is i32 or f64"),
+                stride,
+                self.image,
+                keypoints,
+                two_threads,
+            ),
+        }
     }
 }
 
@@ -127,7 +155,7 @@ const PARALLEL_FROM: usize = 500;
 
 /// [`sample`] over an integral image `sums` of row stride `stride`. Keypoints are visited from top to bottom
 /// (by their row, then column), so that consecutive ones read the same rows of the integral image while they
-/// are in cache. From [`PARALLEL_FROM`] keypoints on, the rows are split in two bands, the lower one on a
+/// are in cache. With `two_threads`, from [`PARALLEL_FROM`] keypoints on, the rows are split in two bands, the lower one on a
 /// scoped thread of its own (each core's cache then holds one band; a scoped thread ends with the call, so
 /// nothing spins afterwards beside ONNX Runtime's threads). Each context is written at its keypoint's place.
 fn sample_sums<T: Copy + Into<f64> + Sync>(
@@ -135,6 +163,7 @@ fn sample_sums<T: Copy + Into<f64> + Sync>(
     stride: usize,
     image: &GreyImage,
     keypoints: &[KeypointFrame],
+    two_threads: bool,
 ) -> Vec<Context> {
     let (w, h) = (image.width() as i64, image.height() as i64);
     let table = &*TABLE;
@@ -174,7 +203,7 @@ fn sample_sums<T: Copy + Into<f64> + Sync>(
             .collect()
     };
     static CORES: LazyLock<usize> = LazyLock::new(|| std::thread::available_parallelism().map_or(1, |n| n.get()));
-    let two = keypoints.len() >= PARALLEL_FROM && *CORES > 1;
+    let two = two_threads && keypoints.len() >= PARALLEL_FROM && *CORES > 1;
     let (upper, lower) = order.split_at(if two { order.len() / 2 } else { order.len() });
     let (a, b) = std::thread::scope(|scope| {
         // A thread the system refuses (a process limit) leaves the lower band to this one.
@@ -253,8 +282,8 @@ mod tests {
         imgproc::integral(img.mat(), &mut i32s, CV_32S).unwrap();
         let mut f64s = Mat::default();
         imgproc::integral(img.mat(), &mut f64s, CV_64F).unwrap();
-        let a = sample_sums(i32s.data_typed::<i32>().unwrap(), i32s.cols() as usize, &img, &kps);
-        let b = sample_sums(f64s.data_typed::<f64>().unwrap(), f64s.cols() as usize, &img, &kps);
+        let a = sample_sums(i32s.data_typed::<i32>().unwrap(), i32s.cols() as usize, &img, &kps, true);
+        let b = sample_sums(f64s.data_typed::<f64>().unwrap(), f64s.cols() as usize, &img, &kps, false);
         assert_eq!(a, b);
         assert_eq!(a, sample(&img, &kps).unwrap());
         let table = &*TABLE;
@@ -275,6 +304,20 @@ mod tests {
                 assert_eq!(i64::from(value), (total + area / 2) / area, "sample {n} of {k:?}");
             }
         }
+    }
+
+    /// One integral sampled in parts, on one thread, gives what one call on two threads gives.
+    #[test]
+    fn a_sampler_in_parts_is_one_call() {
+        let img = image(160, 120, |x, y| ((x * 31 + y * 17 + x * y) % 251) as u8);
+        let kps: Vec<KeypointFrame> = (0..900)
+            .map(|i| keypoint((i * 37 % 160) as f32 + 0.4, (i * 53 % 120) as f32, 7.0 + (i % 5) as f32, i as f32 * 3.1))
+            .collect();
+        let whole = sample(&img, &kps).unwrap();
+        let sampler = RingSampler::new(&img).unwrap();
+        let parts: Vec<Context> = kps.chunks(256).flat_map(|c| sampler.sample(c, false)).collect();
+        assert_eq!(parts, whole);
+        assert_eq!(sampler.sample(&kps, true), whole);
     }
 
     #[test]

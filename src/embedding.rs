@@ -50,7 +50,9 @@ pub struct EmbedderSettings {
     pub model: PathBuf,
     /// ONNX Runtime shared library (`libonnxruntime.so`).
     pub runtime_library: PathBuf,
-    /// Sessions in the pool (concurrent inferences).
+    /// Sessions in the pool (concurrent inferences). With two or more, a ring model's large set is embedded in
+    /// halves on two idle sessions at once, and an image's description overlaps FREAK with the model
+    /// (`pipeline::describe_decoded`); with one, each request's stages run in turn.
     pub sessions: usize,
     /// Intra-op threads per session.
     pub intra_threads: usize,
@@ -65,8 +67,8 @@ impl Default for EmbedderSettings {
         Self {
             model: default_model_path(),
             runtime_library: PathBuf::from(env!("SCONE_DEFAULT_ORT_LIB")),
-            sessions: 1,
-            intra_threads: 2,
+            sessions: 2,
+            intra_threads: 1,
             spinning: false,
         }
     }
@@ -384,21 +386,65 @@ impl Embedder {
         }
     }
 
-    /// Embeddings of every keypoint, row-major `[N, dim]`.
+    /// Embeddings of every keypoint, row-major `[N, dim]`. A ring model's rows are independent of each other,
+    /// so a set of [`SPLIT_FROM`] keypoints or more is split in two halves when a second session is idle, the
+    /// second half run on a thread of its own: the same embeddings, bit for bit, on two cores.
     pub fn embed(&self, features: &Features) -> Result<Vec<f32>, EmbeddingError> {
         let context = self.context_of(features)?;
         if features.is_empty() {
             return Ok(Vec::new());
         }
-        // Prefer an idle session; otherwise wait for the one this thread hashes to.
-        for s in &self.sessions {
-            if let Some(mut session) = s.try_lock() {
-                return run(&mut session, features, &context, self.dim);
+        let mut first = self.lease();
+        if let Context::Rings(rings) = context {
+            if features.len() >= SPLIT_FROM {
+                if let Some(mut second) = self.try_lease() {
+                    let descriptors = features.descriptors.as_flattened();
+                    return run_split(&mut first.session, &mut second.session, descriptors, rings, self.dim);
+                }
             }
         }
-        let slot = thread_slot() % self.sessions.len();
-        let mut session = self.sessions[slot].lock();
-        run(&mut session, features, &context, self.dim)
+        run(&mut first.session, features, &context, self.dim)
+    }
+
+    /// Sessions in the pool.
+    pub fn sessions(&self) -> usize {
+        self.sessions.len()
+    }
+
+    /// An idle session, without waiting; `None` when every session is in use.
+    pub fn try_lease(&self) -> Option<Lease<'_>> {
+        self.sessions.iter().find_map(|s| s.try_lock()).map(|session| Lease { embedder: self, session })
+    }
+
+    /// An idle session, or else the one this thread hashes to, once it is free.
+    pub fn lease(&self) -> Lease<'_> {
+        self.try_lease().unwrap_or_else(|| {
+            let slot = thread_slot() % self.sessions.len();
+            Lease { embedder: self, session: self.sessions[slot].lock() }
+        })
+    }
+}
+
+/// Keypoints from which [`Embedder::embed`] splits a ring model's set over two idle sessions (in halves cut at a
+/// multiple of 64 rows).
+pub const SPLIT_FROM: usize = 256;
+
+/// One session of an [`Embedder`]'s pool, held until dropped: a caller that runs several inferences at once
+/// (the pipelined describe, `crate::pipeline`) holds one per thread.
+pub struct Lease<'a> {
+    embedder: &'a Embedder,
+    session: parking_lot::MutexGuard<'a, Session>,
+}
+
+impl Lease<'_> {
+    /// Embeddings of every keypoint of `features`, on this session alone.
+    pub fn embed(&mut self, features: &Features) -> Result<Vec<f32>, EmbeddingError> {
+        let e = self.embedder;
+        let context = e.context_of(features)?;
+        if features.is_empty() {
+            return Ok(Vec::new());
+        }
+        run(&mut self.session, features, &context, e.dim)
     }
 }
 
@@ -416,37 +462,77 @@ fn thread_slot() -> usize {
     h.finish() as usize
 }
 
+fn inference(e: ort::Error) -> EmbeddingError {
+    EmbeddingError::Inference(e.to_string())
+}
+
 fn run(session: &mut Session, f: &Features, context: &Context, dim: usize) -> Result<Vec<f32>, EmbeddingError> {
     let n = f.len();
-    let inference = |e: ort::Error| EmbeddingError::Inference(e.to_string());
+    let c = match context {
+        Context::Rings(rings) => return run_rings(session, f.descriptors.as_flattened(), rings, dim),
+        Context::Constellations(c) => c,
+    };
     let descriptors =
         Tensor::from_array(([n, DESCRIPTOR_BYTES], f.descriptors.as_flattened().to_vec())).map_err(inference)?;
-    let outputs = match context {
-        Context::Rings(rings) => {
-            let context = Tensor::from_array(([n, SAMPLES], rings.to_vec())).map_err(inference)?;
-            session.run(ort::inputs!["descriptors" => descriptors, "context" => context]).map_err(inference)?
-        }
-        Context::Constellations(c) => {
-            let k = c.k;
-            let keypoints: Vec<f32> = f.keypoints.iter().flat_map(|p| [p.angle, p.size]).collect();
-            let keypoints = Tensor::from_array(([n, 2], keypoints)).map_err(inference)?;
-            let neighbours = Tensor::from_array(([n, k], c.neighbours.iter().map(|&j| j as i64).collect::<Vec<_>>()))
-                .map_err(inference)?;
-            let mask = Tensor::from_array(([n, k], c.mask.iter().map(|&m| m as f32).collect::<Vec<_>>()))
-                .map_err(inference)?;
-            let relative =
-                Tensor::from_array(([n, k, GEOMETRY_DIM], c.relative.as_flattened().to_vec())).map_err(inference)?;
-            session
-                .run(ort::inputs![
-                    "descriptors" => descriptors,
-                    "keypoints" => keypoints,
-                    "neighbours" => neighbours,
-                    "mask" => mask,
-                    "relative" => relative,
-                ])
-                .map_err(inference)?
-        }
-    };
+    let k = c.k;
+    let keypoints: Vec<f32> = f.keypoints.iter().flat_map(|p| [p.angle, p.size]).collect();
+    let keypoints = Tensor::from_array(([n, 2], keypoints)).map_err(inference)?;
+    let neighbours =
+        Tensor::from_array(([n, k], c.neighbours.iter().map(|&j| j as i64).collect::<Vec<_>>())).map_err(inference)?;
+    let mask = Tensor::from_array(([n, k], c.mask.iter().map(|&m| m as f32).collect::<Vec<_>>())).map_err(inference)?;
+    let relative = Tensor::from_array(([n, k, GEOMETRY_DIM], c.relative.as_flattened().to_vec())).map_err(inference)?;
+    let outputs = session
+        .run(ort::inputs![
+            "descriptors" => descriptors,
+            "keypoints" => keypoints,
+            "neighbours" => neighbours,
+            "mask" => mask,
+            "relative" => relative,
+        ])
+        .map_err(inference)?;
+    embeddings_of(&outputs, n, dim)
+}
+
+/// A ring model on `descriptors` (`DESCRIPTOR_BYTES` per keypoint) and `rings` (`SAMPLES` per keypoint).
+fn run_rings(session: &mut Session, descriptors: &[u8], rings: &[u8], dim: usize) -> Result<Vec<f32>, EmbeddingError> {
+    let n = descriptors.len() / DESCRIPTOR_BYTES;
+    let descriptors = Tensor::from_array(([n, DESCRIPTOR_BYTES], descriptors.to_vec())).map_err(inference)?;
+    let context = Tensor::from_array(([n, SAMPLES], rings.to_vec())).map_err(inference)?;
+    let outputs = session.run(ort::inputs!["descriptors" => descriptors, "context" => context]).map_err(inference)?;
+    embeddings_of(&outputs, n, dim)
+}
+
+/// [`run_rings`] with the first half of the rows on `first` (this thread) and the second on `second` (a scoped
+/// thread); a thread the system refuses leaves both halves to this one.
+fn run_split(
+    first: &mut Session,
+    second: &mut Session,
+    descriptors: &[u8],
+    rings: &[u8],
+    dim: usize,
+) -> Result<Vec<f32>, EmbeddingError> {
+    // At a multiple of 64 rows: onnxruntime's matrix products take rows in small groups, and halves that cut
+    // one of the whole set's groups can differ from it in the last bit (up to 2e-7 measured, halves of 350 rows; none at 348).
+    let half = descriptors.len() / DESCRIPTOR_BYTES / 2 / 64 * 64;
+    let (d1, d2) = descriptors.split_at(half * DESCRIPTOR_BYTES);
+    let (r1, r2) = rings.split_at(half * SAMPLES);
+    std::thread::scope(|scope| {
+        let other = std::thread::Builder::new().spawn_scoped(scope, || run_rings(second, d2, r2, dim));
+        let a = run_rings(first, d1, r1, dim);
+        let b = match other {
+            Ok(t) => t.join().expect("an embedding thread panicked"),
+            Err(e) => {
+                tracing::debug!(error = %e, "no second thread for the embedding");
+                run_rings(first, d2, r2, dim)
+            }
+        };
+        let (mut a, b) = (a?, b?);
+        a.extend(b);
+        Ok(a)
+    })
+}
+
+fn embeddings_of(outputs: &ort::session::SessionOutputs, n: usize, dim: usize) -> Result<Vec<f32>, EmbeddingError> {
     let (shape, data) = outputs["embeddings"].try_extract_tensor::<f32>().map_err(inference)?;
     if shape.len() != 2 || shape[0] as usize != n || shape[1] as usize != dim {
         return Err(EmbeddingError::Inference(format!("output shape {shape:?}, expected [{n}, {dim}]")));

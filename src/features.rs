@@ -29,7 +29,7 @@ use opencv::prelude::*;
 use opencv::{imgproc, xfeatures2d};
 use serde::{Deserialize, Serialize};
 
-use crate::context::{self, Context, KeypointFrame, SAMPLES};
+use crate::context::{self, Context, KeypointFrame, RingSampler, SAMPLES};
 use crate::decode::GreyImage;
 use crate::error::FeatureError;
 
@@ -134,7 +134,7 @@ impl Keypoint {
 
 /// Keypoints of one image with their FREAK descriptors (row `i` describes keypoint `i`), and their ring
 /// contexts when the model reads them ([`crate::context`]; empty otherwise).
-#[derive(Debug, Clone, PartialEq)]
+#[derive(Debug, Clone, Default, PartialEq)]
 pub struct Features {
     pub width: u32,
     pub height: u32,
@@ -159,10 +159,37 @@ impl Features {
 
     /// Samples each keypoint's ring context ([`crate::context`]) on `image`, the image they were detected on.
     pub fn sample_context(&mut self, image: &GreyImage) -> Result<(), FeatureError> {
-        let frames: Vec<KeypointFrame> =
-            self.keypoints.iter().map(|k| KeypointFrame { x: k.x, y: k.y, size: k.size, angle: k.angle }).collect();
-        self.context = context::sample(image, &frames)?;
+        self.context = context::sample(image, &self.frames())?;
         Ok(())
+    }
+
+    /// Samples each keypoint's ring context from its image's integral (`sampler`), for a caller that samples
+    /// one image's keypoints in parts; `two_threads` as in [`RingSampler::sample`].
+    pub fn sample_context_from(&mut self, sampler: &RingSampler, two_threads: bool) {
+        self.context = sampler.sample(&self.frames(), two_threads);
+    }
+
+    fn frames(&self) -> Vec<KeypointFrame> {
+        self.keypoints.iter().map(|k| KeypointFrame { x: k.x, y: k.y, size: k.size, angle: k.angle }).collect()
+    }
+
+    /// Splits the set in two at keypoint `at`: this one keeps the keypoints before it (with their descriptors
+    /// and contexts), the one returned holds the rest.
+    pub fn split_off(&mut self, at: usize) -> Features {
+        Features {
+            width: self.width,
+            height: self.height,
+            keypoints: self.keypoints.split_off(at),
+            descriptors: self.descriptors.split_off(at),
+            context: if self.context.len() > at { self.context.split_off(at) } else { Vec::new() },
+        }
+    }
+
+    /// Appends `other`'s keypoints, descriptors and contexts (of the same image) after this set's.
+    pub fn append(&mut self, other: Features) {
+        self.keypoints.extend(other.keypoints);
+        self.descriptors.extend(other.descriptors);
+        self.context.extend(other.context);
     }
 
     /// Descriptors as an OpenCV matrix [N, 64] of u8, for OpenCV's matchers.

@@ -2,11 +2,15 @@
 //! context sampled from the image, or constellations built from the keypoints) -> SConE embeddings. The service, the commands and the evaluation call this; nothing else strings the stages
 //! together. Callers that report stage times pass a [`StageTimes`] for the describer to fill.
 
-use std::sync::Arc;
+use std::sync::{mpsc, Arc, LazyLock};
 use std::time::Instant;
 
+use opencv::core::{KeyPoint, Vector};
+use parking_lot::Mutex;
+
+use crate::context::RingSampler;
 use crate::decode::{decode_grey, GreyImage, ImageLimitSettings};
-use crate::embedding::Embedder;
+use crate::embedding::{Embedder, Lease};
 use crate::error::{EmbeddingError, FeatureError};
 use crate::features::{self, ExtractorSettings, Features};
 
@@ -54,6 +58,147 @@ pub fn extract_for(
     Ok(features)
 }
 
+/// Keypoints from which [`describe_decoded`] overlaps FREAK with the model's work.
+pub const PIPELINE_FROM: usize = 512;
+/// Keypoints of each FREAK call and of each part the two threads take in turn. A multiple of 64:
+/// onnxruntime's matrix products take rows in small groups, and a part that starts inside one of the whole
+/// set's groups can differ from it in the last bit (measured: up to 2e-7 with halves of 350 rows).
+const PIECE: usize = 256;
+
+/// FAST + FREAK features of a decoded image with their SConE embeddings, timing `extract` (detection and
+/// FREAK), `context` and `embed`.
+///
+/// A ring model's context and embedding of a keypoint depend on that keypoint alone. So on an embedder of
+/// several sessions, one of them idle, and with [`PIPELINE_FROM`] keypoints or more, they overlap FREAK:
+/// - this thread runs FREAK on the detected keypoints in calls of `PIECE` (256) keypoints, and puts what each
+///   call gives on a queue, in parts of `PIECE` rows counted over the whole set;
+/// - a scoped thread with a session of its own takes the parts off the queue: it samples their ring contexts
+///   and embeds them;
+/// - once FREAK is done, this thread takes parts too, on another session when one is free.
+///
+/// The parts are put back in order, so the features and embeddings are bit for bit what one call of each
+/// stage gives (tested): FREAK describes each keypoint alone (the image's integral is made again in each
+/// call), the context too, and the model's rows are independent, taken in parts that start on a multiple of
+/// 64 rows. Here `extract` is the time until FREAK's last call returns and `embed` the rest; `context` is
+/// not timed apart. Otherwise, and for a constellation model (whose context is every keypoint's
+/// neighbours), the stages run one after the other.
+pub fn describe_decoded(
+    image: &GreyImage,
+    extractor: &ExtractorSettings,
+    embedder: &Embedder,
+    times: &mut StageTimes,
+) -> Result<Described, DescribeError> {
+    static CORES: LazyLock<usize> = LazyLock::new(|| std::thread::available_parallelism().map_or(1, |n| n.get()));
+    let start = Instant::now();
+    extractor.validate()?;
+    let mut candidates = features::detect(image, extractor)?;
+    // A session idle now: the other thread takes one (this one or, should another request take it first,
+    // the next to be free).
+    let overlap = embedder.needs_context()
+        && candidates.len() >= PIPELINE_FROM
+        && *CORES > 1
+        && embedder.sessions() > 1
+        && embedder.try_lease().is_some();
+    if !overlap {
+        let mut features = features::describe(image, &mut candidates)?;
+        times.0.push(("extract", start.elapsed().as_secs_f64()));
+        if embedder.needs_context() {
+            times.time("context", || features.sample_context(image))?;
+        }
+        let embeddings = times.time("embed", || embedder.embed(&features))?;
+        return Ok(Described { features, embeddings });
+    };
+    let sampler = RingSampler::new(image)?;
+    let (parts, done) = pipelined(image, &candidates, embedder, &sampler, times, start)?;
+    let mut features = Features { width: image.width(), height: image.height(), ..Default::default() };
+    let mut embeddings = Vec::new();
+    for (f, e) in parts {
+        features.append(f);
+        embeddings.extend(e);
+    }
+    times.0.push(("embed", done.elapsed().as_secs_f64()));
+    Ok(Described { features, embeddings })
+}
+
+type Part = (Features, Vec<f32>);
+
+/// [`describe_decoded`]'s two threads: the parts in order, and when FREAK's last call returned.
+fn pipelined(
+    image: &GreyImage,
+    candidates: &Vector<KeyPoint>,
+    embedder: &Embedder,
+    sampler: &RingSampler,
+    times: &mut StageTimes,
+    start: Instant,
+) -> Result<(Vec<Part>, Instant), DescribeError> {
+    let (send, receive) = mpsc::channel::<(usize, Features)>();
+    let queue = Mutex::new(receive);
+    // Takes parts off the queue until it is closed and empty, each embedded on `lease`.
+    let drain = |lease: &mut Lease| -> Result<Vec<(usize, Part)>, DescribeError> {
+        let mut out = Vec::new();
+        loop {
+            // Not in the loop's head: a `while let` would hold the lock through the body.
+            let next = queue.lock().recv();
+            let Ok((i, mut f)) = next else { break };
+            f.sample_context_from(sampler, false);
+            let e = lease.embed(&f)?;
+            out.push((i, (f, e)));
+        }
+        Ok(out)
+    };
+    std::thread::scope(|scope| {
+        let other = std::thread::Builder::new().spawn_scoped(scope, || drain(&mut embedder.lease()));
+        let freak = || -> Result<(), DescribeError> {
+            // FREAK's output so far that is not yet in a part: parts start at multiples of `PIECE` of the whole
+            // set whatever FREAK drops, so the model sees the rows in the groups one call would.
+            let mut pending = Features { width: image.width(), height: image.height(), ..Default::default() };
+            let (mut from, mut index) = (0, 0);
+            while from < candidates.len() {
+                let to = (from + PIECE).min(candidates.len());
+                let mut kps: Vector<KeyPoint> =
+                    (from..to).map(|i| candidates.get(i)).collect::<Result<_, _>>().map_err(FeatureError::from)?;
+                pending.append(features::describe(image, &mut kps)?);
+                from = to;
+                let last = from == candidates.len();
+                while pending.len() >= PIECE || (last && !pending.is_empty()) {
+                    let rest = pending.split_off(PIECE.min(pending.len()));
+                    // The receiver lives until the scope ends: the send cannot fail.
+                    let _ = send.send((index, std::mem::replace(&mut pending, rest)));
+                    index += 1;
+                }
+            }
+            Ok(())
+        };
+        let described = freak();
+        drop(send);
+        let done = Instant::now();
+        times.0.push(("extract", (done - start).as_secs_f64()));
+        // This thread helps once FREAK is done (on an error, it empties the queue so the other stops soon).
+        let mine = match described {
+            Ok(()) => match embedder.try_lease() {
+                Some(mut own) => drain(&mut own),
+                None => Ok(Vec::new()),
+            },
+            Err(e) => {
+                while queue.lock().try_recv().is_ok() {}
+                Err(e)
+            }
+        };
+        let theirs = match other {
+            Ok(t) => t.join().expect("a describe thread panicked"),
+            // No second thread: this one does every part.
+            Err(e) => {
+                tracing::debug!(error = %e, "no second thread for the describe pipeline");
+                drain(&mut embedder.lease())
+            }
+        };
+        let mut parts = mine?;
+        parts.extend(theirs?);
+        parts.sort_unstable_by_key(|(i, _)| *i);
+        Ok((parts.into_iter().map(|(_, p)| p).collect(), done))
+    })
+}
+
 /// Errors of the whole path.
 #[derive(Debug, thiserror::Error)]
 pub enum DescribeError {
@@ -79,11 +224,15 @@ pub struct Describer {
 }
 
 impl Describer {
-    /// Encoded image -> features and embeddings.
+    /// Encoded image -> features and embeddings ([`describe_decoded`]).
     pub fn describe_image(&self, bytes: &[u8]) -> Result<Described, DescribeError> {
-        let mut times = StageTimes::default();
-        let features = self.extract(bytes, &mut times)?;
-        Ok(self.embed(features, &mut times)?)
+        self.describe_timed(bytes, &mut StageTimes::default())
+    }
+
+    /// [`Describer::describe_image`], timing `decode` and [`describe_decoded`]'s stages.
+    pub fn describe_timed(&self, bytes: &[u8], times: &mut StageTimes) -> Result<Described, DescribeError> {
+        let image = times.time("decode", || decode_grey(bytes, &self.limits))?;
+        describe_decoded(&image, &self.extractor, &self.embedder, times)
     }
 
     /// Encoded image -> FAST + FREAK features, with their ring contexts when the model reads them; timing

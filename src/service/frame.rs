@@ -7,7 +7,7 @@ use crate::camera::{validate_camera, Camera, Distortion};
 use crate::decode::check_limits;
 use crate::error::{FeatureError, PoseError};
 use crate::features::{self, Features, Keypoint};
-use crate::pipeline::StageTimes;
+use crate::pipeline::{Described, StageTimes};
 
 /// Keypoints with FREAK descriptors computed by a client (see the client contract in the proto).
 #[derive(Debug, Clone, Default)]
@@ -54,10 +54,21 @@ pub struct Description {
 }
 
 impl Service {
-    fn features(&self, source: FrameSource, times: &mut StageTimes) -> Result<Features, ServiceError> {
+    /// The frame's features, with their embeddings when they were made with them: a ring model's embedding
+    /// does not depend on where a keypoint lies, so an image is described in one go (its stages overlapped,
+    /// `pipeline::describe_decoded`) and undistortion only drops keypoints and their rows.
+    fn features(
+        &self,
+        source: FrameSource,
+        times: &mut StageTimes,
+    ) -> Result<(Features, Option<Vec<f32>>), ServiceError> {
         self.check_source(&source)?;
         match source {
-            FrameSource::Image(bytes) => Ok(self.describer.extract(&bytes, times)?),
+            FrameSource::Image(bytes) if self.describer.embedder.needs_context() => {
+                let d = self.describer.describe_timed(&bytes, times)?;
+                Ok((d.features, Some(d.embeddings)))
+            }
+            FrameSource::Image(bytes) => Ok((self.describer.extract(&bytes, times)?, None)),
             FrameSource::Keypoints(k) => {
                 if let Some(m) = k.model_id.as_deref().filter(|m| !m.is_empty()) {
                     if m != self.model_id() {
@@ -68,29 +79,32 @@ impl Service {
                     }
                 }
                 let needs_context = self.describer.embedder.needs_context();
-                Ok(times.time("validate", || -> Result<Features, FeatureError> {
-                    let f = features::from_precomputed(
-                        k.width,
-                        k.height,
-                        k.keypoints,
-                        &k.descriptors,
-                        &self.keypoint_limits,
-                    )?;
-                    if needs_context && k.context.is_empty() {
-                        return Err(FeatureError::InvalidContext {
-                            reason: format!(
-                                "model {} reads each keypoint's ring context (client contract revision 3, step \
+                Ok((
+                    times.time("validate", || -> Result<Features, FeatureError> {
+                        let f = features::from_precomputed(
+                            k.width,
+                            k.height,
+                            k.keypoints,
+                            &k.descriptors,
+                            &self.keypoint_limits,
+                        )?;
+                        if needs_context && k.context.is_empty() {
+                            return Err(FeatureError::InvalidContext {
+                                reason: format!(
+                                    "model {} reads each keypoint's ring context (client contract revision 3, step \
                                  9): send the keypoint set's context",
-                                self.model_id()
-                            ),
-                        });
-                    }
-                    if needs_context {
-                        features::with_context(f, &k.context)
-                    } else {
-                        Ok(f)
-                    }
-                })?)
+                                    self.model_id()
+                                ),
+                            });
+                        }
+                        if needs_context {
+                            features::with_context(f, &k.context)
+                        } else {
+                            Ok(f)
+                        }
+                    })?,
+                    None,
+                ))
             }
         }
     }
@@ -103,7 +117,7 @@ impl Service {
         lens: Option<(&Camera, &Distortion)>,
     ) -> Result<Description, ServiceError> {
         let mut times = StageTimes::default();
-        let mut features = self.features(source, &mut times)?;
+        let (mut features, mut embeddings) = self.features(source, &mut times)?;
         if let Some((cam, distortion)) = lens.filter(|(_, d)| !d.is_none()) {
             times.time("undistort", || -> Result<(), ServiceError> {
                 let moved = distortion.undistort(cam, &features.points())?;
@@ -121,19 +135,29 @@ impl Service {
                 // Ring contexts stay as sampled: they describe the image around the keypoint where it is.
                 let context = std::mem::take(&mut features.context);
                 let mut context = context.into_iter();
-                for ((mut k, d), (x, y)) in old.into_iter().zip(descriptors).zip(moved) {
+                let dim = self.dim();
+                let rows = embeddings.take();
+                let mut kept_rows = rows.as_ref().map(|_| Vec::new());
+                for (i, ((mut k, d), (x, y))) in old.into_iter().zip(descriptors).zip(moved).enumerate() {
                     let c = context.next();
                     if inside(x, y) {
                         (k.x, k.y) = (x, y);
                         features.keypoints.push(k);
                         features.descriptors.push(d);
                         features.context.extend(c);
+                        if let (Some(rows), Some(kept)) = (&rows, &mut kept_rows) {
+                            kept.extend_from_slice(&rows[i * dim..(i + 1) * dim]);
+                        }
                     }
                 }
+                embeddings = kept_rows;
                 Ok(())
             })?;
         }
-        let d = self.describer.embed(features, &mut times)?;
+        let d = match embeddings {
+            Some(embeddings) => Described { features, embeddings },
+            None => self.describer.embed(features, &mut times)?,
+        };
         Ok(Description {
             features: d.features,
             embeddings: d.embeddings,
@@ -219,5 +243,47 @@ impl Service {
             ));
         }
         Ok(())
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use std::sync::Arc;
+
+    use super::*;
+    use crate::embedding::{Embedder, EmbedderSettings};
+    use crate::pipeline::Describer;
+
+    /// A ring model's image described through a lens: the keypoints whose undistorted position leaves the image
+    /// are dropped with their embedding rows, and every other keypoint keeps, in order, the embedding the
+    /// lens-free description gave it (its descriptor, context and response unchanged).
+    #[test]
+    fn a_lens_drops_keypoints_with_their_embedding_rows() {
+        let embedder = Arc::new(Embedder::load(&EmbedderSettings::default()).unwrap());
+        assert!(embedder.needs_context());
+        let describer =
+            Describer { extractor: embedder.extraction(), limits: Default::default(), embedder: embedder.clone() };
+        let service = Service::new(describer, Default::default(), Default::default()).unwrap();
+        let bytes = std::fs::read(concat!(env!("CARGO_MANIFEST_DIR"), "/tests/fixtures/coffee-640x480.jpg")).unwrap();
+        let plain = service.describe(FrameSource::Image(bytes.clone())).unwrap();
+        let cam = Camera { fx: 400.0, fy: 400.0, cx: 320.0, cy: 240.0, width: 640, height: 480 };
+        let barrel = Distortion::RadialTangential(vec![-0.3, 0.0, 0.0, 0.0]);
+        let lensed = service.describe_source(FrameSource::Image(bytes), Some((&cam, &barrel))).unwrap();
+        let (a, b, dim) = (&lensed.features, &plain.features, embedder.dim());
+        assert!(a.len() + 50 < b.len() && a.len() > 500, "{} of {} keypoints kept", a.len(), b.len());
+        assert_eq!((lensed.embeddings.len(), a.context.len()), (a.len() * dim, a.len()));
+        let mut j = 0;
+        for i in 0..a.len() {
+            let same = |j: usize| {
+                b.descriptors[j] == a.descriptors[i]
+                    && b.context[j] == a.context[i]
+                    && b.keypoints[j].response == a.keypoints[i].response
+            };
+            while !same(j) {
+                j += 1;
+            }
+            assert_eq!(lensed.embeddings[i * dim..(i + 1) * dim], plain.embeddings[j * dim..(j + 1) * dim], "row {i}");
+            j += 1;
+        }
     }
 }

@@ -148,3 +148,80 @@ fn a_model_with_the_wrong_contract_is_refused_naming_the_mismatch() {
     let err = Embedder::load(&cfg).unwrap_err().to_string();
     assert!(err.contains("descriptors") && err.contains("Uint8") && err.contains("contract"), "{err}");
 }
+
+/// An image described in overlapped parts on two sessions (`pipeline::describe_decoded`: FREAK in calls, ring
+/// contexts and inference on two threads) and a set embedded in halves on two sessions give exactly what one
+/// call of each stage on one session gives, bit for bit; with no idle session to spare, and below the size
+/// the pipeline starts at, the stages run in turn (the stage times tell which ran) with the same result.
+#[test]
+fn the_pipelined_describe_and_the_split_embedding_are_the_one_session_path_bit_for_bit() {
+    use scone::pipeline::{describe_decoded, extract_for, StageTimes, PIPELINE_FROM};
+    let one =
+        Embedder::load(&EmbedderSettings { sessions: 1, intra_threads: 1, ..EmbedderSettings::default() }).unwrap();
+    let two =
+        Embedder::load(&EmbedderSettings { sessions: 2, intra_threads: 1, ..EmbedderSettings::default() }).unwrap();
+    // Bit patterns; a difference is reported by its count and size, not as two lists of thousands.
+    let bits = |e: &[f32]| e.iter().map(|v| v.to_bits()).collect::<Vec<u32>>();
+    let same = |a: &[f32], b: &[f32], what: &str| {
+        let diff = a.iter().zip(b).filter(|(x, y)| x.to_bits() != y.to_bits()).count();
+        let max = a.iter().zip(b).map(|(x, y)| (x - y).abs()).fold(0.0f32, f32::max);
+        let rows: Vec<usize> =
+            (0..a.len() / 48).filter(|r| (0..48).any(|c| a[r * 48 + c].to_bits() != b[r * 48 + c].to_bits())).collect();
+        eprintln!("{what}: rows differing {:?}", rows);
+        assert!(
+            a.len() == b.len() && diff == 0,
+            "{what}: {} vs {} values, {diff} differ, by up to {max:e}",
+            a.len(),
+            b.len()
+        );
+    };
+    let stages = |t: &StageTimes| t.0.iter().map(|(s, _)| *s).collect::<Vec<_>>();
+    for (name, max_keypoints) in [
+        ("astronaut.jpg", 2000),
+        ("coffee-640x480.jpg", 2000),
+        ("coffee-640x480.jpg", 700),
+        ("coffee-640x480.jpg", 1337),
+        ("astronaut.jpg", 300),
+    ] {
+        let image = decode_grey(&std::fs::read(fixture(name)).unwrap(), &ImageLimitSettings::default()).unwrap();
+        let cfg = ExtractorSettings { max_keypoints, ..one.extraction() };
+        let f = extract_for(&image, &cfg, &one).unwrap();
+        let e = one.embed(&f).unwrap();
+        let mut times = StageTimes::default();
+        let d = describe_decoded(&image, &cfg, &two, &mut times).unwrap();
+        let pipelined = f.len() >= PIPELINE_FROM;
+        assert_eq!(
+            stages(&times),
+            if pipelined { vec!["extract", "embed"] } else { vec!["extract", "context", "embed"] }
+        );
+        assert_eq!(d.features, f, "{name}, {max_keypoints} keypoints");
+        same(&d.embeddings, &e, &format!("{name}, {max_keypoints} keypoints, pipelined"));
+        same(&two.embed(&f).unwrap(), &e, &format!("{name}, {max_keypoints} keypoints, halves on two sessions"));
+        // One session taken: the pipeline runs on the other one alone, overlapping FREAK all the same.
+        let taken = two.try_lease().unwrap();
+        let mut times = StageTimes::default();
+        let d = describe_decoded(&image, &cfg, &two, &mut times).unwrap();
+        drop(taken);
+        assert_eq!(stages(&times).len(), if pipelined { 2 } else { 3 });
+        assert_eq!((&d.features, bits(&d.embeddings)), (&f, bits(&e)));
+        // An embedder of one session runs the stages in turn.
+        let mut times = StageTimes::default();
+        let d = describe_decoded(&image, &cfg, &one, &mut times).unwrap();
+        assert_eq!(stages(&times), ["extract", "context", "embed"]);
+        assert_eq!((d.features, bits(&d.embeddings)), (f, bits(&e)));
+    }
+    // A constellation model reads every keypoint's neighbours: no overlap, the same path.
+    let k20 = Embedder::load(&EmbedderSettings {
+        model: constellation_model_path(),
+        sessions: 2,
+        intra_threads: 1,
+        ..EmbedderSettings::default()
+    })
+    .unwrap();
+    let image = decode_grey(&std::fs::read(fixture("astronaut.jpg")).unwrap(), &ImageLimitSettings::default()).unwrap();
+    let f = extract_for(&image, &k20.extraction(), &k20).unwrap();
+    let mut times = StageTimes::default();
+    let d = describe_decoded(&image, &k20.extraction(), &k20, &mut times).unwrap();
+    assert_eq!(stages(&times), ["extract", "embed"]);
+    assert_eq!((d.features, bits(&d.embeddings)), (f.clone(), bits(&k20.embed(&f).unwrap())));
+}

@@ -95,7 +95,9 @@ pub fn load_embedder(needed: bool, report: &ReportArgs) -> anyhow::Result<Option
     if !needed && report.model.is_none() {
         return Ok(None);
     }
-    let mut ec = EmbedderSettings { intra_threads: report.embed_threads.max(1), ..EmbedderSettings::default() };
+    // One session: `--embed-threads` is then every thread the model takes (1 keeps the evaluation on one core).
+    let mut ec =
+        EmbedderSettings { sessions: 1, intra_threads: report.embed_threads.max(1), ..EmbedderSettings::default() };
     if let Some(m) = report.model.clone() {
         ec.model = m;
     }

@@ -6,7 +6,6 @@ use std::path::PathBuf;
 use clap::Subcommand;
 
 use scone::decode::ImageLimitSettings;
-use scone::embedding::EmbedderSettings;
 use scone::map::builder::{BuildSettings, Depth, KeyframeInput};
 use scone::map::store::{MapStore, ModelInfo, StoreSettings};
 use scone::offline::scene::Scene;
@@ -93,7 +92,7 @@ fn open_store(data_dir: PathBuf, model: Option<PathBuf>) -> anyhow::Result<(MapS
 }
 
 fn open_store_with(config: StoreSettings, model: Option<PathBuf>) -> anyhow::Result<(MapStore, Describer)> {
-    let report = ReportArgs { model, json: None, embed_threads: EmbedderSettings::default().intra_threads };
+    let report = ReportArgs { model, json: None, embed_threads: 2 };
     let embedder = std::sync::Arc::new(load_embedder(true, &report)?.expect("requested"));
     let info = ModelInfo { model_id: embedder.model_id().to_string(), k: embedder.k(), dim: embedder.dim() };
     let store = MapStore::open(config, info)?;
