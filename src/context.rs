@@ -202,8 +202,7 @@ fn sample_sums<T: Copy + Into<f64> + Sync>(
             })
             .collect()
     };
-    static CORES: LazyLock<usize> = LazyLock::new(|| std::thread::available_parallelism().map_or(1, |n| n.get()));
-    let two = two_threads && keypoints.len() >= PARALLEL_FROM && *CORES > 1;
+    let two = two_threads && keypoints.len() >= PARALLEL_FROM && crate::cpu_pool::cores() > 1;
     let (upper, lower) = order.split_at(if two { order.len() / 2 } else { order.len() });
     let (a, b) = std::thread::scope(|scope| {
         // A thread the system refuses (a process limit) leaves the lower band to this one.

@@ -25,6 +25,15 @@ use parking_lot::Mutex;
 
 type Job = Box<dyn FnOnce() + Send + 'static>;
 
+/// Cores this process may run on (its CPU affinity: a server pinned to one core sees 1), read once. The
+/// stages that split one request's work over two threads (ring contexts, embedding halves, the pipelined
+/// describe) do so only when there are two.
+pub fn cores() -> usize {
+    static CORES: std::sync::LazyLock<usize> =
+        std::sync::LazyLock::new(|| std::thread::available_parallelism().map_or(1, |n| n.get()));
+    *CORES
+}
+
 /// Why a job did not run to completion.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, thiserror::Error)]
 pub enum PoolError {

@@ -396,7 +396,7 @@ impl Embedder {
         }
         let mut first = self.lease();
         if let Context::Rings(rings) = context {
-            if features.len() >= SPLIT_FROM {
+            if features.len() >= SPLIT_FROM && crate::cpu_pool::cores() > 1 {
                 if let Some(mut second) = self.try_lease() {
                     let descriptors = features.descriptors.as_flattened();
                     return run_split(&mut first.session, &mut second.session, descriptors, rings, self.dim);

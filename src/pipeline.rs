@@ -2,13 +2,14 @@
 //! context sampled from the image, or constellations built from the keypoints) -> SConE embeddings. The service, the commands and the evaluation call this; nothing else strings the stages
 //! together. Callers that report stage times pass a [`StageTimes`] for the describer to fill.
 
-use std::sync::{mpsc, Arc, LazyLock};
+use std::sync::{mpsc, Arc};
 use std::time::Instant;
 
 use opencv::core::{KeyPoint, Vector};
 use parking_lot::Mutex;
 
 use crate::context::RingSampler;
+use crate::cpu_pool;
 use crate::decode::{decode_grey, GreyImage, ImageLimitSettings};
 use crate::embedding::{Embedder, Lease};
 use crate::error::{EmbeddingError, FeatureError};
@@ -88,7 +89,6 @@ pub fn describe_decoded(
     embedder: &Embedder,
     times: &mut StageTimes,
 ) -> Result<Described, DescribeError> {
-    static CORES: LazyLock<usize> = LazyLock::new(|| std::thread::available_parallelism().map_or(1, |n| n.get()));
     let start = Instant::now();
     extractor.validate()?;
     let mut candidates = features::detect(image, extractor)?;
@@ -96,7 +96,7 @@ pub fn describe_decoded(
     // the next to be free).
     let overlap = embedder.needs_context()
         && candidates.len() >= PIPELINE_FROM
-        && *CORES > 1
+        && cpu_pool::cores() > 1
         && embedder.sessions() > 1
         && embedder.try_lease().is_some();
     if !overlap {
