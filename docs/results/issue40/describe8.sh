@@ -5,9 +5,13 @@
 # load-tests/run pins its servers), and drives it with wrk on core 1: 8 connections, closed loop, 30 s,
 # POST /v1/describe with the 640x480 JPEGs of rgbd-slambook-5 (quality 90) in turn, after a 5 s warm-up.
 # Prints one line per server and round (req/s, latency p50/p99 from wrk's HdrHistogram) and the ratio of the
-# rounds' means. Needs wrk (apt-get install wrk) and python3 with OpenCV (the client venv) for the JPEGs.
+# rounds' means. SCONE_DESCRIBE_CLIENTS=N sets the connections (default 8), SCONE_DESCRIBE_UNPINNED=1 leaves
+# the server and wrk free to use both cores (a lone client's latency, session 48). Needs wrk (apt-get install wrk) and python3 with OpenCV (the client venv) for the JPEGs.
 set -euo pipefail
 old="$1" new="$2" rounds="${3:-2}"
+clients="${SCONE_DESCRIBE_CLIENTS:-8}"
+pin_server=(taskset -c 0) pin_wrk=(taskset -c 1)
+if [ "${SCONE_DESCRIBE_UNPINNED:-0}" = 1 ]; then pin_server=() pin_wrk=(); fi
 root="$(cd "$(dirname "${BASH_SOURCE[0]}")/../../.." && pwd)"
 scene="${SCONE_LOAD_SCENE:-$root/../shared/data/scenes/rgbd-slambook-5}"
 py="${SCONE_PY:-${SCONE_PREFIX:-$HOME/.cache/scone}/venv-client/bin/python}"
@@ -24,13 +28,13 @@ files="${files%:}"
 lua="$root/load-tests/wrk/post-jpeg.lua"
 run() {  # binary label -> prints "label req/s p50 p99"
   local data="$work/data-$RANDOM" port=$((20000 + RANDOM % 20000))
-  taskset -c 0 "$1" serve --grpc-addr 127.0.0.1:$((port + 1)) --http-addr 127.0.0.1:$port --data-dir "$data" \
+  "${pin_server[@]}" "$1" serve --grpc-addr 127.0.0.1:$((port + 1)) --http-addr 127.0.0.1:$port --data-dir "$data" \
     > "$work/server.log" 2>&1 &
   local pid=$!
   for _ in $(seq 100); do curl -sf "http://127.0.0.1:$port/healthz" >/dev/null && break; sleep 0.2; done
-  SCONE_WRK_FILES="$files" taskset -c 1 wrk -t1 -c8 -d5s --timeout 60s -s "$lua" "http://127.0.0.1:$port/v1/describe" >/dev/null
+  SCONE_WRK_FILES="$files" "${pin_wrk[@]}" wrk -t1 -c"$clients" -d5s --timeout 60s -s "$lua" "http://127.0.0.1:$port/v1/describe" >/dev/null
   local out
-  out="$(SCONE_WRK_FILES="$files" taskset -c 1 wrk -t1 -c8 -d30s --timeout 60s -s "$lua" "http://127.0.0.1:$port/v1/describe" | sed -n 's/^SCONE-WRK-JSON //p')"
+  out="$(SCONE_WRK_FILES="$files" "${pin_wrk[@]}" wrk -t1 -c"$clients" -d30s --timeout 60s -s "$lua" "http://127.0.0.1:$port/v1/describe" | sed -n 's/^SCONE-WRK-JSON //p')"
   kill "$pid"; wait "$pid" 2>/dev/null || true
   python3 -c 'import json,sys; d=json.loads(sys.argv[2]); print(sys.argv[1], round(d["rps"], 2), d["p50_ms"], d["p99_ms"], "non2xx", d["non2xx"], "socket_errors", d["socket_errors"])' "$2" "$out"
 }
