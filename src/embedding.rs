@@ -24,8 +24,10 @@
 //!
 //! Concurrency: `Session::run` needs exclusive access, so the embedder owns a small pool of sessions, one per
 //! CPU worker of the service, each with its own intra-op thread count. Workers take a free session without
-//! waiting when one exists; otherwise they wait for one. Sessions x intra-op threads should not exceed the
-//! cores (default: as many sessions as workers, one thread each).
+//! waiting when one exists ([`Lease`]); otherwise they wait for one. Sessions x intra-op threads should not
+//! exceed the cores (default: two sessions of one thread, the service's two workers). A request that finds a
+//! second session idle uses it too: a ring model's large set is embedded in halves on both
+//! ([`Embedder::embed`]), and `pipeline::describe_decoded` overlaps FREAK with the model.
 
 use std::path::{Path, PathBuf};
 use std::sync::OnceLock;
