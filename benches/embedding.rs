@@ -1,7 +1,9 @@
 //! SConE on a 640x480 photograph, against FAST + FREAK alone in the same run and at the same extraction: the
 //! whole path (extraction, the model's context: constellations or ring contexts, ONNX Runtime), the ring
 //! contexts alone, inference alone at 1 and 2 intra-op threads (with the constellations it builds, for a
-//! constellation model), and matching SConE embeddings (L2) against FREAK (Hamming), brute force, with the
+//! constellation model), the service's default shape of 2 sessions x 1 thread (`inference_2sessions`: a set
+//! in halves; `path_pipelined_2sessions`: FREAK overlapped with the model; `cargo bench --bench path` times it
+//! against FAST + FREAK interleaved), and matching SConE embeddings (L2) against FREAK (Hamming), brute force, with the
 //! plain and the same-corner ratio test, and MatchPair's matchers (freak, rerank, scale-aware) between the
 //! photograph and a mild and a 2x zoomed view of it. Also the relative-pose estimators (plain RANSAC against
 //! USAC_ACCURATE) on 300 synthetic correspondences, 25 % outliers.

@@ -25,9 +25,10 @@
 //! Concurrency: `Session::run` needs exclusive access, so the embedder owns a small pool of sessions, one per
 //! CPU worker of the service, each with its own intra-op thread count. Workers take a free session without
 //! waiting when one exists ([`Lease`]); otherwise they wait for one. Sessions x intra-op threads should not
-//! exceed the cores (default: two sessions of one thread, the service's two workers). A request that finds a
-//! second session idle uses it too: a ring model's large set is embedded in halves on both
-//! ([`Embedder::embed`]), and `pipeline::describe_decoded` overlaps FREAK with the model.
+//! exceed the cores (default: two sessions of one thread, the service's two workers). On two or more cores, a
+//! request that finds a second session idle uses it too, so one request may hold two: a ring model's set of
+//! [`SPLIT_FROM`] keypoints or more is embedded in halves on both ([`Embedder::embed`]), and
+//! `pipeline::describe_decoded` overlaps FREAK with the model.
 
 use std::path::{Path, PathBuf};
 use std::sync::OnceLock;
@@ -52,9 +53,9 @@ pub struct EmbedderSettings {
     pub model: PathBuf,
     /// ONNX Runtime shared library (`libonnxruntime.so`).
     pub runtime_library: PathBuf,
-    /// Sessions in the pool (concurrent inferences). With two or more, a ring model's large set is embedded in
-    /// halves on two idle sessions at once, and an image's description overlaps FREAK with the model
-    /// (`pipeline::describe_decoded`); with one, each request's stages run in turn.
+    /// Sessions in the pool (concurrent inferences). With two or more (and two cores), a ring model's large set
+    /// is embedded in halves on two idle sessions at once, and an image's description overlaps FREAK with the
+    /// model (`pipeline::describe_decoded`); with one, each request's stages run in turn.
     pub sessions: usize,
     /// Intra-op threads per session.
     pub intra_threads: usize,
@@ -389,8 +390,8 @@ impl Embedder {
     }
 
     /// Embeddings of every keypoint, row-major `[N, dim]`. A ring model's rows are independent of each other,
-    /// so a set of [`SPLIT_FROM`] keypoints or more is split in two halves when a second session is idle, the
-    /// second half run on a thread of its own: the same embeddings, bit for bit, on two cores.
+    /// so on two or more cores a set of [`SPLIT_FROM`] keypoints or more is split in two halves when a second
+    /// session is idle, the second half run on a thread of its own: the same embeddings, bit for bit.
     pub fn embed(&self, features: &Features) -> Result<Vec<f32>, EmbeddingError> {
         let context = self.context_of(features)?;
         if features.is_empty() {

@@ -73,9 +73,10 @@ const PIECE: usize = 256;
 /// several sessions, one of them idle, and with [`PIPELINE_FROM`] keypoints or more, they overlap FREAK:
 /// - this thread runs FREAK on the detected keypoints in calls of `PIECE` (256) keypoints, and puts what each
 ///   call gives on a queue, in parts of `PIECE` rows counted over the whole set;
-/// - a scoped thread with a session of its own takes the parts off the queue: it samples their ring contexts
-///   and embeds them;
-/// - once FREAK is done, this thread takes parts too, on another session when one is free.
+/// - a scoped thread with a session of its own (one idle as it starts) takes the parts off the queue: it
+///   samples their ring contexts and embeds them;
+/// - once FREAK is done, this thread takes parts too, on another session if one is idle; parts that no
+///   thread took (no session was idle) wait here for one.
 ///
 /// The parts are put back in order, so the features and embeddings are bit for bit what one call of each
 /// stage gives (tested): FREAK describes each keypoint alone (the image's integral is made again in each
@@ -92,8 +93,8 @@ pub fn describe_decoded(
     let start = Instant::now();
     extractor.validate()?;
     let mut candidates = features::detect(image, extractor)?;
-    // A session idle now: the other thread takes one (this one or, should another request take it first,
-    // the next to be free).
+    // A session idle now: the other thread takes it, unless another request takes it first (then the parts
+    // wait for this thread).
     let overlap = embedder.needs_context()
         && candidates.len() >= PIPELINE_FROM
         && cpu_pool::cores() > 1
@@ -146,9 +147,12 @@ fn pipelined(
         }
         Ok(out)
     };
+    // Only with a session idle: waiting for one could mean waiting for another request's whole describe.
+    let helper = || embedder.try_lease().map_or_else(|| Ok(Vec::new()), |mut lease| drain(&mut lease));
     std::thread::scope(|scope| {
-        let other = std::thread::Builder::new().spawn_scoped(scope, || drain(&mut embedder.lease()));
-        let freak = || -> Result<(), DescribeError> {
+        let other = std::thread::Builder::new().spawn_scoped(scope, helper);
+        // Returns how many parts it put on the queue.
+        let freak = || -> Result<usize, DescribeError> {
             // FREAK's output so far that is not yet in a part: parts start at multiples of `PIECE` of the whole
             // set whatever FREAK drops, so the model sees the rows in the groups one call would.
             let mut pending = Features { width: image.width(), height: image.height(), ..Default::default() };
@@ -167,33 +171,36 @@ fn pipelined(
                     index += 1;
                 }
             }
-            Ok(())
+            Ok(index)
         };
         let described = freak();
         drop(send);
         let done = Instant::now();
         times.0.push(("extract", (done - start).as_secs_f64()));
-        // This thread helps once FREAK is done (on an error, it empties the queue so the other stops soon).
-        let mine = match described {
-            Ok(()) => match embedder.try_lease() {
-                Some(mut own) => drain(&mut own),
-                None => Ok(Vec::new()),
-            },
-            Err(e) => {
+        // This thread helps once FREAK is done, on a session idle then (on an error, it empties the queue so
+        // the other stops soon).
+        let mine = match &described {
+            Ok(_) => embedder.try_lease().map_or_else(|| Ok(Vec::new()), |mut own| drain(&mut own)),
+            Err(_) => {
                 while queue.lock().try_recv().is_ok() {}
-                Err(e)
+                Ok(Vec::new())
             }
         };
         let theirs = match other {
             Ok(t) => t.join().expect("a describe thread panicked"),
-            // No second thread: this one does every part.
             Err(e) => {
                 tracing::debug!(error = %e, "no second thread for the describe pipeline");
-                drain(&mut embedder.lease())
+                Ok(Vec::new())
             }
         };
+        let sent = described?;
         let mut parts = mine?;
         parts.extend(theirs?);
+        // Parts neither thread took, when neither found a session idle (or there was no second thread): this
+        // one waits for a session and embeds them.
+        if parts.len() < sent {
+            parts.extend(drain(&mut embedder.lease())?);
+        }
         parts.sort_unstable_by_key(|(i, _)| *i);
         Ok((parts.into_iter().map(|(_, p)| p).collect(), done))
     })
