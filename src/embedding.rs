@@ -429,8 +429,14 @@ impl Embedder {
 }
 
 /// Keypoints from which [`Embedder::embed`] splits a ring model's set over two idle sessions (in halves cut at a
-/// multiple of 64 rows).
+/// multiple of [`ROW_GROUP`] rows).
 pub const SPLIT_FROM: usize = 256;
+
+/// Where a ring model's set may be cut into parts run apart, bit for bit the whole: at a multiple of this many
+/// rows. onnxruntime's matrix products take rows in small groups, and a part that starts inside one of the
+/// whole set's groups can differ from it in the last bit (measured: halves of 350 rows changed values by up to
+/// 1.8e-7, halves of 348 none; 64 leaves room for other kernels' groups).
+pub const ROW_GROUP: usize = 64;
 
 /// One session of an [`Embedder`]'s pool, held until dropped: a caller that runs several inferences at once
 /// (the pipelined describe, `crate::pipeline`) holds one per thread.
@@ -514,9 +520,7 @@ fn run_split(
     rings: &[u8],
     dim: usize,
 ) -> Result<Vec<f32>, EmbeddingError> {
-    // At a multiple of 64 rows: onnxruntime's matrix products take rows in small groups, and halves that cut
-    // one of the whole set's groups can differ from it in the last bit (up to 2e-7 measured, halves of 350 rows; none at 348).
-    let half = descriptors.len() / DESCRIPTOR_BYTES / 2 / 64 * 64;
+    let half = descriptors.len() / DESCRIPTOR_BYTES / 2 / ROW_GROUP * ROW_GROUP;
     let (d1, d2) = descriptors.split_at(half * DESCRIPTOR_BYTES);
     let (r1, r2) = rings.split_at(half * SAMPLES);
     std::thread::scope(|scope| {

@@ -11,7 +11,7 @@ use parking_lot::Mutex;
 use crate::context::RingSampler;
 use crate::cpu_pool;
 use crate::decode::{decode_grey, GreyImage, ImageLimitSettings};
-use crate::embedding::{Embedder, Lease};
+use crate::embedding::{Embedder, Lease, ROW_GROUP};
 use crate::error::{EmbeddingError, FeatureError};
 use crate::features::{self, ExtractorSettings, Features};
 
@@ -61,10 +61,10 @@ pub fn extract_for(
 
 /// Keypoints from which [`describe_decoded`] overlaps FREAK with the model's work.
 pub const PIPELINE_FROM: usize = 512;
-/// Keypoints of each FREAK call and of each part the two threads take in turn. A multiple of 64:
-/// onnxruntime's matrix products take rows in small groups, and a part that starts inside one of the whole
-/// set's groups can differ from it in the last bit (measured: up to 2e-7 with halves of 350 rows).
+/// Keypoints of each FREAK call and of each part the two threads take in turn: a multiple of [`ROW_GROUP`], so
+/// the parts' embeddings are the whole set's bit for bit.
 const PIECE: usize = 256;
+const _: () = assert!(PIECE.is_multiple_of(ROW_GROUP));
 
 /// FAST + FREAK features of a decoded image with their SConE embeddings, timing `extract` (detection and
 /// FREAK), `context` and `embed`.
@@ -81,7 +81,7 @@ const PIECE: usize = 256;
 /// The parts are put back in order, so the features and embeddings are bit for bit what one call of each
 /// stage gives (tested): FREAK describes each keypoint alone (the image's integral is made again in each
 /// call), the context too, and the model's rows are independent, taken in parts that start on a multiple of
-/// 64 rows. Here `extract` is the time until FREAK's last call returns and `embed` the rest; `context` is
+/// [`ROW_GROUP`] rows. Here `extract` is the time until FREAK's last call returns and `embed` the rest; `context` is
 /// not timed apart. Otherwise, and for a constellation model (whose context is every keypoint's
 /// neighbours), the stages run one after the other.
 pub fn describe_decoded(
