@@ -6,7 +6,10 @@
 //! the map data), in the same run; then it waits for the snapshot's payload section, which arrives after the
 //! map is ready; plus the memory the loaded map takes against the cache's estimate.
 //! Run: `cargo bench --bench replica` (needs `../shared/data` or `$SCONE_DATA`; prints a note without it).
-//! `SCONE_BENCH_OBSERVATIONS` changes the map size (default 100000).
+//! `SCONE_BENCH_OBSERVATIONS` changes the map size (default 100000). For trying a change to the load:
+//! `SCONE_BENCH_S3_ENDPOINT` names an emulator already running (its bucket's map is kept and used again by the
+//! next run), `SCONE_BENCH_REBUILD=0` leaves out the rebuilt row, and `RUST_LOG=scone=info` prints each load's
+//! parts ("map opened").
 
 use std::path::{Path, PathBuf};
 use std::process::{Child, Command, Stdio};
@@ -88,13 +91,21 @@ fn main() {
     };
     let target: usize = std::env::var("SCONE_BENCH_OBSERVATIONS").ok().and_then(|v| v.parse().ok()).unwrap_or(100_000);
     scone::features::set_opencv_threads(1).unwrap();
+    if std::env::var_os("RUST_LOG").is_some() {
+        tracing_subscriber::fmt().with_env_filter(tracing_subscriber::EnvFilter::from_default_env()).init();
+    }
+    let rebuild_row = std::env::var("SCONE_BENCH_REBUILD").map_or(true, |v| v != "0");
     // The static credentials of the emulator, through the variables `from_env` reads.
     std::env::set_var("AWS_ACCESS_KEY_ID", KEY);
     std::env::set_var("AWS_SECRET_ACCESS_KEY", KEY);
     std::env::set_var("AWS_REGION", "us-east-1");
-    let port = std::net::TcpListener::bind("127.0.0.1:0").unwrap().local_addr().unwrap().port();
-    let _moto = start_moto(port);
-    let endpoint = format!("http://127.0.0.1:{port}");
+    let (endpoint, _moto) = match std::env::var("SCONE_BENCH_S3_ENDPOINT") {
+        Ok(endpoint) => (endpoint, None),
+        Err(_) => {
+            let port = std::net::TcpListener::bind("127.0.0.1:0").unwrap().local_addr().unwrap().port();
+            (format!("http://127.0.0.1:{port}"), Some(start_moto(port)))
+        }
+    };
     let rt = tokio::runtime::Builder::new_current_thread().enable_all().build().unwrap();
     let http = reqwest::Client::new();
     let t = Instant::now();
@@ -103,12 +114,18 @@ fn main() {
         std::thread::sleep(Duration::from_millis(100));
     }
     let bucket = "replica-bench";
-    assert!(rt.block_on(http.put(format!("{endpoint}/{bucket}")).send()).unwrap().status().is_success());
+    // A bucket that is there already (an emulator kept running) is used again as it is.
+    let made = rt.block_on(http.put(format!("{endpoint}/{bucket}")).send()).unwrap().status();
+    assert!(made.is_success() || made.as_u16() == 409, "bucket: {made}");
 
     let embedder = Arc::new(Embedder::load(&EmbedderSettings::default()).unwrap());
     let model = ModelInfo { model_id: embedder.model_id().to_string(), k: embedder.k(), dim: embedder.dim() };
     let describer = Describer { extractor: embedder.extraction(), limits: ImageLimitSettings::default(), embedder };
     let limits = ImageLimitSettings::default();
+    // The process before any map: the memory line counts from here (an allocator that returns memory to the
+    // system, as mimalloc does, can leave the RSS lower after a load than before it, when the writer's map is
+    // gone).
+    let rss_start = rss_mb();
     let tmp = std::env::temp_dir().join(format!("scone-bench-replica-{}", std::process::id()));
     let _ = std::fs::remove_dir_all(&tmp);
 
@@ -116,11 +133,16 @@ fn main() {
     let t = Instant::now();
     let mut frames = [0usize; 2];
     let mut id = 0u64;
+    let reused;
     {
         let writer = store(&endpoint, bucket, &tmp.join("writer"), &model);
-        writer.create("m").unwrap();
+        // The map an earlier run left in a kept emulator's bucket (and no frames added to it).
+        reused = writer.summary("m").is_ok();
+        if !reused {
+            writer.create("m").unwrap();
+        }
         let mut progress = scone::progress::Progress::new("replica bench: writer map, observations", target);
-        'scenes: for (si, scene) in [&sun3d, &kitchen].into_iter().enumerate() {
+        'scenes: for (si, scene) in [&sun3d, &kitchen].into_iter().enumerate().filter(|_| !reused) {
             for f in &scene.frames {
                 progress.set(writer.summary("m").unwrap().observations);
                 if writer.summary("m").unwrap().observations >= target {
@@ -171,7 +193,6 @@ fn main() {
     // Cold replicas: an empty cache each, first request for the map.
     let cold = |name: &str| {
         let s = store(&endpoint, bucket, &tmp.join(name), &model);
-        let rss = rss_mb();
         let t = Instant::now();
         let summary = s.summary("m").unwrap();
         let ready = t.elapsed().as_secs_f64();
@@ -184,7 +205,7 @@ fn main() {
         });
         payload.expect("a keyframe").expect("the payload section arrived");
         let arrived = t.elapsed().as_secs_f64();
-        let rss_mb_loaded = rss_mb() - rss;
+        let rss_mb_loaded = rss_mb() - rss_start;
         let estimate_mb = s.loaded_bytes() as f64 / 1e6;
         (ready, from_dump, summary, rss_mb_loaded, estimate_mb, (gets.calls, gets.seconds), arrived)
     };
@@ -199,17 +220,29 @@ fn main() {
         with_dump.push((ready, gets, arrived));
     }
     with_dump.sort_by(|a, b| a.0.total_cmp(&b.0));
-    for o in objects.iter().filter(|o| o.location.as_ref().contains("/index/")) {
-        rt.block_on(raw.delete(&o.location)).unwrap();
-    }
-    let (rebuild, from_dump, summary, _, _, _, _) = cold("rebuild");
-    assert!(!from_dump);
+    let (rebuild, summary) = if rebuild_row {
+        for o in objects.iter().filter(|o| o.location.as_ref().contains("/index/")) {
+            rt.block_on(raw.delete(&o.location)).unwrap();
+        }
+        let (rebuild, from_dump, summary, _, _, _, _) = cold("rebuild");
+        assert!(!from_dump);
+        (rebuild, summary)
+    } else {
+        (f64::NAN, store(&endpoint, bucket, &tmp.join("count"), &model).summary("m").unwrap())
+    };
     let obs = summary.observations as f64;
-    println!(
-        "map: {} keyframes ({} frames of sun3d-studyroom with depth, {} of 7scenes-redkitchen triangulated), {} \
-         landmarks, {} observations; built and written to the bucket in {build_s:.0} s",
-        summary.keyframes, frames[0], frames[1], summary.landmarks, summary.observations
-    );
+    if reused {
+        println!(
+            "map: {} keyframes, {} landmarks, {} observations, left in the bucket by an earlier run",
+            summary.keyframes, summary.landmarks, summary.observations
+        );
+    } else {
+        println!(
+            "map: {} keyframes ({} frames of sun3d-studyroom with depth, {} of 7scenes-redkitchen triangulated), \
+             {} landmarks, {} observations; built and written to the bucket in {build_s:.0} s",
+            summary.keyframes, frames[0], frames[1], summary.landmarks, summary.observations
+        );
+    }
     println!(
         "bucket: snapshot {snapshot_mb:.1} MB (its core {core_mb:.1} MB), index dump {index_mb:.1} MB (moto on loopback)"
     );
@@ -226,11 +259,12 @@ fn main() {
          keyframes' payloads had all arrived {arrived:.2} s after the request"
     );
     println!();
-    // Only the first load is measured (once its payloads arrived): later ones reuse memory the allocator kept
-    // from the earlier ones.
+    // Only the first load is measured (once its payloads arrived), from the RSS before the writer's map: what the
+    // allocator kept of the writer's map and of the downloads is in it. Later loads reuse memory of earlier ones.
     println!(
-        "memory of the first loaded map: RSS +{:.0} MB = {:.0} B per observation (the download buffers the \
-         allocator kept included); the cache's estimate {:.0} MB = {:.0} B per observation (estimate / RSS = {:.2})",
+        "memory with the first replica's map loaded: RSS +{:.0} MB over the process before any map = {:.0} B per \
+         observation (what the allocator kept of the writer's map and the downloads included); the cache's \
+         estimate {:.0} MB = {:.0} B per observation (estimate / RSS = {:.2})",
         memory.0,
         memory.0 * 1e6 / obs,
         memory.1,

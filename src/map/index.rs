@@ -106,9 +106,11 @@ const SEARCH_CHUNK: usize = 16;
 
 /// Memory of one point of the graph beyond its vector: hnsw_rs's node (16 preallocated layer lists, two `Arc`s)
 /// and its links (each its own `Arc`, ~40 bytes with its pointer, 20-23 per point at m = 16), with what the
-/// allocator keeps of a reload's temporary map. Calibrated on issue 31's 479k-observation bench map opened
-/// from its dump, one point per landmark, and within 1 % of the RSS of the 728k one (BENCHMARKS.md, issue 41).
-const GRAPH_POINT_BYTES: usize = 3_300;
+/// allocator keeps of a reload. Calibrated against the RSS of the reloc bench's 728k-observation map opened
+/// from its dump, one point per landmark: 3,300 B under glibc's allocator (issue 31, within 1 % at 728k), 2,800 B
+/// since the crate allocates through mimalloc, which keeps no header beside each small allocation (1.32-1.33
+/// KB/obs against glibc's 1.44 in the same session; BENCHMARKS.md, "mimalloc").
+const GRAPH_POINT_BYTES: usize = 2_800;
 /// A landmark's entry in the representatives' map.
 const REPRESENTATIVE_BYTES: usize = 32;
 

@@ -3,6 +3,16 @@ use std::time::Instant;
 
 use hnsw_rs::prelude::{DistL2, Hnsw, HnswIo};
 
+#[cfg(feature = "mimalloc")]
+#[global_allocator]
+static ALLOCATOR: mimalloc::MiMalloc = mimalloc::MiMalloc;
+
+/// The process's resident memory, MB.
+fn rss_mb() -> f64 {
+    let statm = std::fs::read_to_string("/proc/self/statm").expect("procfs");
+    statm.split_whitespace().nth(1).and_then(|p| p.parse::<f64>().ok()).expect("statm's second field") * 4096.0 / 1e6
+}
+
 fn main() {
     let args: Vec<String> = std::env::args().collect();
     let (dir, base) = (std::path::PathBuf::from(&args[1]), args[2].clone());
@@ -18,6 +28,6 @@ fn main() {
             .into_iter()
             .map(|p| p.get_neighborhood_id().iter().map(Vec::len).sum::<usize>())
             .sum();
-        println!("{} points, {links} links: loaded in {secs:.3} s", graph.get_nb_point());
+        println!("{} points, {links} links: loaded in {secs:.3} s; RSS {:.0} MB", graph.get_nb_point(), rss_mb());
     }
 }
