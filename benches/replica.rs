@@ -7,9 +7,10 @@
 //! map is ready; plus the memory the loaded map takes against the cache's estimate.
 //! Run: `cargo bench --bench replica` (needs `../shared/data` or `$SCONE_DATA`; prints a note without it).
 //! `SCONE_BENCH_OBSERVATIONS` changes the map size (default 100000). For trying a change to the load:
-//! `SCONE_BENCH_S3_ENDPOINT` names an emulator already running (its bucket's map is kept and used again by the
-//! next run), `SCONE_BENCH_REBUILD=0` leaves out the rebuilt row, and `RUST_LOG=scone=info` prints each load's
-//! parts ("map opened").
+//! `SCONE_BENCH_S3_ENDPOINT` names an emulator already running, whose bucket keeps the map for the next run
+//! (which uses it as it is, whatever its size); such a run leaves out the rebuilt row, which would delete the
+//! bucket's dump. `SCONE_BENCH_REBUILD=0` leaves that row out of any run, and `RUST_LOG=scone=info` prints each
+//! load's parts ("map opened").
 
 use std::path::{Path, PathBuf};
 use std::process::{Child, Command, Stdio};
@@ -28,6 +29,7 @@ use scone::map::storage::BackendSettings;
 use scone::map::store::{CacheSettings, MapStore, ModelInfo, StoreSettings};
 use scone::offline::scene::Scene;
 use scone::pipeline::Describer;
+use scone::MapError;
 
 const KEY: &str = "bench";
 
@@ -94,14 +96,15 @@ fn main() {
     if std::env::var_os("RUST_LOG").is_some() {
         tracing_subscriber::fmt().with_env_filter(tracing_subscriber::EnvFilter::from_default_env()).init();
     }
-    let rebuild_row = std::env::var("SCONE_BENCH_REBUILD").map_or(true, |v| v != "0");
+    let kept_emulator = std::env::var("SCONE_BENCH_S3_ENDPOINT").ok();
+    let rebuild_row = kept_emulator.is_none() && std::env::var("SCONE_BENCH_REBUILD").map_or(true, |v| v != "0");
     // The static credentials of the emulator, through the variables `from_env` reads.
     std::env::set_var("AWS_ACCESS_KEY_ID", KEY);
     std::env::set_var("AWS_SECRET_ACCESS_KEY", KEY);
     std::env::set_var("AWS_REGION", "us-east-1");
-    let (endpoint, _moto) = match std::env::var("SCONE_BENCH_S3_ENDPOINT") {
-        Ok(endpoint) => (endpoint, None),
-        Err(_) => {
+    let (endpoint, _moto) = match kept_emulator {
+        Some(endpoint) => (endpoint, None),
+        None => {
             let port = std::net::TcpListener::bind("127.0.0.1:0").unwrap().local_addr().unwrap().port();
             (format!("http://127.0.0.1:{port}"), Some(start_moto(port)))
         }
@@ -137,7 +140,11 @@ fn main() {
     {
         let writer = store(&endpoint, bucket, &tmp.join("writer"), &model);
         // The map an earlier run left in a kept emulator's bucket (and no frames added to it).
-        reused = writer.summary("m").is_ok();
+        reused = match writer.summary("m") {
+            Ok(_) => true,
+            Err(MapError::UnknownMap { .. }) => false,
+            Err(e) => panic!("the bucket's map does not load: {e}"),
+        };
         if !reused {
             writer.create("m").unwrap();
         }
@@ -211,25 +218,26 @@ fn main() {
     };
     let mut with_dump = Vec::new();
     let mut memory = (0.0, 0.0);
+    let mut summary = None;
     for run in 0..3 {
-        let (ready, from_dump, _, rss, estimate, gets, arrived) = cold(&format!("dump-{run}"));
+        let (ready, from_dump, s, rss, estimate, gets, arrived) = cold(&format!("dump-{run}"));
         assert!(from_dump, "the cold replica did not use the dump");
         if run == 0 {
             memory = (rss, estimate);
         }
+        summary = Some(s);
         with_dump.push((ready, gets, arrived));
     }
+    let summary = summary.expect("three cold replicas");
     with_dump.sort_by(|a, b| a.0.total_cmp(&b.0));
-    let (rebuild, summary) = if rebuild_row {
+    let rebuild = rebuild_row.then(|| {
         for o in objects.iter().filter(|o| o.location.as_ref().contains("/index/")) {
             rt.block_on(raw.delete(&o.location)).unwrap();
         }
-        let (rebuild, from_dump, summary, _, _, _, _) = cold("rebuild");
+        let (rebuild, from_dump, ..) = cold("rebuild");
         assert!(!from_dump);
-        (rebuild, summary)
-    } else {
-        (f64::NAN, store(&endpoint, bucket, &tmp.join("count"), &model).summary("m").unwrap())
-    };
+        rebuild
+    });
     let obs = summary.observations as f64;
     if reused {
         println!(
@@ -249,8 +257,17 @@ fn main() {
     println!();
     println!("| cold replica, first request | time to ready s | vs rebuild |");
     println!("|---|---|---|");
-    println!("| index dump downloaded (median of 3) | {:.2} | {:.3} |", with_dump[1].0, with_dump[1].0 / rebuild);
-    println!("| index rebuilt from the map data | {rebuild:.2} | 1 |");
+    match rebuild {
+        Some(rebuild) => {
+            println!(
+                "| index dump downloaded (median of 3) | {:.2} | {:.3} |",
+                with_dump[1].0,
+                with_dump[1].0 / rebuild
+            );
+            println!("| index rebuilt from the map data | {rebuild:.2} | 1 |");
+        }
+        None => println!("| index dump downloaded (median of 3) | {:.2} | (not rebuilt in this run) |", with_dump[1].0),
+    }
     println!();
     let (ready, (calls, seconds), arrived) = with_dump[1];
     println!(

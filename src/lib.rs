@@ -81,7 +81,9 @@ pub(crate) mod test_dir;
 /// Rust's allocations go through mimalloc in every binary that links this crate (the service, the CLI, the
 /// benches and tests alike). A map's HNSW graph is millions of small allocations, one per link: a reload of
 /// the 728k bench map's graph took 0.46x glibc's time under it, in less memory (BENCHMARKS.md, "mimalloc").
-/// onnxruntime and OpenCV allocate through their own C++ runtimes, untouched by this.
+/// onnxruntime and OpenCV allocate through their own C++ runtimes, untouched by this. Not in fuzzing builds
+/// (`cfg(fuzzing)`, set by cargo-fuzz), where AddressSanitizer must see every allocation.
+#[cfg(not(fuzzing))]
 #[global_allocator]
 static ALLOCATOR: mimalloc::MiMalloc = mimalloc::MiMalloc;
 

@@ -107,9 +107,10 @@ const SEARCH_CHUNK: usize = 16;
 /// Memory of one point of the graph beyond its vector: hnsw_rs's node (16 preallocated layer lists, two `Arc`s)
 /// and its links (each its own `Arc`, ~40 bytes with its pointer, 20-23 per point at m = 16), with what the
 /// allocator keeps of a reload. Calibrated against the RSS of the reloc bench's 728k-observation map opened
-/// from its dump, one point per landmark: 3,300 B under glibc's allocator (issue 31, within 1 % at 728k), 2,800 B
-/// since the crate allocates through mimalloc, which keeps no header beside each small allocation (1.32-1.33
-/// KB/obs against glibc's 1.44 in the same session; BENCHMARKS.md, "mimalloc").
+/// from its dump, one point per landmark: 3,300 B under glibc's allocator (issue 31; 1.50 against 1.44-1.45
+/// KB/obs of RSS at 728k in sessions 48-49), 2,800 B since the crate allocates through mimalloc, which keeps no
+/// header beside each small allocation (1.32 against 1.33 KB/obs; BENCHMARKS.md, "mimalloc"). Smaller maps'
+/// RSS under mimalloc depends on what it still holds of maps freed before them, so the larger map calibrates.
 const GRAPH_POINT_BYTES: usize = 2_800;
 /// A landmark's entry in the representatives' map.
 const REPRESENTATIVE_BYTES: usize = 32;
