@@ -216,19 +216,12 @@ fn main() {
         let estimate_mb = s.loaded_bytes() as f64 / 1e6;
         (ready, from_dump, summary, rss_mb_loaded, estimate_mb, (gets.calls, gets.seconds), arrived)
     };
-    let mut with_dump = Vec::new();
-    let mut memory = (0.0, 0.0);
-    let mut summary = None;
-    for run in 0..3 {
-        let (ready, from_dump, s, rss, estimate, gets, arrived) = cold(&format!("dump-{run}"));
-        assert!(from_dump, "the cold replica did not use the dump");
-        if run == 0 {
-            memory = (rss, estimate);
-        }
-        summary = Some(s);
-        with_dump.push((ready, gets, arrived));
-    }
-    let summary = summary.expect("three cold replicas");
+    let runs: Vec<_> = (0..3).map(|run| cold(&format!("dump-{run}"))).collect();
+    assert!(runs.iter().all(|r| r.1), "a cold replica did not use the dump");
+    // The first run's map and memory; the three runs' times.
+    let (_, _, summary, rss, estimate, ..) = &runs[0];
+    let memory = (*rss, *estimate);
+    let mut with_dump: Vec<_> = runs.iter().map(|&(ready, _, _, _, _, gets, arrived)| (ready, gets, arrived)).collect();
     with_dump.sort_by(|a, b| a.0.total_cmp(&b.0));
     let rebuild = rebuild_row.then(|| {
         for o in objects.iter().filter(|o| o.location.as_ref().contains("/index/")) {
@@ -257,16 +250,11 @@ fn main() {
     println!();
     println!("| cold replica, first request | time to ready s | vs rebuild |");
     println!("|---|---|---|");
-    match rebuild {
-        Some(rebuild) => {
-            println!(
-                "| index dump downloaded (median of 3) | {:.2} | {:.3} |",
-                with_dump[1].0,
-                with_dump[1].0 / rebuild
-            );
-            println!("| index rebuilt from the map data | {rebuild:.2} | 1 |");
-        }
-        None => println!("| index dump downloaded (median of 3) | {:.2} | (not rebuilt in this run) |", with_dump[1].0),
+    let against_rebuild =
+        rebuild.map_or("(not rebuilt in this run)".to_string(), |r| format!("{:.3}", with_dump[1].0 / r));
+    println!("| index dump downloaded (median of 3) | {:.2} | {against_rebuild} |", with_dump[1].0);
+    if let Some(rebuild) = rebuild {
+        println!("| index rebuilt from the map data | {rebuild:.2} | 1 |");
     }
     println!();
     let (ready, (calls, seconds), arrived) = with_dump[1];
