@@ -244,6 +244,45 @@ def relu_mlp(sizes: list[int], last_activation: bool) -> nn.Sequential:
     return nn.Sequential(*layers)
 
 
+class RingInvariants(nn.Module):
+    """Features of the normalised ring that a turn of the keypoint's angle does not change.
+
+    An error of the FREAK angle turns every ring of the context by the same amount: its 16 samples shift
+    cyclically (by a fraction of a step). The discrete Fourier transform of each ring turns that shift into a
+    phase, so these survive it: each ring's amplitude at harmonics 1..8 (7 x 8), and, for harmonics 1 and 2, the
+    product of a ring's coefficient with the next ring's conjugate (real and imaginary parts, 6 x 2 x 2), which
+    keeps the rings' relative phase. Harmonic 0 is each ring's mean, which the raw samples already give
+    linearly. A fixed matrix product and element-wise arithmetic: one MatMul and a few cheap nodes in ONNX.
+    """
+
+    RINGS = 7
+    ANGLES = 16
+    HARMONICS = 8
+    CROSS = 2
+    size = RINGS * HARMONICS + (RINGS - 1) * CROSS * 2
+
+    def __init__(self):
+        super().__init__()
+        j = torch.arange(self.ANGLES, dtype=torch.float64)[:, None]
+        k = torch.arange(1, self.HARMONICS + 1, dtype=torch.float64)[None, :]
+        t = 2.0 * math.pi * j * k / self.ANGLES
+        # [16, 16]: the cosine then the sine of each harmonic, divided by the ring's length (a mean)
+        basis = torch.cat([torch.cos(t), -torch.sin(t)], dim=1) / self.ANGLES
+        self.register_buffer("basis", basis.to(torch.float32), persistent=False)
+
+    def forward(self, c: torch.Tensor) -> torch.Tensor:
+        n = c.shape[0]
+        rings = c[:, 1:].reshape(n, self.RINGS, self.ANGLES)
+        z = rings @ self.basis
+        re, im = z[..., : self.HARMONICS], z[..., self.HARMONICS :]
+        amplitude = torch.sqrt(re * re + im * im + 1e-4)
+        a_re, a_im = re[:, :-1, : self.CROSS], im[:, :-1, : self.CROSS]
+        b_re, b_im = re[:, 1:, : self.CROSS], im[:, 1:, : self.CROSS]
+        cross = torch.stack([a_re * b_re + a_im * b_im, a_im * b_re - a_re * b_im], dim=-1)
+        # the products are of two amplitudes: times 4 keeps them near the amplitudes' range
+        return torch.cat([amplitude.reshape(n, -1), 4.0 * cross.reshape(n, -1)], dim=1)
+
+
 class RingNet(nn.Module):
     """A keypoint's FREAK bits and its ring context (`context.py`: the image around it at fixed places in its
     own frame) -> a unit-length embedding.
@@ -258,12 +297,14 @@ class RingNet(nn.Module):
     INPUT_NAMES = ["descriptors", "context"]
 
     def __init__(self, embed_dim: int = 48, bits_hidden: tuple = (256,), bits_dim: int = 128, ring_hidden: tuple = (256,),
-                 ring_dim: int = 128, head_hidden: tuple = (128,), samples: int = 113):
+                 ring_dim: int = 128, head_hidden: tuple = (128,), samples: int = 113, invariants: bool = False):
         super().__init__()
         self.k = 0
         self.samples = samples
+        self.invariants = RingInvariants() if invariants else None
+        ring_in = samples + (self.invariants.size if invariants else 0)
         self.bits = relu_mlp([512, *bits_hidden, bits_dim], last_activation=True)
-        self.ring = relu_mlp([samples, *ring_hidden, ring_dim], last_activation=True)
+        self.ring = relu_mlp([ring_in, *ring_hidden, ring_dim], last_activation=True)
         self.head = relu_mlp([bits_dim + ring_dim, *head_hidden, embed_dim], last_activation=False)
 
     def frame_inputs(self, f) -> tuple:
@@ -284,5 +325,7 @@ class RingNet(nn.Module):
         mean = c.mean(1, keepdim=True)
         std = ((c - mean) ** 2).mean(1, keepdim=True).sqrt()
         c = (c - mean) / (std + 4.0)
+        if self.invariants is not None:
+            c = torch.cat([c, self.invariants(c)], dim=1)
         x = torch.cat([self.bits(unpack_bits(descriptors)), self.ring(c)], dim=1)
         return F.normalize(self.head(x), dim=-1)

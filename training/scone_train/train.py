@@ -146,7 +146,7 @@ def build_model(m: dict):
         return RingNet(
             embed_dim=m["embed_dim"], bits_hidden=tuple(m.get("bits_hidden", [256])), bits_dim=m.get("bits_dim", 128),
             ring_hidden=tuple(m.get("ring_hidden", [256])), ring_dim=m.get("ring_dim", 128),
-            head_hidden=tuple(m.get("head_hidden_layers", [128])),
+            head_hidden=tuple(m.get("head_hidden_layers", [128])), invariants=m.get("ring_invariants", False),
         )
     return SconeNet(
         k=max(m["k"], 1), embed_dim=m["embed_dim"], desc_dim=m["desc_dim"], lstm_hidden=m["lstm_hidden"],
