@@ -386,6 +386,11 @@ def train(cfg: dict, run_dir: Path, steps: int | None = None, units=None) -> Pat
     else:
         sampler = PairSampler(train_units, t["anchors"], t["pool"], seed=cfg["seed"], near=t.get("near_negatives", 0))
     gen = torch.Generator().manual_seed(cfg["seed"])
+    # `train.ema`: evaluate, pick and save an exponential moving average of the weights (Polyak averaging), which
+    # the export then ships; the optimiser still steps the raw weights
+    ema = None
+    if t.get("ema"):
+        ema = torch.optim.swa_utils.AveragedModel(model, multi_avg_fn=torch.optim.swa_utils.get_ema_multi_avg_fn(t["ema"]))
     start, best, log = 0, -1.0, []
     last = run_dir / "last.pt"
     if t.get("init") and not last.exists():
@@ -400,6 +405,8 @@ def train(cfg: dict, run_dir: Path, steps: int | None = None, units=None) -> Pat
         sampler.rng.bit_generator.state = ck["sampler_rng"]
         gen.set_state(ck["gen"])
         start, best, log = ck["step"], ck["best"], ck["log"]
+        if ema is not None:
+            ema.load_state_dict(ck["ema"])
         print(f"resuming {run_dir} at step {start}")
     tensors = TensorCache(model)
     acc = {"loss": 0.0, "pos": 0.0, "neg": 0.0, "n": 0}
@@ -432,13 +439,16 @@ def train(cfg: dict, run_dir: Path, steps: int | None = None, units=None) -> Pat
         torch.nn.utils.clip_grad_norm_(model.parameters(), 5.0)
         opt.step()
         sched.step()
+        if ema is not None:
+            ema.update_parameters(model)
         acc["loss"] += total
         acc["n"] += 1
         bar.set_postfix(loss=f"{total:.3f}")
         done = step + 1
         if done % t["eval_every"] == 0 or done == steps:
-            nn_prec = selection_precision(model, sel_units, cfg["data"]["selection_max_queries"])
-            ratio = selection_ratio_score(model, sel_units)
+            judged = model if ema is None else ema.module
+            nn_prec = selection_precision(judged, sel_units, cfg["data"]["selection_max_queries"])
+            ratio = selection_ratio_score(judged, sel_units)
             prec = ratio["f1"] if select_on == "ratio_f1" else nn_prec
             n = max(acc["n"], 1)
             row = {
@@ -453,7 +463,7 @@ def train(cfg: dict, run_dir: Path, steps: int | None = None, units=None) -> Pat
             tqdm.write(json.dumps(row))
             plot_log(log, run_dir / "curves.png")
             acc = {"loss": 0.0, "pos": 0.0, "neg": 0.0, "n": 0}
-            evaluated = {"model": model.state_dict(), "config": cfg, "step": done, "selection_precision": nn_prec,
+            evaluated = {"model": judged.state_dict(), "config": cfg, "step": done, "selection_precision": nn_prec,
                          "selection_ratio": ratio, "selected_on": select_on}
             if t.get("keep_evaluated", False):
                 torch.save(evaluated, run_dir / f"step-{done:05d}.pt")
@@ -466,6 +476,8 @@ def train(cfg: dict, run_dir: Path, steps: int | None = None, units=None) -> Pat
                 "sampler_rng": sampler.rng.bit_generator.state, "gen": gen.get_state(),
                 "step": done, "best": best, "log": log, "config": cfg,
             }
+            if ema is not None:
+                ck["ema"] = ema.state_dict()
             torch.save(ck, run_dir / "last.tmp")
             os.replace(run_dir / "last.tmp", last)
     return run_dir / "best.pt"
