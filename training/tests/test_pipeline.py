@@ -97,6 +97,39 @@ def test_ring_context_of_the_rust_export_equals_the_reference_and_a_ring_model_e
     assert np.abs(got - E.embed_frames(model, [f])[0]).max() <= 1e-4
 
 
+def test_ring_invariants_ignore_a_turn_and_an_averaged_ring_model_resumes_and_exports(tiny_unit, tmp_path):
+    """`RingInvariants` do not change when every ring turns by whole steps (what an error of the angle does),
+    and a RingNet with them trains with averaged weights (`train.ema`), resumes with the average, saves the
+    average as its checkpoint and exports with parity."""
+    from scone_train.model import RingInvariants
+    from scone_train.train import build_model
+
+    inv = RingInvariants()
+    c = torch.randn(6, 113)
+    turned = torch.cat([c[:, :1], c[:, 1:].reshape(6, 7, 16).roll(5, dims=2).reshape(6, 112)], dim=1)
+    assert inv(c).shape == (6, RingInvariants.size)
+    assert torch.allclose(inv(c), inv(turned), atol=1e-5)
+    scrambled = torch.cat([c[:, :1], c[:, 1:].reshape(6, 7, 16)[:, :, torch.randperm(16)].reshape(6, 112)], dim=1)
+    assert not torch.allclose(inv(c), inv(scrambled), atol=1e-3)
+
+    cfg = yaml.safe_load(CONFIG.read_text())
+    cfg["model"] = {"context": "ring", "ring_invariants": True, "k": 0, "embed_dim": 48, "desc_dim": 64, "lstm_hidden": 32}
+    cfg["train"].update(steps=4, eval_every=4, checkpoint_every=2, anchors=32, threads=1, loss="triplet_frames",
+                        frame_loss="softmax+triplet", group_frames=3, select_on="ratio_f1", ema=0.5)
+    run = tmp_path / "ema"
+    train(cfg, run, steps=2, units=([tiny_unit], [tiny_unit]))
+    assert "ema" in torch.load(run / "last.pt", weights_only=False)
+    best = train(cfg, run, units=([tiny_unit], [tiny_unit]))
+    raw = torch.load(run / "last.pt", weights_only=False)["model"]
+    saved = torch.load(best, weights_only=False)
+    assert saved["step"] == 4
+    assert any(not torch.equal(raw[k], v) for k, v in saved["model"].items()), "the checkpoint holds the raw weights"
+    model = build_model(cfg["model"])
+    model.load_state_dict(saved["model"])
+    path = X.export_onnx(model, tmp_path / "inv.onnx")
+    assert X.check_parity(model, path, n=77) <= 1e-4
+
+
 def tiny_unit_root(unit) -> Path:
     """The rendered sequence a unit was built from (the fixture renders `seq000`)."""
     return Path(TINY_ROOT[0]) / "seq000"
