@@ -1,0 +1,68 @@
+#!/usr/bin/env python3
+"""Issue 39: every ring model scored with `union` on the selection pairs whose reports are kept here, as one
+picture (docs/figures/issue39-ring-runs.png). Runs of the shipped model's recipe (ring-e1-real's config, data
+and seed or seed 1; other schedules or averaging) are drawn apart from other recipes, so the spread of one
+recipe can be read beside the differences between recipes.
+
+    $SCONE_PREFIX/venv-train/bin/python docs/results/issue39/candidates_figure.py
+"""
+
+import sys
+from pathlib import Path
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+
+HERE = Path(__file__).resolve().parent
+sys.path.insert(0, str(HERE))
+from round2 import PARTS, pair_means  # noqa: E402
+
+# (report directory, label, a run of the shipped recipe?)
+RUNS = [
+    ("round4/ring-e1-real", "ring-e1-real\n(shipped)", True),
+    ("round5/ring-e1-real-nnp", "rerun, NN-prec.\ncheckpoint (r5)", True),
+    ("round8/ring-e1-real-4k", "4k steps (r8)", True),
+    ("round9/ring-e1-ema", "4k, averaged (r9)", True),
+    ("round9/ring-e1-ema-s1", "4k, averaged,\nseed 1 (r9)", True),
+    ("round3", "narrow (r3)", False),
+    ("round4", "warps24 (r4)", False),
+    ("round5/ring-e1-warps24-s4000", "warps24 at\n4,000 (r5)", False),
+    ("round8/ring-e1-inv", "ring invariants\n(r8)", False),
+]
+SHOWN = {"strecha-castle-P30-sel": "castle", "7scenes-redkitchen-sel": "redkitchen", "middlebury-templeRing-sel": "templeRing"}
+
+
+def main():
+    rows = [(label, same, *pair_means(HERE / d, "union")) for d, label, same in RUNS]
+    freak = rows[0][3]
+    fig, axes = plt.subplots(1, 2, figsize=(13, 4.8), gridspec_kw={"width_ratios": [1.1, 1]})
+    ax = axes[0]
+    for i, (label, same, mean, _, _, _) in enumerate(rows):
+        ax.bar(i, mean, color="tab:blue" if same else "tab:gray")
+        ax.text(i, mean + 0.002, f"{mean:.3f}", ha="center", fontsize=8)
+    ax.axhline(freak, color="tab:red", ls="--", label=f"FREAK {freak:.4f}")
+    ax.axhline(rows[0][2] + 0.005, color="k", ls=":", label="the shipped model + 0.005 (rounds 4-9's bar)")
+    ax.set_xticks(range(len(rows)), [r[0] for r in rows], rotation=60, ha="right", fontsize=8)
+    ax.set_ylim(0.26, 0.345)
+    ax.set_ylabel("mean AUC@10, five selection parts (union)")
+    ax.set_title("Ring models on the selection pairs\n(blue: runs of the shipped recipe; grey: other recipes)", fontsize=10)
+    ax.legend(fontsize=8, loc="upper left", ncol=2)
+    ax = axes[1]
+    for j, (part, name) in enumerate(SHOWN.items()):
+        k = PARTS.index(part)
+        for label, same, _, _, parts, fparts in rows:
+            ax.scatter(j + (-0.12 if same else 0.12), parts[k], color="tab:blue" if same else "tab:gray", s=28)
+        ax.hlines(rows[0][5][k], j - 0.3, j + 0.3, color="tab:red", ls="--")
+    ax.set_xticks(range(len(SHOWN)), list(SHOWN.values()))
+    ax.set_ylabel("AUC@10 of the part (3 seeds)")
+    ax.set_title("The three parts that decide the mean\n(red: FREAK; SUN3D and liberty are near 0 for every method)", fontsize=10)
+    fig.tight_layout()
+    out = HERE.parents[1] / "figures" / "issue39-ring-runs.png"
+    fig.savefig(out, dpi=110)
+    print(out)
+
+
+if __name__ == "__main__":
+    main()
