@@ -248,8 +248,8 @@ class RingInvariants(nn.Module):
     """Features of the normalised ring that a turn of the keypoint's angle does not change.
 
     An error of the FREAK angle turns every ring of the context by the same amount: its 16 samples shift
-    cyclically (by a fraction of a step). The discrete Fourier transform of each ring turns that shift into a
-    phase, so these survive it: each ring's amplitude at harmonics 1..8 (7 x 8), and, for harmonics 1 and 2, the
+    cyclically. The discrete Fourier transform of each ring turns that shift into a phase, so these do not change
+    under a shift by whole steps (22.5°), and change less than the samples under a fraction of a step: each ring's amplitude at harmonics 1..8 (7 x 8), and, for harmonics 1 and 2, the
     product of a ring's coefficient with the next ring's conjugate (real and imaginary parts, 6 x 2 x 2), which
     keeps the rings' relative phase. Harmonic 0 is each ring's mean, which the raw samples already give
     linearly. A fixed matrix product and element-wise arithmetic: one MatMul and a few cheap nodes in ONNX.
@@ -266,7 +266,7 @@ class RingInvariants(nn.Module):
         j = torch.arange(self.ANGLES, dtype=torch.float64)[:, None]
         k = torch.arange(1, self.HARMONICS + 1, dtype=torch.float64)[None, :]
         t = 2.0 * math.pi * j * k / self.ANGLES
-        # [16, 16]: the cosine then the sine of each harmonic, divided by the ring's length (a mean)
+        # [16, 16]: the cosine then minus the sine of each harmonic, divided by the ring's length (a mean)
         basis = torch.cat([torch.cos(t), -torch.sin(t)], dim=1) / self.ANGLES
         self.register_buffer("basis", basis.to(torch.float32), persistent=False)
 

@@ -405,8 +405,8 @@ def train(cfg: dict, run_dir: Path, steps: int | None = None, units=None) -> Pat
         sampler.rng.bit_generator.state = ck["sampler_rng"]
         gen.set_state(ck["gen"])
         start, best, log = ck["step"], ck["best"], ck["log"]
-        if ema is not None:
-            ema.load_state_dict(ck["ema"])
+        if ema is not None and "ema" in ck:
+            ema.load_state_dict(ck["ema"])  # (a run begun without averaging starts its average here)
         print(f"resuming {run_dir} at step {start}")
     tensors = TensorCache(model)
     acc = {"loss": 0.0, "pos": 0.0, "neg": 0.0, "n": 0}

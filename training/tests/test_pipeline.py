@@ -120,10 +120,13 @@ def test_ring_invariants_ignore_a_turn_and_an_averaged_ring_model_resumes_and_ex
     train(cfg, run, steps=2, units=([tiny_unit], [tiny_unit]))
     assert "ema" in torch.load(run / "last.pt", weights_only=False)
     best = train(cfg, run, units=([tiny_unit], [tiny_unit]))
-    raw = torch.load(run / "last.pt", weights_only=False)["model"]
+    last = torch.load(run / "last.pt", weights_only=False)
     saved = torch.load(best, weights_only=False)
-    assert saved["step"] == 4
-    assert any(not torch.equal(raw[k], v) for k, v in saved["model"].items()), "the checkpoint holds the raw weights"
+    assert saved["step"] == 4  # the one evaluation
+    # the average was restored on resume and updated at every step, and the checkpoint holds it, not the raw weights
+    assert int(last["ema"]["n_averaged"]) == 4
+    assert all(torch.equal(last["ema"][f"module.{k}"], v) for k, v in saved["model"].items())
+    assert any(not torch.equal(last["model"][k], v) for k, v in saved["model"].items())
     model = build_model(cfg["model"])
     model.load_state_dict(saved["model"])
     path = X.export_onnx(model, tmp_path / "inv.onnx")

@@ -1,7 +1,7 @@
 #!/usr/bin/env python3
 """Issue 39, round 8: applies criteria 1-3 of the round-8 rule of docs/model-experiments.md to score.sh's reports.
 
-    python3 docs/results/issue39/round8.py [--work $SCONE_PREFIX/work/i39] ring-e1-inv [ring-e1-real-s50]
+    python3 docs/results/issue39/round8.py [--work $SCONE_PREFIX/work/i39] [--reference ring-e1-real-s50] ring-e1-inv [MORE...]
 
 Round 4's criteria, with the reference's mean AUC@10 read from its own reports (the shipped model scored again
 by the same score.sh this session) instead of round 2's 0.3110: the candidate with `union` must (1) pass round
