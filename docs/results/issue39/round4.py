@@ -25,16 +25,23 @@ def zoom_bins(directory, matcher="union"):
     return {b["label"]: b["scone"] for b in warp_figures(directory, matcher)[2] if b["axis"] == "zoom"}
 
 
-def report(candidate, matcher, reference, reference_matcher, reference_name):
+def criteria(candidate, matcher, reference, reference_matcher, reference_name, reference_mean=RING_E1_REAL_UNION_MEAN):
     """Criteria 1-3 for `candidate` (a score.sh directory) with `matcher`, against `reference` with
-    `reference_matcher` (mean AUC@10 0.3110); prints the zoom bins and the table row."""
+    `reference_matcher` and its mean AUC@10: round2.judge's result with the failures of criteria 2-3 added, and
+    the zoom bins within 5 px of both."""
     r = judge(candidate, matcher, ROUND2_CONSTELLATION_MEAN)
-    if r["mean"] < RING_E1_REAL_UNION_MEAN + 0.005:
-        r["failures"].append(f"pairs {r['mean']:.4f} < {reference_name} {RING_E1_REAL_UNION_MEAN:.4f} + 0.005")
+    if r["mean"] < reference_mean + 0.005:
+        r["failures"].append(f"pairs {r['mean']:.4f} < {reference_name} {reference_mean:.4f} + 0.005")
     mine, ref = zoom_bins(candidate, matcher), zoom_bins(reference, reference_matcher)
     for label in ZOOM_BINS[1:]:
         if mine[label] < ref[label]:
             r["failures"].append(f"zoom {label} {mine[label]:.2f} < {reference_name} {ref[label]:.2f}")
+    return r, mine, ref
+
+
+def report(candidate, matcher, reference, reference_matcher, reference_name):
+    """Criteria 1-3 against `reference` (mean AUC@10 0.3110); prints the zoom bins and the table row."""
+    r, mine, ref = criteria(candidate, matcher, reference, reference_matcher, reference_name)
     print("zoom bins within 5 px, " + ", ".join(f"{b}: {mine[b]:.2f} ({reference_name} {ref[b]:.2f})" for b in ZOOM_BINS))
     verdict = "passes criteria 1-3" if not r["failures"] else "fails: " + "; ".join(r["failures"])
     print(table_header())

@@ -17,7 +17,7 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from round2 import ZOOM_BINS, judge, pair_means, table_header, table_row  # noqa: E402
-from round4 import ROUND2_CONSTELLATION_MEAN, zoom_bins  # noqa: E402
+from round4 import ROUND2_CONSTELLATION_MEAN, criteria, zoom_bins  # noqa: E402
 
 
 def main():
@@ -34,16 +34,10 @@ def main():
           + ", ".join(f"{b}: {ref_zoom[b]:.2f}" for b in ZOOM_BINS))
     print(table_header())
     for name in [args.reference, *args.models]:
-        r = judge(args.work / name, "union", ROUND2_CONSTELLATION_MEAN)
         if name == args.reference:
-            print(table_row(name, r, "the reference"))
+            print(table_row(name, judge(reference, "union", ROUND2_CONSTELLATION_MEAN), "the reference"))
             continue
-        if r["mean"] < ref_mean + 0.005:
-            r["failures"].append(f"pairs {r['mean']:.4f} < {args.reference} {ref_mean:.4f} + 0.005")
-        mine = zoom_bins(args.work / name)
-        for label in ZOOM_BINS[1:]:
-            if mine[label] < ref_zoom[label]:
-                r["failures"].append(f"zoom {label} {mine[label]:.2f} < {args.reference} {ref_zoom[label]:.2f}")
+        r, mine, _ = criteria(args.work / name, "union", reference, "union", args.reference, ref_mean)
         zooms = " / ".join(f"{mine[b]:.2f}" for b in ZOOM_BINS[1:])
         verdict = "passes criteria 1-3" if not r["failures"] else "fails: " + "; ".join(r["failures"])
         print(table_row(name, r, verdict) + f" zoom 1.25-1.6x / 1.6-2x / 2-2.5x: {zooms}")
