@@ -173,6 +173,11 @@ pub enum SconeMatcher {
     /// SConE's ratio-test matches, plus FREAK's (Hamming, the same test) for the keypoints SConE left
     /// unmatched. SConE keeps its precision where it answers; FREAK adds the spread-out survivors it has more of.
     Union,
+    /// Every SConE ratio-test match and every FREAK ratio-test match (the same test), each pair of keypoints
+    /// once. A keypoint the two answer differently keeps both candidates and the pose's robust estimate
+    /// decides, so no match FREAK finds is lost because SConE answered otherwise (round 11 of
+    /// docs/model-experiments.md, issue 39).
+    Both,
     /// FREAK's [`RERANK_CANDIDATES`] nearest descriptors of each keypoint, re-ordered by SConE distance; the
     /// ratio test runs on the SConE distances of those candidates.
     Rerank,
@@ -202,7 +207,7 @@ impl SconeMatcher {
         match name {
             None => Ok(Self::default()),
             Some(n) => <Self as clap::ValueEnum>::from_str(n, false).map_err(|_| {
-                format!("metadata 'scone.matcher' names no matcher: '{n}' (plain, union, rerank, scale-aware, joint, freak)")
+                format!("metadata 'scone.matcher' names no matcher: '{n}' (plain, union, both, rerank, scale-aware, joint, freak)")
             }),
         }
     }
@@ -211,6 +216,7 @@ impl SconeMatcher {
         match self {
             SconeMatcher::Plain => "plain",
             SconeMatcher::Union => "union",
+            SconeMatcher::Both => "both",
             SconeMatcher::Rerank => "rerank",
             SconeMatcher::ScaleAware => "scale-aware",
             SconeMatcher::Joint => "joint",
@@ -269,6 +275,10 @@ pub fn match_scone(
             let freak = match_descriptors(a.freak, b.freak, NORM_HAMMING, test, b.points)?;
             union(a, b, test, freak)
         }
+        SconeMatcher::Both => {
+            let freak = match_descriptors(a.freak, b.freak, NORM_HAMMING, test, b.points)?;
+            both(a, b, test, freak)
+        }
         SconeMatcher::Rerank => rerank(a, b, test),
         SconeMatcher::ScaleAware => {
             // One FREAK search serves both the zoom estimate and the re-ranking.
@@ -317,6 +327,14 @@ fn union(a: &SconeFrame, b: &SconeFrame, test: &RatioTest, freak: Vec<Match>) ->
         answered[m.query] = true;
     }
     out.extend(freak.into_iter().filter(|m| !answered[m.query]));
+    Ok(out)
+}
+
+/// SConE's ratio-test matches, plus every one of `freak`'s that SConE did not also find.
+fn both(a: &SconeFrame, b: &SconeFrame, test: &RatioTest, freak: Vec<Match>) -> Result<Vec<Match>, FeatureError> {
+    let mut out = match_l2(a.embeddings, b.embeddings, a.dim, test, b.points)?;
+    let found: std::collections::HashSet<(usize, usize)> = out.iter().map(|m| (m.query, m.train)).collect();
+    out.extend(freak.into_iter().filter(|m| !found.contains(&(m.query, m.train))));
     Ok(out)
 }
 
@@ -501,7 +519,7 @@ mod tests {
     }
 
     #[test]
-    fn union_adds_freak_matches_only_for_keypoints_scone_left_unmatched() {
+    fn union_adds_freak_matches_only_for_keypoints_scone_left_unmatched_and_both_adds_every_one() {
         // SConE: query 0 clearly matches 0; queries 1 and 2 are ambiguous (equidistant from b1 and b2).
         let ea = vec![0.0, 0.0, 5.0, 5.0, 5.0, 5.0];
         let eb = vec![0.0, 0.0, 5.0, 4.0, 5.0, 6.0];
@@ -521,6 +539,11 @@ mod tests {
         let mut got: Vec<_> = union.iter().map(|m| (m.query, m.train)).collect();
         got.sort_unstable();
         assert_eq!(got, vec![(0, 0), (1, 1)]);
+        // `both` also keeps FREAK's disagreeing answer for query 0, and (1, 1) once.
+        let both = match_scone(SconeMatcher::Both, &a, &b, &test).unwrap();
+        let mut got: Vec<_> = both.iter().map(|m| (m.query, m.train)).collect();
+        got.sort_unstable();
+        assert_eq!(got, vec![(0, 0), (0, 1), (1, 1)]);
     }
 
     #[test]

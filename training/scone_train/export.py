@@ -118,7 +118,7 @@ def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("--checkpoint", required=True)
     ap.add_argument("--out", required=True)
-    ap.add_argument("--matcher", default="scale-aware", choices=["plain", "union", "rerank", "scale-aware", "freak"])
+    ap.add_argument("--matcher", default="scale-aware", choices=["plain", "union", "both", "rerank", "scale-aware", "freak"])
     a = ap.parse_args()
     torch.set_num_threads(1)
     model = load_checkpoint(Path(a.checkpoint))

@@ -56,6 +56,7 @@ impl proto::matching_server::Matching for GrpcApi {
                     Ok(proto::PairMatcher::Freak) => Some(SconeMatcher::Freak),
                     Ok(proto::PairMatcher::ScaleAware) => Some(SconeMatcher::ScaleAware),
                     Ok(proto::PairMatcher::Joint) => Some(SconeMatcher::Joint),
+                    Ok(proto::PairMatcher::Both) => Some(SconeMatcher::Both),
                     Err(_) => return Err(invalid("matcher", &format!("{} is not a PairMatcher", r.matcher))),
                 };
                 let conv = convention(r.pose_convention)?;
@@ -77,6 +78,7 @@ impl proto::matching_server::Matching for GrpcApi {
                     SconeMatcher::Freak => proto::PairMatcher::Freak,
                     SconeMatcher::ScaleAware => proto::PairMatcher::ScaleAware,
                     SconeMatcher::Joint => proto::PairMatcher::Joint,
+                    SconeMatcher::Both => proto::PairMatcher::Both,
                 };
                 Ok(proto::MatchPairResponse {
                     matcher: ran as i32,

@@ -22,6 +22,8 @@ pub enum Matcher {
     Plain,
     /// Plain SConE matches plus FREAK's where SConE has none.
     Union,
+    /// Every plain SConE match and every FREAK match; the pose's robust estimate decides between them.
+    Both,
     /// FREAK's nearest candidates re-ranked by the SConE embedding.
     Rerank,
     /// `rerank`, or `union` when the two images differ in scale by 1.6x or more (the default of models that
@@ -40,6 +42,7 @@ impl From<crate::matching::SconeMatcher> for Matcher {
         match m {
             S::Plain => Self::Plain,
             S::Union => Self::Union,
+            S::Both => Self::Both,
             S::Rerank => Self::Rerank,
             S::ScaleAware => Self::ScaleAware,
             S::Joint => Self::Joint,
@@ -53,6 +56,7 @@ impl From<Matcher> for crate::matching::SconeMatcher {
         match m {
             Matcher::Plain => Self::Plain,
             Matcher::Union => Self::Union,
+            Matcher::Both => Self::Both,
             Matcher::Rerank => Self::Rerank,
             Matcher::ScaleAware => Self::ScaleAware,
             Matcher::Joint => Self::Joint,

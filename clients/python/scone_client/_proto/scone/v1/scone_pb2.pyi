@@ -28,6 +28,7 @@ class PairMatcher(int, metaclass=_enum_type_wrapper.EnumTypeWrapper):
     PAIR_MATCHER_FREAK: _ClassVar[PairMatcher]
     PAIR_MATCHER_SCALE_AWARE: _ClassVar[PairMatcher]
     PAIR_MATCHER_JOINT: _ClassVar[PairMatcher]
+    PAIR_MATCHER_BOTH: _ClassVar[PairMatcher]
 DISTORTION_MODEL_NONE: DistortionModel
 DISTORTION_MODEL_RADIAL_TANGENTIAL: DistortionModel
 DISTORTION_MODEL_FISHEYE: DistortionModel
@@ -41,6 +42,7 @@ PAIR_MATCHER_RERANK: PairMatcher
 PAIR_MATCHER_FREAK: PairMatcher
 PAIR_MATCHER_SCALE_AWARE: PairMatcher
 PAIR_MATCHER_JOINT: PairMatcher
+PAIR_MATCHER_BOTH: PairMatcher
 
 class Intrinsics(_message.Message):
     __slots__ = ("fx", "fy", "cx", "cy", "width", "height", "distortion_model", "distortion")

@@ -1,0 +1,75 @@
+#!/usr/bin/env python3
+"""Issue 39, round 11: applies the round-11 rule of docs/model-experiments.md (the matcher `both` against `union`
+on six runs of the shipped recipe) to score.sh's reports.
+
+    python3 docs/results/issue39/round11.py [--work $SCONE_PREFIX/work/i39]
+
+Criterion 1: with the shipped model, round 6's criteria 1-3 (round 2's rule, `union`'s mean + 0.005, no zoom bin
+up to 2.5x below `union`'s). Criterion 2: over the six models, `both` above `union` in mean AUC@10 on at least
+five, and by at least 0.005 on average. Standard library only.
+"""
+
+import argparse
+import json
+import os
+import statistics
+import sys
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from round2 import ZOOM_BINS, pair_means, table_header, table_row, warp_figures  # noqa: E402
+from round4 import criteria  # noqa: E402
+
+SHIPPED = "ring-e1-real-s50"
+MODELS = [SHIPPED, "ring-e1-real-4k", "ring-e1-real-4k-s1", "ring-e1-ema", "ring-e1-ema-s1", "ring-e1-ema-s2"]
+MEAN_MARGIN = 0.005
+
+
+def matches_and_precision(directory, matcher):
+    """SConE's matches per pair and match precision, averaged over the five parts."""
+    rows = []
+    for f in sorted(directory.glob(f"pairs-{matcher}-*.json")):
+        s = next(x for x in json.loads(f.read_text())["summaries"] if x["method"] == "scone")
+        rows.append((s["mean_matches"], s["match_precision"]))
+    return statistics.mean(r[0] for r in rows), statistics.mean(r[1] for r in rows)
+
+
+def main():
+    default = Path(os.environ.get("SCONE_PREFIX", Path.home() / ".cache/scone")) / "work/i39"
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--work", type=Path, default=default)
+    args = parser.parse_args()
+    print("| model | union | both | difference | parts (both - union) | warps 5 px union / both | matches per pair union / both |")
+    print("|---|---|---|---|---|---|---|")
+    diffs = []
+    for name in MODELS:
+        d = args.work / name
+        u, _, u_parts, _ = pair_means(d, "union")
+        b, _, b_parts, _ = pair_means(d, "both")
+        wu, wb = warp_figures(d, "union")[0]["scone"], warp_figures(d, "both")[0]["scone"]
+        diffs.append(b - u)
+        (mu, pu), (mb, pb) = matches_and_precision(d, "union"), matches_and_precision(d, "both")
+        print(f"| {name} | {u:.4f} | {b:.4f} | {b - u:+.4f} | "
+              + " / ".join(f"{y - x:+.3f}" for x, y in zip(u_parts, b_parts)) + f" | {wu:.3f} / {wb:.3f} | {mu:.0f}, {pu:.3f} / {mb:.0f}, {pb:.3f} |")
+    failures = []
+    shipped = args.work / SHIPPED
+    union_mean = pair_means(shipped, "union")[0]
+    r, mine, ref = criteria(shipped, "both", shipped, "union", "union", union_mean)
+    failures += [f"1: {f}" for f in r["failures"]]
+    above = sum(x > 0 for x in diffs)
+    if above < 5:
+        failures.append(f"2: both above union on {above} of {len(diffs)} models, 5 needed")
+    if statistics.mean(diffs) < MEAN_MARGIN:
+        failures.append(f"2: mean difference {statistics.mean(diffs):+.4f} < +{MEAN_MARGIN}")
+    print()
+    print(f"mean difference {statistics.mean(diffs):+.4f}, both above union on {above} of {len(diffs)}")
+    print(table_header())
+    print(table_row(SHIPPED, r, "the shipped model with both") + " zoom 1.25-1.6x / 1.6-2x / 2-2.5x: "
+          + " / ".join(f"{mine[b]:.2f}" for b in ZOOM_BINS[1:]) + " (union "
+          + " / ".join(f"{ref[b]:.2f}" for b in ZOOM_BINS[1:]) + ")")
+    print()
+    print("verdict: " + ("passes; both becomes the declared matcher" if not failures else "fails: " + "; ".join(failures)))
+
+
+if __name__ == "__main__":
+    main()
