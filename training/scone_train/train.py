@@ -411,7 +411,9 @@ def train(cfg: dict, run_dir: Path, steps: int | None = None, units=None) -> Pat
     tensors = TensorCache(model)
     acc = {"loss": 0.0, "pos": 0.0, "neg": 0.0, "n": 0}
     t0 = time.time()
-    bar = tqdm(range(start, steps), initial=start, total=steps, desc=cfg["name"], mininterval=1 if sys.stderr.isatty() else 60)
+    # `stop_after` ends a run early on its schedule: the learning rate still decays over `steps`
+    stop = min(steps, t.get("stop_after") or steps)
+    bar = tqdm(range(start, stop), initial=start, total=stop, desc=cfg["name"], mininterval=1 if sys.stderr.isatty() else 60)
     for step in bar:
         model.train()
         opt.zero_grad()
@@ -445,7 +447,7 @@ def train(cfg: dict, run_dir: Path, steps: int | None = None, units=None) -> Pat
         acc["n"] += 1
         bar.set_postfix(loss=f"{total:.3f}")
         done = step + 1
-        if done % t["eval_every"] == 0 or done == steps:
+        if done % t["eval_every"] == 0 or done == stop:
             judged = model if ema is None else ema.module
             nn_prec = selection_precision(judged, sel_units, cfg["data"]["selection_max_queries"])
             ratio = selection_ratio_score(judged, sel_units)
@@ -470,7 +472,7 @@ def train(cfg: dict, run_dir: Path, steps: int | None = None, units=None) -> Pat
             if prec > best:
                 best = prec
                 torch.save(evaluated, run_dir / "best.pt")
-        if done % t["checkpoint_every"] == 0 or done == steps:
+        if done % t["checkpoint_every"] == 0 or done == stop:
             ck = {
                 "model": model.state_dict(), "opt": opt.state_dict(), "sched": sched.state_dict(),
                 "sampler_rng": sampler.rng.bit_generator.state, "gen": gen.get_state(),

@@ -1,7 +1,9 @@
 #!/usr/bin/env python3
 """Issue 39, round 10: applies the round-10 rule of docs/model-experiments.md (three seeds a side) to score.sh's reports.
 
-    python3 docs/results/issue39/round10.py [--work $SCONE_PREFIX/work/i39]
+    python3 docs/results/issue39/round10.py [--work $SCONE_PREFIX/work/i39] [--candidate ring-e1-real75-ema]
+
+Round 12 judges its candidate configuration with the same criteria (`--candidate ring-e1-real-10k`).
 
 Criterion 1: the candidate configuration's mean over its seeds of the mean AUC@10 (with `union`) at least the
 reference configuration's + 0.010. Criterion 2: the mean over its seeds of the share within 5 px over the zoom
@@ -20,7 +22,6 @@ from round2 import ZOOM_BINS, pair_means, table_header, table_row, warp_figures 
 from round4 import criteria  # noqa: E402
 
 REFERENCE = ["ring-e1-ema", "ring-e1-ema-s1", "ring-e1-ema-s2"]
-CANDIDATE = ["ring-e1-real75-ema", "ring-e1-real75-ema-s1", "ring-e1-real75-ema-s2"]
 SHIPPED = "ring-e1-real-s50"
 PAIRS_MARGIN = 0.010
 ZOOMED = ("1.25-1.6x", "1.6-2x", "2-2.5x")
@@ -42,13 +43,15 @@ def main():
     default = Path(os.environ.get("SCONE_PREFIX", Path.home() / ".cache/scone")) / "work/i39"
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--work", type=Path, default=default)
+    parser.add_argument("--candidate", default="ring-e1-real75-ema", help="seed 0's name; seeds 1-2 add -s1, -s2")
     args = parser.parse_args()
+    candidate = [args.candidate, args.candidate + "-s1", args.candidate + "-s2"]
     ref_seeds, ref_pairs, ref_zoom = configuration(args.work, REFERENCE)
-    cand_seeds, cand_pairs, cand_zoom = configuration(args.work, CANDIDATE)
+    cand_seeds, cand_pairs, cand_zoom = configuration(args.work, candidate)
     print("| configuration | seed 0 | seed 1 | seed 2 | mean AUC@10 (sd) | zoom 1.25-2.5x within 5 px, by seed | mean |")
     print("|---|---|---|---|---|---|---|")
     for label, seeds, pairs, zoom in (("reference (round 9, averaged)", ref_seeds, ref_pairs, ref_zoom),
-                                      ("candidate (scene_share 0.75, averaged)", cand_seeds, cand_pairs, cand_zoom)):
+                                      (f"candidate ({args.candidate})", cand_seeds, cand_pairs, cand_zoom)):
         values = [s[0] for s in seeds.values()]
         print(f"| {label} | " + " | ".join(f"{v:.4f}" for v in values)
               + f" | **{pairs:.4f}** ({statistics.stdev(values):.4f}) | "
