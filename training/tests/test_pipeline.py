@@ -133,6 +133,25 @@ def test_ring_invariants_ignore_a_turn_and_an_averaged_ring_model_resumes_and_ex
     assert X.check_parity(model, path, n=77) <= 1e-4
 
 
+def test_stop_after_ends_a_run_early_on_its_own_schedule(tiny_unit, tmp_path):
+    """`train.stop_after` ends the loop there, evaluates and checkpoints there, and leaves the learning rate on
+    the cosine decay of the whole `steps`, not of a schedule as short as the run."""
+    import math
+
+    cfg = yaml.safe_load(CONFIG.read_text())
+    cfg["model"] = {"context": "ring", "k": 0, "embed_dim": 48, "desc_dim": 64, "lstm_hidden": 32}
+    cfg["train"].update(steps=10, stop_after=3, eval_every=100, checkpoint_every=100, anchors=32, threads=1,
+                        loss="triplet_frames", frame_loss="softmax+triplet", group_frames=3, select_on="ratio_f1")
+    run = tmp_path / "stopped"
+    best = train(cfg, run, units=([tiny_unit], [tiny_unit]))
+    last = torch.load(run / "last.pt", weights_only=False)
+    assert last["step"] == 3 and torch.load(best, weights_only=False)["step"] == 3
+    t = cfg["train"]
+    lr = t["lr_final"] + 0.5 * (t["lr"] - t["lr_final"]) * (1 + math.cos(math.pi * 3 / 10))
+    assert [row["step"] for row in last["log"]] == [3]
+    assert math.isclose(last["log"][0]["lr"], lr, rel_tol=1e-6)
+
+
 def tiny_unit_root(unit) -> Path:
     """The rendered sequence a unit was built from (the fixture renders `seq000`)."""
     return Path(TINY_ROOT[0]) / "seq000"
