@@ -176,7 +176,8 @@ pub enum SconeMatcher {
     /// Every SConE ratio-test match and every FREAK ratio-test match (the same test), each pair of keypoints
     /// once. A keypoint the two answer differently keeps both candidates and the pose's robust estimate
     /// decides, so no match FREAK finds is lost because SConE answered otherwise (round 11 of
-    /// docs/model-experiments.md, issue 39).
+    /// docs/model-experiments.md, issue 39). Inliers count matches: with both answers on the epipolar line, or
+    /// one corner found on two pyramid levels, a keypoint counts twice.
     Both,
     /// FREAK's [`RERANK_CANDIDATES`] nearest descriptors of each keypoint, re-ordered by SConE distance; the
     /// ratio test runs on the SConE distances of those candidates.
@@ -539,11 +540,34 @@ mod tests {
         let mut got: Vec<_> = union.iter().map(|m| (m.query, m.train)).collect();
         got.sort_unstable();
         assert_eq!(got, vec![(0, 0), (1, 1)]);
-        // `both` also keeps FREAK's disagreeing answer for query 0, and (1, 1) once.
+        // `both` also keeps FREAK's disagreeing answer for query 0.
         let both = match_scone(SconeMatcher::Both, &a, &b, &test).unwrap();
         let mut got: Vec<_> = both.iter().map(|m| (m.query, m.train)).collect();
         got.sort_unstable();
         assert_eq!(got, vec![(0, 0), (0, 1), (1, 1)]);
+    }
+
+    #[test]
+    fn both_keeps_a_pair_that_both_descriptors_found_once() {
+        // As above, but SConE now finds query 1's match (1, 1) too, the same pair FREAK finds.
+        let ea = vec![0.0, 0.0, 5.0, 4.0, 5.0, 5.0];
+        let eb = vec![0.0, 0.0, 5.0, 4.0, 5.0, 6.0];
+        let (z, o, half, three_quarters) = (ones(0), ones(64), ones(32), ones(48));
+        let (ea, eb, fa, fb) = frames(ea, eb, [o, o, three_quarters], [z, o, half]);
+        let (a, b) = (
+            SconeFrame { embeddings: &ea, dim: 2, freak: &fa, points: &PTS, sizes: &[] },
+            SconeFrame { embeddings: &eb, dim: 2, freak: &fb, points: &PTS, sizes: &[] },
+        );
+        let test = RatioTest::new(0.8);
+        let pairs = |m| {
+            let mut got: Vec<_> =
+                match_scone(m, &a, &b, &test).unwrap().iter().map(|m| (m.query, m.train)).collect::<Vec<_>>();
+            got.sort_unstable();
+            got
+        };
+        assert_eq!(pairs(SconeMatcher::Plain), vec![(0, 0), (1, 1)]);
+        assert_eq!(pairs(SconeMatcher::Freak), vec![(0, 1), (1, 1)]);
+        assert_eq!(pairs(SconeMatcher::Both), vec![(0, 0), (0, 1), (1, 1)]);
     }
 
     #[test]

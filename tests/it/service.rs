@@ -823,6 +823,7 @@ async fn match_pair_matchers_are_selectable_and_unknown_ones_refused() {
         proto::PairMatcher::Rerank,
         proto::PairMatcher::ScaleAware,
         proto::PairMatcher::Joint,
+        proto::PairMatcher::Both,
     ] {
         let r = matching.match_pair(request(m as i32)).await.unwrap().into_inner();
         let ran = if m == proto::PairMatcher::Default { proto::PairMatcher::Union } else { m };
@@ -835,6 +836,8 @@ async fn match_pair_matchers_are_selectable_and_unknown_ones_refused() {
     assert_eq!(counts[0], counts[2]);
     // Scale-aware re-ranks between these two frames of one scale: the same matches as rerank.
     assert_eq!(counts[4], counts[3]);
+    // Both keeps every match union keeps, and FREAK's answers where SConE answered otherwise.
+    assert!(counts[6] >= counts[2], "both {} < union {}", counts[6], counts[2]);
     let err = matching.match_pair(request(99)).await.unwrap_err();
     assert_eq!(err.code(), Code::InvalidArgument);
     assert!(err.message().contains("matcher"), "{}", err.message());
@@ -863,6 +866,8 @@ async fn match_pair_matchers_are_selectable_and_unknown_ones_refused() {
         (joint["matches"].as_array().unwrap().len(), &joint["matcher"]),
         (counts[5], &serde_json::json!("joint"))
     );
+    let both: serde_json::Value = post("both").await.unwrap().json().await.unwrap();
+    assert_eq!((both["matches"].as_array().unwrap().len(), &both["matcher"]), (counts[6], &serde_json::json!("both")));
     let r = post("nearest").await.unwrap();
     assert_eq!(r.status(), 400);
     server.shutdown().await.unwrap();

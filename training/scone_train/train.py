@@ -357,6 +357,10 @@ def train(cfg: dict, run_dir: Path, steps: int | None = None, units=None) -> Pat
     (run_dir / "config.yaml").write_text(yaml.safe_dump(cfg))
     t = cfg["train"]
     steps = steps or t["steps"]
+    # `stop_after` ends a run early on its schedule: the learning rate still decays over `steps`
+    stop = steps if t.get("stop_after") is None else t["stop_after"]
+    if not 0 < stop <= steps:
+        raise ValueError(f"train.stop_after {stop} is outside 1..steps ({steps})")
     torch.set_num_threads(t["threads"])
     torch.manual_seed(cfg["seed"])
     train_units, sel_units = units or load_units(cfg)
@@ -408,11 +412,11 @@ def train(cfg: dict, run_dir: Path, steps: int | None = None, units=None) -> Pat
         if ema is not None and "ema" in ck:
             ema.load_state_dict(ck["ema"])  # (a run begun without averaging starts its average here)
         print(f"resuming {run_dir} at step {start}")
+        if start >= stop:
+            print(f"{run_dir} already holds step {start}, at or past its stop at {stop}: nothing to train")
     tensors = TensorCache(model)
     acc = {"loss": 0.0, "pos": 0.0, "neg": 0.0, "n": 0}
     t0 = time.time()
-    # `stop_after` ends a run early on its schedule: the learning rate still decays over `steps`
-    stop = min(steps, t.get("stop_after") or steps)
     bar = tqdm(range(start, stop), initial=start, total=stop, desc=cfg["name"], mininterval=1 if sys.stderr.isatty() else 60)
     for step in bar:
         model.train()

@@ -150,6 +150,10 @@ def test_stop_after_ends_a_run_early_on_its_own_schedule(tiny_unit, tmp_path):
     lr = t["lr_final"] + 0.5 * (t["lr"] - t["lr_final"]) * (1 + math.cos(math.pi * 3 / 10))
     assert [row["step"] for row in last["log"]] == [3]
     assert math.isclose(last["log"][0]["lr"], lr, rel_tol=1e-6)
+    for bad in (0, 11):
+        cfg["train"]["stop_after"] = bad
+        with pytest.raises(ValueError, match="stop_after"):
+            train(cfg, tmp_path / f"bad-{bad}", units=([tiny_unit], [tiny_unit]))
 
 
 def tiny_unit_root(unit) -> Path:

@@ -22,7 +22,8 @@ pub enum Matcher {
     Plain,
     /// Plain SConE matches plus FREAK's where SConE has none.
     Union,
-    /// Every plain SConE match and every FREAK match; the pose's robust estimate decides between them.
+    /// Every plain SConE match and every FREAK match; the pose's robust estimate decides between them, and a
+    /// keypoint may count twice among the inliers.
     Both,
     /// FREAK's nearest candidates re-ranked by the SConE embedding.
     Rerank,
