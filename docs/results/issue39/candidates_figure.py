@@ -29,6 +29,9 @@ RUNS = [
     ("round9/ring-e1-ema", "4k, averaged (r9)", True),
     ("round9/ring-e1-ema-s1", "4k, averaged,\nseed 1 (r9)", True),
     ("round9/ring-e1-ema-s2", "4k, averaged,\nseed 2 (r9)", True),
+    ("round12/ring-e1-real-10k", "own schedule,\nseed 0 again (r12)", True),
+    ("round12/ring-e1-real-10k-s1", "own schedule,\nseed 1 (r12)", True),
+    ("round12/ring-e1-real-10k-s2", "own schedule,\nseed 2 (r12)", True),
     ("round3", "narrow (r3)", False),
     ("round4", "warps24 (r4)", False),
     ("round5/ring-e1-warps24-s4000", "warps24 at\n4,000 (r5)", False),
@@ -43,17 +46,17 @@ SHOWN = {"strecha-castle-P30-sel": "castle", "7scenes-redkitchen-sel": "redkitch
 def main():
     rows = [(label, same, *pair_means(HERE / d, "union")) for d, label, same in RUNS]
     freak = rows[0][3]
-    fig, axes = plt.subplots(1, 2, figsize=(13, 4.8), gridspec_kw={"width_ratios": [1.1, 1]})
+    fig, axes = plt.subplots(1, 2, figsize=(15, 5.2), gridspec_kw={"width_ratios": [1.1, 1]})
     ax = axes[0]
     for i, (label, same, mean, _, _, _) in enumerate(rows):
         ax.bar(i, mean, color="tab:blue" if same else "tab:gray")
         ax.text(i, mean + 0.002, f"{mean:.3f}", ha="center", fontsize=8)
     ax.axhline(freak, color="tab:red", ls="--", label=f"FREAK {freak:.4f}")
-    ax.axhline(rows[0][2] + 0.005, color="k", ls=":", label="the shipped model + 0.005 (rounds 4-10's bar)")
+    ax.axhline(rows[0][2] + 0.005, color="k", ls=":", label="the shipped model + 0.005 (rounds 4-12's bar)")
     ax.set_xticks(range(len(rows)), [r[0] for r in rows], rotation=60, ha="right", fontsize=8)
     ax.set_ylim(0.26, 0.345)
     ax.set_ylabel("mean AUC@10, five selection parts (union)")
-    ax.set_title("Ring models on the selection pairs, rounds 3-10\n(blue: runs of the shipped recipe; grey: other recipes)", fontsize=10)
+    ax.set_title("Ring models on the selection pairs, rounds 3-12\n(blue: runs of the shipped recipe; grey: other recipes)", fontsize=10)
     ax.legend(fontsize=8, loc="upper left", ncol=2)
     ax = axes[1]
     for j, (part, name) in enumerate(SHOWN.items()):
