@@ -68,55 +68,41 @@ fn ones(bytes: usize) -> [u8; 64] {
     d
 }
 
-#[test]
-fn union_adds_freak_matches_only_for_keypoints_scone_left_unmatched_and_both_adds_every_one() {
-    // SConE: query 0 clearly matches 0; queries 1 and 2 are ambiguous (equidistant from b1 and b2).
-    let ea = vec![0.0, 0.0, 5.0, 5.0, 5.0, 5.0];
+/// The (query, train) pairs, sorted, that `matcher` finds between three keypoints with SConE embeddings `ea` and
+/// the fixed frame `b` below. FREAK: query 0 matches 1, query 1 clearly matches 1, query 2 is 128 bits from
+/// both b1 and b2.
+fn fused(ea: Vec<f32>, matcher: SconeMatcher) -> Vec<(usize, usize)> {
     let eb = vec![0.0, 0.0, 5.0, 4.0, 5.0, 6.0];
-    // FREAK: query 0 would match 1 (disagreeing with SConE), query 1 clearly matches 1, query 2 is 128 bits
-    // from both b1 and b2.
     let (z, o, half, three_quarters) = (ones(0), ones(64), ones(32), ones(48));
     let (ea, eb, fa, fb) = frames(ea, eb, [o, o, three_quarters], [z, o, half]);
     let (a, b) = (
         SconeFrame { embeddings: &ea, dim: 2, freak: &fa, points: &PTS, sizes: &[] },
         SconeFrame { embeddings: &eb, dim: 2, freak: &fb, points: &PTS, sizes: &[] },
     );
-    let test = RatioTest::new(0.8);
-    let plain = match_scone(SconeMatcher::Plain, &a, &b, &test).unwrap();
-    assert_eq!(plain.iter().map(|m| (m.query, m.train)).collect::<Vec<_>>(), vec![(0, 0)]);
-    let union = match_scone(SconeMatcher::Union, &a, &b, &test).unwrap();
+    let mut got: Vec<_> =
+        match_scone(matcher, &a, &b, &RatioTest::new(0.8)).unwrap().iter().map(|m| (m.query, m.train)).collect();
+    got.sort_unstable();
+    got
+}
+
+#[test]
+fn union_adds_freak_matches_only_for_keypoints_scone_left_unmatched_and_both_adds_every_one() {
+    // SConE: query 0 clearly matches 0; queries 1 and 2 are ambiguous (equidistant from b1 and b2).
+    let ea = vec![0.0, 0.0, 5.0, 5.0, 5.0, 5.0];
+    assert_eq!(fused(ea.clone(), SconeMatcher::Plain), vec![(0, 0)]);
     // SConE's answer for query 0 stands; FREAK adds query 1; query 2 has no answer from either.
-    let mut got: Vec<_> = union.iter().map(|m| (m.query, m.train)).collect();
-    got.sort_unstable();
-    assert_eq!(got, vec![(0, 0), (1, 1)]);
+    assert_eq!(fused(ea.clone(), SconeMatcher::Union), vec![(0, 0), (1, 1)]);
     // `both` also keeps FREAK's disagreeing answer for query 0.
-    let both = match_scone(SconeMatcher::Both, &a, &b, &test).unwrap();
-    let mut got: Vec<_> = both.iter().map(|m| (m.query, m.train)).collect();
-    got.sort_unstable();
-    assert_eq!(got, vec![(0, 0), (0, 1), (1, 1)]);
+    assert_eq!(fused(ea, SconeMatcher::Both), vec![(0, 0), (0, 1), (1, 1)]);
 }
 
 #[test]
 fn both_keeps_a_pair_that_both_descriptors_found_once() {
     // As above, but SConE now finds query 1's match (1, 1) too, the same pair FREAK finds.
     let ea = vec![0.0, 0.0, 5.0, 4.0, 5.0, 5.0];
-    let eb = vec![0.0, 0.0, 5.0, 4.0, 5.0, 6.0];
-    let (z, o, half, three_quarters) = (ones(0), ones(64), ones(32), ones(48));
-    let (ea, eb, fa, fb) = frames(ea, eb, [o, o, three_quarters], [z, o, half]);
-    let (a, b) = (
-        SconeFrame { embeddings: &ea, dim: 2, freak: &fa, points: &PTS, sizes: &[] },
-        SconeFrame { embeddings: &eb, dim: 2, freak: &fb, points: &PTS, sizes: &[] },
-    );
-    let test = RatioTest::new(0.8);
-    let pairs = |m| {
-        let mut got: Vec<_> =
-            match_scone(m, &a, &b, &test).unwrap().iter().map(|m| (m.query, m.train)).collect::<Vec<_>>();
-        got.sort_unstable();
-        got
-    };
-    assert_eq!(pairs(SconeMatcher::Plain), vec![(0, 0), (1, 1)]);
-    assert_eq!(pairs(SconeMatcher::Freak), vec![(0, 1), (1, 1)]);
-    assert_eq!(pairs(SconeMatcher::Both), vec![(0, 0), (0, 1), (1, 1)]);
+    assert_eq!(fused(ea.clone(), SconeMatcher::Plain), vec![(0, 0), (1, 1)]);
+    assert_eq!(fused(ea.clone(), SconeMatcher::Freak), vec![(0, 1), (1, 1)]);
+    assert_eq!(fused(ea, SconeMatcher::Both), vec![(0, 0), (0, 1), (1, 1)]);
 }
 
 #[test]
