@@ -17,7 +17,7 @@ import sys
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from round2 import ZOOM_BINS, pair_means, table_header, table_row, warp_figures  # noqa: E402
+from round2 import PARTS, ZOOM_BINS, pair_means, summary, table_header, table_row, warp_figures  # noqa: E402
 from round4 import criteria  # noqa: E402
 
 SHIPPED = "ring-e1-real-s50"
@@ -27,11 +27,9 @@ MEAN_MARGIN = 0.005
 
 def matches_and_precision(directory, matcher):
     """SConE's matches per pair and match precision, averaged over the five parts."""
-    rows = []
-    for f in sorted(directory.glob(f"pairs-{matcher}-*.json")):
-        s = next(x for x in json.loads(f.read_text())["summaries"] if x["method"] == "scone")
-        rows.append((s["mean_matches"], s["match_precision"]))
-    return statistics.mean(r[0] for r in rows), statistics.mean(r[1] for r in rows)
+    rows = [summary(json.loads((directory / f"pairs-{matcher}-{part}.json").read_text())["summaries"], "scone")
+            for part in PARTS]
+    return statistics.mean(r["mean_matches"] for r in rows), statistics.mean(r["match_precision"] for r in rows)
 
 
 def main():
@@ -56,13 +54,13 @@ def main():
     union_mean = pair_means(shipped, "union")[0]
     r, mine, ref = criteria(shipped, "both", shipped, "union", "union", union_mean)
     failures += [f"1: {f}" for f in r["failures"]]
-    above = sum(x > 0 for x in diffs)
+    above, mean_diff = sum(x > 0 for x in diffs), statistics.mean(diffs)
     if above < 5:
         failures.append(f"2: both above union on {above} of {len(diffs)} models, 5 needed")
-    if statistics.mean(diffs) < MEAN_MARGIN:
-        failures.append(f"2: mean difference {statistics.mean(diffs):+.4f} < +{MEAN_MARGIN}")
+    if mean_diff < MEAN_MARGIN:
+        failures.append(f"2: mean difference {mean_diff:+.4f} < +{MEAN_MARGIN}")
     print()
-    print(f"mean difference {statistics.mean(diffs):+.4f}, both above union on {above} of {len(diffs)}")
+    print(f"mean difference {mean_diff:+.4f}, both above union on {above} of {len(diffs)}")
     print(table_header())
     print(table_row(SHIPPED, r, "the shipped model with both") + " zoom 1.25-1.6x / 1.6-2x / 2-2.5x: "
           + " / ".join(f"{mine[b]:.2f}" for b in ZOOM_BINS[1:]) + " (union "
