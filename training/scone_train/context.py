@@ -27,6 +27,7 @@ ANGLES = 16
 ANGLE_BINS = 256
 BOX = 0.2
 SAMPLES = 1 + RINGS * ANGLES
+GRADIENTS = 2 * SAMPLES
 
 
 def offsets() -> tuple[np.ndarray, np.ndarray]:
@@ -49,6 +50,10 @@ def offsets() -> tuple[np.ndarray, np.ndarray]:
 
 
 _TABLE = offsets()
+# The angle bins' cosines and sines, from the same libm calls as the offsets (numpy's own cos may differ in the
+# last bit).
+_COS = np.array([math.cos(2.0 * math.pi * a / ANGLE_BINS) for a in range(ANGLE_BINS)])
+_SIN = np.array([math.sin(2.0 * math.pi * a / ANGLE_BINS) for a in range(ANGLE_BINS)])
 
 
 def angle_bin(angle_deg: np.ndarray) -> np.ndarray:
@@ -81,3 +86,54 @@ def sample(grey: np.ndarray, keypoints: np.ndarray) -> np.ndarray:
     total = integral[y1, x1] - integral[y0, x1] - integral[y1, x0] + integral[y0, x0]
     area = (x1 - x0) * (y1 - y0)
     return ((total + area // 2) // area).astype(np.uint8).reshape(n, SAMPLES)
+
+
+def _box_sums(integral: np.ndarray, x0, x1, y0, y1) -> tuple[np.ndarray, np.ndarray]:
+    """Sums and areas of the boxes [x0, x1) x [y0, y1), each bound already cut to the image (an empty box has
+    area 0)."""
+    x1, y1 = np.maximum(x1, x0), np.maximum(y1, y0)
+    total = integral[y1, x1] - integral[y0, x1] - integral[y1, x0] + integral[y0, x0]
+    return total, (x1 - x0) * (y1 - y0)
+
+
+def _difference(a: tuple, b: tuple) -> np.ndarray:
+    """mean(a) - mean(b) as f64, 0 where either box is empty (at the image's border)."""
+    (sa, na), (sb, nb) = a, b
+    ok = (na > 0) & (nb > 0)
+    return np.where(ok, sa / np.maximum(na, 1) - sb / np.maximum(nb, 1), 0.0)
+
+
+def gradients(grey: np.ndarray, keypoints: np.ndarray) -> np.ndarray:
+    """int8 [N, GRADIENTS]: the grey-level gradient at every ring sample, in the keypoint's own frame.
+
+    At a sample's pixel (cx, cy) (as `sample` places it) with half-width g = max(its box half-width, 1): the
+    image-axis differences gx = mean(right box) - mean(left box) and gy = mean(lower box) - mean(upper box),
+    the boxes [cx+1, cx+g] x [cy-g, cy+g], [cx-g, cx-1] x [cy-g, cy+g] and their transposes, each cut to the
+    image (a difference with an empty box is 0). Turned into the frame of the keypoint's quantised angle t:
+    u = gx cos t + gy sin t (along the keypoint's direction), v = gy cos t - gx sin t; each halved (so that a
+    full black-to-white step fits), rounded half up and clamped to -127..127. Columns: u of every sample (in `sample`'s order), then v of every sample."""
+    grey = np.asarray(grey)
+    if grey.ndim != 2 or grey.dtype != np.uint8:
+        raise ValueError("a grey uint8 image is required")
+    h, w = grey.shape
+    n = len(keypoints)
+    if n == 0:
+        return np.zeros((0, GRADIENTS), dtype=np.int8)
+    integral = np.zeros((h + 1, w + 1), dtype=np.int64)
+    integral[1:, 1:] = grey.astype(np.int64).cumsum(0).cumsum(1)
+    kp = np.asarray(keypoints, dtype=np.float64)
+    x, y, s = kp[:, 0:1], kp[:, 1:2], kp[:, 2:3]
+    dx, dy, half = _TABLE
+    a = angle_bin(kp[:, 3])
+    cx = np.clip(np.floor(x + s * dx[a] + 0.5), 0, w - 1).astype(np.int64)
+    cy = np.clip(np.floor(y + s * dy[a] + 0.5), 0, h - 1).astype(np.int64)
+    g = np.maximum(np.floor(half[None, :] * s + 0.5), 1).astype(np.int64)
+    lo_x, hi_x = np.maximum(cx - g, 0), np.minimum(cx + g + 1, w)
+    lo_y, hi_y = np.maximum(cy - g, 0), np.minimum(cy + g + 1, h)
+    gx = _difference(_box_sums(integral, np.minimum(cx + 1, w), hi_x, lo_y, hi_y), _box_sums(integral, lo_x, cx, lo_y, hi_y))
+    gy = _difference(_box_sums(integral, lo_x, hi_x, np.minimum(cy + 1, h), hi_y), _box_sums(integral, lo_x, hi_x, lo_y, cy))
+    cos, sin = _COS[a][:, None], _SIN[a][:, None]
+    u = gx * cos + gy * sin
+    v = gy * cos - gx * sin
+    out = np.concatenate([u, v], axis=1) * 0.5
+    return np.clip(np.floor(out + 0.5), -127, 127).astype(np.int8)

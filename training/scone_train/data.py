@@ -128,6 +128,7 @@ class FrameFeatures:
     mask: np.ndarray  # [N, k] uint8
     relative: np.ndarray  # [N, k, 4] float32
     context: np.ndarray | None = None  # [N, 113] uint8, the ring context (export format 2)
+    gradients: np.ndarray | None = None  # [N, 226] int8, the ring's gradients (`context.gradients`), when asked for
 
     def __len__(self) -> int:
         return len(self.keypoints)
@@ -145,7 +146,46 @@ class FrameFeatures:
         )
 
 
-def load_features(npz_path: Path) -> tuple[dict, list[FrameFeatures]]:
+# Whether `load_features` attaches the ring's gradients (`context.gradients`) to frames it loads with their
+# scene's directory: set by `train` for a model that reads them. The Rust export does not write them yet; they
+# are computed here from the frames' images, as `src/decode.rs` decodes them, and cached beside the features.
+WANT_GRADIENTS = False
+
+
+def grey_image(path: Path) -> np.ndarray:
+    """An image file as the service's decoder makes it grey (`src/decode.rs`: decoded unchanged, 16-bit scaled
+    by 1/257, BGR(A) to grey with OpenCV's weights)."""
+    import cv2
+
+    img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    if img is None:
+        raise ValueError(f"{path}: the decoder could not read the image")
+    if img.dtype == np.uint16:
+        img = cv2.convertScaleAbs(img, alpha=1.0 / 257.0)  # convertTo(CV_8U, 1/257): the same saturating round
+    if img.ndim == 3:
+        img = cv2.cvtColor(img, cv2.COLOR_BGR2GRAY if img.shape[2] == 3 else cv2.COLOR_BGRA2GRAY)
+    return img
+
+
+def _attach_gradients(npz_path: Path, scene_dir: Path, meta: dict, frames: list[FrameFeatures]) -> None:
+    from . import context
+
+    key = hashlib.sha256(Path(context.__file__).read_bytes() + Path(npz_path).with_suffix(".key").read_bytes()).hexdigest()[:16]
+    cache = Path(npz_path).with_name(Path(npz_path).name.replace(".features.npz", f".{key}.gradients.npz"))
+    if cache.exists():
+        z = np.load(cache)
+        for f, frame in zip(meta["frames"], frames):
+            frame.gradients = z[f"f{f['index']:04d}"]
+        return
+    out = {}
+    for f, frame in zip(meta["frames"], frames):
+        frame.gradients = context.gradients(grey_image(scene_dir / f["file"]), frame.keypoints)
+        out[f"f{f['index']:04d}"] = frame.gradients
+    np.savez(cache, **out)
+
+
+def load_features(npz_path: Path, scene_dir: Path | None = None) -> tuple[dict, list[FrameFeatures]]:
+    """The frames of an export; with `scene_dir` and `WANT_GRADIENTS`, their ring gradients too."""
     z = np.load(npz_path)
     meta = json.loads(bytes(z["meta_json"]))
     frames = []
@@ -157,6 +197,8 @@ def load_features(npz_path: Path) -> tuple[dict, list[FrameFeatures]]:
                 z[p + "context"] if p + "context" in z.files else None,
             )
         )
+    if WANT_GRADIENTS and scene_dir is not None:
+        _attach_gradients(npz_path, Path(scene_dir), meta, frames)
     return meta, frames
 
 

@@ -55,7 +55,7 @@ def build_unit(
     cache.mkdir(parents=True, exist_ok=True)
     npz = export_features(scene_dir, cache / f"{scene_dir.name}.features.npz", extractor_args)
     scene = load_scene(scene_dir)
-    _, frames = load_features(npz)
+    _, frames = load_features(npz, scene_dir)
     if keep is not None:
         scene, frames = subset(scene, frames, keep)
     p = params or C.GeometryParams()
@@ -120,7 +120,7 @@ def build_warp_unit(seq_dir: Path, cache: Path, tol_px: float = 2.0, extractor_a
     seq_dir = Path(seq_dir)
     cache.mkdir(parents=True, exist_ok=True)
     npz = export_features(seq_dir, cache / f"{seq_dir.name}.features.npz", extractor_args)
-    _, frames = load_features(npz)
+    _, frames = load_features(npz, seq_dir)
     ids = [np.arange(len(frames[0]), dtype=np.int64)]
     for k in range(1, len(frames)):
         h = np.loadtxt(seq_dir / f"H_1_{k + 1}")

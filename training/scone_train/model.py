@@ -297,12 +297,18 @@ class RingNet(nn.Module):
     INPUT_NAMES = ["descriptors", "context"]
 
     def __init__(self, embed_dim: int = 48, bits_hidden: tuple = (256,), bits_dim: int = 128, ring_hidden: tuple = (256,),
-                 ring_dim: int = 128, head_hidden: tuple = (128,), samples: int = 113, invariants: bool = False):
+                 ring_dim: int = 128, head_hidden: tuple = (128,), samples: int = 113, invariants: bool = False,
+                 gradients: bool = False):
         super().__init__()
         self.k = 0
         self.samples = samples
         self.invariants = RingInvariants() if invariants else None
-        ring_in = samples + (self.invariants.size if invariants else 0)
+        # With `gradients`, a third input: the ring's gradients in the keypoint's frame (`context.gradients`,
+        # 2 x samples int8), scaled by the same normaliser as the grey levels and read by the ring branch.
+        self.gradients = gradients
+        if gradients:
+            self.INPUT_NAMES = [*RingNet.INPUT_NAMES, "gradients"]
+        ring_in = samples + (self.invariants.size if invariants else 0) + (2 * samples if gradients else 0)
         self.bits = relu_mlp([512, *bits_hidden, bits_dim], last_activation=True)
         self.ring = relu_mlp([ring_in, *ring_hidden, ring_dim], last_activation=True)
         self.head = relu_mlp([bits_dim + ring_dim, *head_hidden, embed_dim], last_activation=False)
@@ -310,22 +316,31 @@ class RingNet(nn.Module):
     def frame_inputs(self, f) -> tuple:
         if f.context is None:
             raise ValueError("a ring-context model needs the frames' ring contexts (export format 2)")
-        return torch.from_numpy(f.descriptors), torch.from_numpy(f.context)
+        if not self.gradients:
+            return torch.from_numpy(f.descriptors), torch.from_numpy(f.context)
+        if f.gradients is None:
+            raise ValueError("this ring model reads the ring's gradients too (data.WANT_GRADIENTS)")
+        return torch.from_numpy(f.descriptors), torch.from_numpy(f.context), torch.from_numpy(f.gradients)
 
-    @staticmethod
-    def example_inputs(n: int = 64, k: int = 0, seed: int = 0) -> tuple:
+    def example_inputs(self, n: int = 64, k: int = 0, seed: int = 0) -> tuple:
         g = torch.Generator().manual_seed(seed)
-        return (
+        x = (
             torch.randint(0, 256, (n, 64), dtype=torch.uint8, generator=g),
-            torch.randint(0, 256, (n, 113), dtype=torch.uint8, generator=g),
+            torch.randint(0, 256, (n, self.samples), dtype=torch.uint8, generator=g),
         )
+        if self.gradients:
+            x += (torch.randint(-127, 128, (n, 2 * self.samples), dtype=torch.int8, generator=g),)
+        return x
 
-    def forward(self, descriptors: torch.Tensor, context: torch.Tensor) -> torch.Tensor:
+    def forward(self, descriptors: torch.Tensor, context: torch.Tensor, gradients: torch.Tensor | None = None) -> torch.Tensor:
         c = context.to(torch.float32)
         mean = c.mean(1, keepdim=True)
         std = ((c - mean) ** 2).mean(1, keepdim=True).sqrt()
-        c = (c - mean) / (std + 4.0)
+        scale = std + 4.0
+        c = (c - mean) / scale
         if self.invariants is not None:
             c = torch.cat([c, self.invariants(c)], dim=1)
+        if self.gradients:
+            c = torch.cat([c, gradients.to(torch.float32) / scale], dim=1)
         x = torch.cat([self.bits(unpack_bits(descriptors)), self.ring(c)], dim=1)
         return F.normalize(self.head(x), dim=-1)

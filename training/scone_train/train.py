@@ -22,6 +22,7 @@ import yaml
 from tqdm import tqdm
 
 from . import correspondences as C
+from . import data as D
 from . import evaluate as E
 from .data import FrameFeatures, shared_data
 from .dataset import GroupSampler, PairSampler, Unit, build_unit, shared_anchors
@@ -147,6 +148,7 @@ def build_model(m: dict):
             embed_dim=m["embed_dim"], bits_hidden=tuple(m.get("bits_hidden", [256])), bits_dim=m.get("bits_dim", 128),
             ring_hidden=tuple(m.get("ring_hidden", [256])), ring_dim=m.get("ring_dim", 128),
             head_hidden=tuple(m.get("head_hidden_layers", [128])), invariants=m.get("ring_invariants", False),
+            gradients=m.get("ring_gradients", False),
         )
     return SconeNet(
         k=max(m["k"], 1), embed_dim=m["embed_dim"], desc_dim=m["desc_dim"], lstm_hidden=m["lstm_hidden"],
@@ -363,6 +365,8 @@ def train(cfg: dict, run_dir: Path, steps: int | None = None, units=None) -> Pat
         raise ValueError(f"train.stop_after {stop} is outside 1..steps ({steps})")
     torch.set_num_threads(t["threads"])
     torch.manual_seed(cfg["seed"])
+    # A ring model that reads the ring's gradients needs them on every frame it loads.
+    D.WANT_GRADIENTS = bool(cfg["model"].get("ring_gradients", False))
     train_units, sel_units = units or load_units(cfg)
     freak_sel = float(
         np.concatenate(
