@@ -16,7 +16,7 @@ from .model import SconeNet
 INPUT_NAMES = SconeNet.INPUT_NAMES
 OUTPUT_NAME = "embeddings"
 _DTYPES = {"descriptors": np.uint8, "keypoints": np.float32, "neighbours": np.int64, "mask": np.float32,
-           "relative": np.float32, "context": np.uint8}
+           "relative": np.float32, "context": np.uint8, "gradients": np.int8}
 
 
 def example_inputs(n: int = 64, k: int = 20, seed: int = 0):

@@ -97,6 +97,64 @@ def test_ring_context_of_the_rust_export_equals_the_reference_and_a_ring_model_e
     assert np.abs(got - E.embed_frames(model, [f])[0]).max() <= 1e-4
 
 
+def test_ring_gradients_are_their_definition_and_a_gradient_ring_model_trains_and_exports(tiny_unit, tmp_path):
+    """`context.gradients` is its definition from the pixels (box means by plain sums, turned by the angle's
+    cosine and sine, halved and rounded half up), and a RingNet reading them trains, exports with a third
+    input and keeps parity with onnxruntime."""
+    import math
+
+    from scone_train import context as CX
+    from scone_train import data as D
+    from scone_train.model import RingNet
+
+    h, w = 41, 67
+    img = np.random.default_rng(0).integers(0, 256, (h, w)).astype(np.uint8)
+    kps = np.array([[(i * 37 % w) + 0.3, (i * 53 % h) - 0.2, 5 + i % 7, i * 7.3] for i in range(40)])
+    got = CX.gradients(img, kps)
+    assert got.shape == (40, CX.GRADIENTS) and got.dtype == np.int8
+    dx, dy, half = CX._TABLE
+
+    def mean(x0, x1, y0, y1):
+        x0, x1, y0, y1 = max(x0, 0), min(x1, w - 1), max(y0, 0), min(y1, h - 1)
+        return None if x1 < x0 or y1 < y0 else float(img[y0:y1 + 1, x0:x1 + 1].astype(np.int64).mean())
+
+    def diff(a, b):
+        return 0.0 if a is None or b is None else a - b
+
+    for k, (x, y, s, angle) in enumerate(kps):
+        a = int(CX.angle_bin(angle))
+        t = 2.0 * math.pi * a / CX.ANGLE_BINS
+        for n in range(CX.SAMPLES):
+            cx = min(max(math.floor(x + s * dx[a, n] + 0.5), 0), w - 1)
+            cy = min(max(math.floor(y + s * dy[a, n] + 0.5), 0), h - 1)
+            g = max(math.floor(half[n] * s + 0.5), 1)
+            gx = diff(mean(cx + 1, cx + g, cy - g, cy + g), mean(cx - g, cx - 1, cy - g, cy + g))
+            gy = diff(mean(cx - g, cx + g, cy + 1, cy + g), mean(cx - g, cx + g, cy - g, cy - 1))
+            want = [max(-127, min(127, math.floor(v * 0.5 + 0.5))) for v in (gx * math.cos(t) + gy * math.sin(t),
+                                                                                gy * math.cos(t) - gx * math.sin(t))]
+            assert [got[k, n], got[k, CX.SAMPLES + n]] == want, (k, n)
+
+    root = tiny_unit_root(tiny_unit)
+    for k, f in enumerate(tiny_unit.frames):
+        f.gradients = CX.gradients(D.grey_image(root / "rgb" / f"{k:06d}.png"), f.keypoints)
+    try:
+        cfg = yaml.safe_load(CONFIG.read_text())
+        cfg["model"] = {"context": "ring", "ring_gradients": True, "k": 0, "embed_dim": 48, "desc_dim": 64,
+                        "lstm_hidden": 32}
+        cfg["train"].update(steps=3, eval_every=3, checkpoint_every=3, anchors=32, threads=1, loss="triplet_frames",
+                            frame_loss="softmax+triplet", group_frames=3, select_on="ratio_f1")
+        best = train(cfg, tmp_path / "grad", units=([tiny_unit], [tiny_unit]))
+    finally:
+        D.WANT_GRADIENTS = False
+        for f in tiny_unit.frames:
+            f.gradients = None
+    model = RingNet(gradients=True)
+    model.load_state_dict(torch.load(best, weights_only=False)["model"])
+    path = X.export_onnx(model, tmp_path / "grad.onnx")
+    assert [i.name for i in onnx.load(str(path)).graph.input] == ["descriptors", "context", "gradients"]
+    assert X.check_parity(model, path, n=91) <= 1e-4
+
+
 def test_ring_invariants_ignore_a_turn_and_an_averaged_ring_model_resumes_and_exports(tiny_unit, tmp_path):
     """`RingInvariants` do not change when every ring turns by whole steps (what an error of the angle does),
     and a RingNet with them trains with averaged weights (`train.ema`), resumes with the average, saves the
