@@ -270,15 +270,28 @@ pub fn match_scone(
     b: &SconeFrame,
     test: &RatioTest,
 ) -> Result<Vec<Match>, FeatureError> {
+    match_scone_with(matcher, a, b, test, test)
+}
+
+/// [`match_scone`] with the embedding held to its own ratio test, `embedding`, in the fused matchers
+/// ([`SconeMatcher::Union`], [`SconeMatcher::Both`]); FREAK's matches there, and every other matcher, keep
+/// `test`.
+pub fn match_scone_with(
+    matcher: SconeMatcher,
+    a: &SconeFrame,
+    b: &SconeFrame,
+    test: &RatioTest,
+    embedding: &RatioTest,
+) -> Result<Vec<Match>, FeatureError> {
     match matcher {
         SconeMatcher::Plain => match_l2(a.embeddings, b.embeddings, a.dim, test, b.points),
         SconeMatcher::Union => {
             let freak = match_descriptors(a.freak, b.freak, NORM_HAMMING, test, b.points)?;
-            union(a, b, test, freak)
+            union(a, b, embedding, freak)
         }
         SconeMatcher::Both => {
             let freak = match_descriptors(a.freak, b.freak, NORM_HAMMING, test, b.points)?;
-            both(a, b, test, freak)
+            both(a, b, embedding, freak)
         }
         SconeMatcher::Rerank => rerank(a, b, test),
         SconeMatcher::ScaleAware => {

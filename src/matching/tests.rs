@@ -72,6 +72,11 @@ fn ones(bytes: usize) -> [u8; 64] {
 /// the fixed frame `b` below. FREAK: query 0 matches 1, query 1 clearly matches 1, query 2 is 128 bits from
 /// both b1 and b2.
 fn fused(ea: Vec<f32>, matcher: SconeMatcher) -> Vec<(usize, usize)> {
+    fused_with(ea, matcher, 0.8)
+}
+
+/// [`fused`] with the embedding held to its own ratio `embedding_ratio` (FREAK's stays 0.8).
+fn fused_with(ea: Vec<f32>, matcher: SconeMatcher, embedding_ratio: f32) -> Vec<(usize, usize)> {
     let eb = vec![0.0, 0.0, 5.0, 4.0, 5.0, 6.0];
     let (z, o, half, three_quarters) = (ones(0), ones(64), ones(32), ones(48));
     let (ea, eb, fa, fb) = frames(ea, eb, [o, o, three_quarters], [z, o, half]);
@@ -79,10 +84,24 @@ fn fused(ea: Vec<f32>, matcher: SconeMatcher) -> Vec<(usize, usize)> {
         SconeFrame { embeddings: &ea, dim: 2, freak: &fa, points: &PTS, sizes: &[] },
         SconeFrame { embeddings: &eb, dim: 2, freak: &fb, points: &PTS, sizes: &[] },
     );
+    let (test, embedding) = (RatioTest::new(0.8), RatioTest::new(embedding_ratio));
     let mut got: Vec<_> =
-        match_scone(matcher, &a, &b, &RatioTest::new(0.8)).unwrap().iter().map(|m| (m.query, m.train)).collect();
+        match_scone_with(matcher, &a, &b, &test, &embedding).unwrap().iter().map(|m| (m.query, m.train)).collect();
     got.sort_unstable();
     got
+}
+
+#[test]
+fn the_embeddings_own_ratio_decides_its_matches_in_union_and_both_and_leaves_freaks_alone() {
+    // Query 2's embedding is 0.92 from b1 and 1.08 from b2 (ratio 0.85): no SConE match at 0.8, one at 0.9.
+    // FREAK finds query 2 nothing (128 bits from both) whatever the embedding's ratio.
+    let ea = vec![0.0, 0.0, 5.0, 5.0, 5.0, 4.92];
+    assert_eq!(fused(ea.clone(), SconeMatcher::Union), vec![(0, 0), (1, 1)]);
+    assert_eq!(fused_with(ea.clone(), SconeMatcher::Union, 0.9), vec![(0, 0), (1, 1), (2, 1)]);
+    assert_eq!(fused_with(ea.clone(), SconeMatcher::Both, 0.9), vec![(0, 0), (0, 1), (1, 1), (2, 1)]);
+    assert_eq!(fused_with(ea.clone(), SconeMatcher::Freak, 0.9), vec![(0, 1), (1, 1)]);
+    // The embedding alone (`plain`) keeps the request's test.
+    assert_eq!(fused_with(ea, SconeMatcher::Plain, 0.9), vec![(0, 0)]);
 }
 
 #[test]

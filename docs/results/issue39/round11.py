@@ -32,39 +32,51 @@ def matches_and_precision(directory, matcher):
     return statistics.mean(r["mean_matches"] for r in rows), statistics.mean(r["match_precision"] for r in rows)
 
 
-def main():
-    default = Path(os.environ.get("SCONE_PREFIX", Path.home() / ".cache/scone")) / "work/i39"
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--work", type=Path, default=default)
-    args = parser.parse_args()
-    print("| model | union | both | difference | parts (both - union) | warps 5 px union / both | matches per pair union / both |")
+def six_models(work, candidate_dir, matcher, label):
+    """Round 11's two criteria for a candidate scored into `candidate_dir(work, model)` with `matcher`, against
+    `union` in each model's own directory; prints the table and the shipped model's row, and returns the
+    failures and the mean difference. `label` names the candidate in the printed lines."""
+    print(f"| model | union | {label} | difference | parts ({label} - union) | warps 5 px union / {label} | matches per pair union / {label} |")
     print("|---|---|---|---|---|---|---|")
     diffs = []
     for name in MODELS:
-        d = args.work / name
+        d, c = work / name, candidate_dir(work, name)
         u, _, u_parts, _ = pair_means(d, "union")
-        b, _, b_parts, _ = pair_means(d, "both")
-        wu, wb = warp_figures(d, "union")[0]["scone"], warp_figures(d, "both")[0]["scone"]
+        b, _, b_parts, _ = pair_means(c, matcher)
+        wu, wb = warp_figures(d, "union")[0]["scone"], warp_figures(c, matcher)[0]["scone"]
         diffs.append(b - u)
-        (mu, pu), (mb, pb) = matches_and_precision(d, "union"), matches_and_precision(d, "both")
+        (mu, pu), (mb, pb) = matches_and_precision(d, "union"), matches_and_precision(c, matcher)
         print(f"| {name} | {u:.4f} | {b:.4f} | {b - u:+.4f} | "
               + " / ".join(f"{y - x:+.3f}" for x, y in zip(u_parts, b_parts)) + f" | {wu:.3f} / {wb:.3f} | {mu:.0f}, {pu:.3f} / {mb:.0f}, {pb:.3f} |")
     failures = []
-    shipped = args.work / SHIPPED
+    shipped = work / SHIPPED
     union_mean = pair_means(shipped, "union")[0]
-    r, mine, ref = criteria(shipped, "both", shipped, "union", "union", union_mean)
+    r, mine, ref = criteria(candidate_dir(work, SHIPPED), matcher, shipped, "union", "union", union_mean)
     failures += [f"1: {f}" for f in r["failures"]]
     above, mean_diff = sum(x > 0 for x in diffs), statistics.mean(diffs)
     if above < 5:
-        failures.append(f"2: both above union on {above} of {len(diffs)} models, 5 needed")
+        failures.append(f"2: {label} above union on {above} of {len(diffs)} models, 5 needed")
     if mean_diff < MEAN_MARGIN:
         failures.append(f"2: mean difference {mean_diff:+.4f} < +{MEAN_MARGIN}")
     print()
-    print(f"mean difference {mean_diff:+.4f}, both above union on {above} of {len(diffs)}")
+    print(f"mean difference {mean_diff:+.4f}, {label} above union on {above} of {len(diffs)}")
     print(table_header())
-    print(table_row(SHIPPED, r, "the shipped model with both") + " zoom 1.25-1.6x / 1.6-2x / 2-2.5x: "
+    print(table_row(SHIPPED, r, f"the shipped model with {label}") + " zoom 1.25-1.6x / 1.6-2x / 2-2.5x: "
           + " / ".join(f"{mine[b]:.2f}" for b in ZOOM_BINS[1:]) + " (union "
           + " / ".join(f"{ref[b]:.2f}" for b in ZOOM_BINS[1:]) + ")")
+    return failures, mean_diff
+
+
+def work_dir():
+    """The directory score.sh writes its reports under, or --work."""
+    default = Path(os.environ.get("SCONE_PREFIX", Path.home() / ".cache/scone")) / "work/i39"
+    parser = argparse.ArgumentParser(description=sys.modules["__main__"].__doc__.splitlines()[0])
+    parser.add_argument("--work", type=Path, default=default)
+    return parser.parse_args().work
+
+
+def main():
+    failures, _ = six_models(work_dir(), lambda work, name: work / name, "both", "both")
     print()
     print("verdict: " + ("passes; both becomes the declared matcher" if not failures else "fails: " + "; ".join(failures)))
 

@@ -43,6 +43,10 @@ pub enum EvalCommand {
         /// model's declared matcher, as MatchPair (union for the embedded model).
         #[arg(long, value_enum)]
         scone_matcher: Option<scone::matching::SconeMatcher>,
+        /// The embedding's own ratio-test threshold in the fused matchers (union, both); FREAK's part there
+        /// keeps --ratio. Default: --ratio.
+        #[arg(long)]
+        scone_ratio: Option<f32>,
         /// RANSAC inlier threshold in pixels.
         #[arg(long, default_value_t = 1.0)]
         ransac_px: f64,
@@ -174,6 +178,10 @@ pub enum EvalCommand {
         /// model's declared matcher, as MatchPair (union for the embedded model).
         #[arg(long, value_enum)]
         scone_matcher: Option<scone::matching::SconeMatcher>,
+        /// The embedding's own ratio-test threshold in the fused matchers (union, both); FREAK's part there
+        /// keeps --ratio. Default: --ratio.
+        #[arg(long)]
+        scone_ratio: Option<f32>,
         /// MAGSAC++ inlier threshold of the fitted homography, pixels.
         #[arg(long, default_value_t = 3.0)]
         ransac_px: f64,
@@ -216,6 +224,7 @@ pub fn run(cmd: EvalCommand) -> anyhow::Result<()> {
             mutual,
             same_corner_px,
             scone_matcher,
+            scone_ratio,
             ransac_px,
             ransac_iters,
             ransac_confidence,
@@ -245,6 +254,7 @@ pub fn run(cmd: EvalCommand) -> anyhow::Result<()> {
             let same_corner_px =
                 same_corner_px.unwrap_or(if single_scale { 0.0 } else { scone::matching::SAME_CORNER_PX });
             check_same_corner(same_corner_px)?;
+            check_scone_ratio(scone_ratio)?;
             ransac.validate().map_err(|e| {
                 anyhow::anyhow!("--ransac-px / --ransac-iters / --ransac-confidence / --duplicate-px: {e}")
             })?;
@@ -264,6 +274,7 @@ pub fn run(cmd: EvalCommand) -> anyhow::Result<()> {
                 mutual,
                 same_corner_px,
                 scone_matcher,
+                scone_ratio,
                 ransac,
                 extractor: cfg,
                 depth_px,
@@ -280,6 +291,7 @@ pub fn run(cmd: EvalCommand) -> anyhow::Result<()> {
             ratio,
             same_corner_px,
             scone_matcher,
+            scone_ratio,
             ransac_px,
             correct_px,
             neighbour_rules,
@@ -287,6 +299,7 @@ pub fn run(cmd: EvalCommand) -> anyhow::Result<()> {
             extractor,
         } => {
             check_same_corner(same_corner_px)?;
+            check_scone_ratio(scone_ratio)?;
             anyhow::ensure!(ransac_px > 0.0 && correct_px > 0.0, "--ransac-px and --correct-px must be > 0");
             let embedder =
                 load_embedder(methods.iter().any(|m| matches!(m, Method::Scone | Method::SconePlain)), &out)?;
@@ -295,6 +308,7 @@ pub fn run(cmd: EvalCommand) -> anyhow::Result<()> {
                 ratio,
                 same_corner_px,
                 scone_matcher: matcher_for(scone_matcher, embedder.as_ref())?,
+                scone_ratio,
                 ransac_px,
                 correct_px,
                 k: extractor.k,
@@ -417,7 +431,14 @@ fn run_merge(
     Ok(())
 }
 
-/// `A:B` as two fractions.
+/// `--scone-ratio` is a ratio-test threshold: in (0, 1].
+fn check_scone_ratio(ratio: Option<f32>) -> anyhow::Result<()> {
+    if let Some(r) = ratio {
+        anyhow::ensure!(r > 0.0 && r <= 1.0, "--scone-ratio must be in (0, 1], got {r}");
+    }
+    Ok(())
+}
+
 fn check_same_corner(px: f32) -> anyhow::Result<()> {
     anyhow::ensure!(px.is_finite() && px >= 0.0, "--same-corner-px must be a finite number >= 0");
     Ok(())
@@ -435,6 +456,7 @@ fn matcher_for(
     }
 }
 
+/// `A:B` as two fractions.
 fn parse_block(s: &str) -> Result<(f64, f64), String> {
     let (a, b) = s.split_once(':').ok_or("expected A:B, e.g. 0:0.5")?;
     let a: f64 = a.trim().parse().map_err(|_| format!("'{a}' is not a number"))?;

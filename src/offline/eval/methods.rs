@@ -12,7 +12,7 @@ use crate::decode::GreyImage;
 use crate::embedding::Embedder;
 use crate::error::FeatureError;
 use crate::features::{self, ExtractorSettings, Keypoint};
-use crate::matching::{embedding_mat, match_descriptors, match_scone, Match, RatioTest, SconeFrame, SconeMatcher};
+use crate::matching::{embedding_mat, match_descriptors, match_scone_with, Match, RatioTest, SconeFrame, SconeMatcher};
 
 /// The rows of a continuous f32 matrix as one slice (empty for an empty matrix).
 fn mat_rows(m: &Mat) -> Result<&[f32], FeatureError> {
@@ -129,13 +129,15 @@ pub fn describe(
 
 /// Putative matches of `a` to `b`: `test` for every method but FREAK+GMS, which takes every nearest neighbour
 /// and keeps those GMS supports (rotation and scale enabled, threshold factor 6). SConE is matched by
-/// `scone_matcher` (SConE (plain) always by [`SconeMatcher::Plain`]).
+/// `scone_matcher` (SConE (plain) always by [`SconeMatcher::Plain`]), the embedding's ratio in the fused matchers
+/// being `scone_ratio` where given (`matching::match_scone_with`).
 pub fn putative_matches(
     method: Method,
     a: &Described,
     b: &Described,
     test: &RatioTest,
     scone_matcher: SconeMatcher,
+    scone_ratio: Option<f32>,
 ) -> Result<Vec<Match>, FeatureError> {
     if method == Method::Scone && scone_matcher != SconeMatcher::Plain {
         let (ea, eb) = (mat_rows(&a.descriptors)?, mat_rows(&b.descriptors)?);
@@ -147,7 +149,8 @@ pub fn putative_matches(
         let (sa, sb) = (sizes(a), sizes(b));
         let fa = SconeFrame { embeddings: ea, dim, freak: a.freak.as_ref().unwrap_or(&empty), points: &pa, sizes: &sa };
         let fb = SconeFrame { embeddings: eb, dim, freak: b.freak.as_ref().unwrap_or(&empty), points: &pb, sizes: &sb };
-        return match_scone(scone_matcher, &fa, &fb, test);
+        let embedding = RatioTest { ratio: scone_ratio.unwrap_or(test.ratio), ..*test };
+        return match_scone_with(scone_matcher, &fa, &fb, test, &embedding);
     }
     if method != Method::FreakGms {
         let b_points: Vec<(f32, f32)> = b.keypoints.iter().map(|k| (k.x, k.y)).collect();

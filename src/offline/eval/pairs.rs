@@ -51,6 +51,10 @@ pub struct PairsConfig {
     /// existed used the plain embedding.
     #[serde(default)]
     pub scone_matcher: SconeMatcher,
+    /// The embedding's own ratio in the fused matchers (`union`, `both`); `None`: `ratio`, as reports written
+    /// before the option existed used.
+    #[serde(default)]
+    pub scone_ratio: Option<f32>,
     pub ransac: RansacSettings,
     pub depth_px: f64,
     pub epipolar_px: f64,
@@ -72,6 +76,7 @@ impl Default for PairsConfig {
             mutual: false,
             same_corner_px: crate::matching::SAME_CORNER_PX,
             scone_matcher: SconeMatcher::default(),
+            scone_ratio: None,
             ransac: RansacSettings::default(),
             depth_px: 4.0,
             epipolar_px: 2.0,
@@ -267,7 +272,7 @@ pub fn evaluate(scene: &Scene, cfg: &PairsConfig, embedder: Option<&Embedder>) -
             let (a, b) = (&described[&i], &described[&j]);
             let t0 = Instant::now();
             let test = RatioTest { ratio: cfg.ratio, mutual: cfg.mutual, same_corner_px: cfg.same_corner_px };
-            let matches = putative_matches(method, a, b, &test, cfg.scone_matcher)?;
+            let matches = putative_matches(method, a, b, &test, cfg.scone_matcher, cfg.scone_ratio)?;
             let match_seconds = t0.elapsed().as_secs_f64();
             let t_w1 = scene.frames[i].pose.expect("filtered");
             let t_w2 = scene.frames[j].pose.expect("filtered");

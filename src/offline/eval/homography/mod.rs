@@ -108,7 +108,7 @@ pub fn evaluate(
             for (i, h) in seq.homographies.iter().enumerate() {
                 let b = &described[i + 1];
                 let t0 = std::time::Instant::now();
-                let matches = putative_matches(method, a, b, &test, cfg.scone_matcher)?;
+                let matches = putative_matches(method, a, b, &test, cfg.scone_matcher, cfg.scone_ratio)?;
                 let match_seconds = t0.elapsed().as_secs_f64();
                 let src: Vec<(f32, f32)> =
                     matches.iter().map(|m| (a.keypoints[m.query].x, a.keypoints[m.query].y)).collect();

@@ -15,6 +15,9 @@ pub struct HomographyConfig {
     pub ratio: f32,
     pub same_corner_px: f32,
     pub scone_matcher: SconeMatcher,
+    /// The embedding's own ratio in the fused matchers (`union`, `both`); `None`: `ratio`.
+    #[serde(default)]
+    pub scone_ratio: Option<f32>,
     /// MAGSAC++ inlier threshold of the fitted homography, pixels.
     pub ransac_px: f64,
     /// A match (and a constellation member) is correct within this many pixels of the true H's image.
@@ -35,6 +38,7 @@ impl Default for HomographyConfig {
             ratio: crate::matching::DEFAULT_RATIO,
             same_corner_px: crate::matching::SAME_CORNER_PX,
             scone_matcher: SconeMatcher::default(),
+            scone_ratio: None,
             ransac_px: 3.0,
             correct_px: 3.0,
             k: constellation::DEFAULT_K,
