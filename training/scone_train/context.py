@@ -62,30 +62,33 @@ def angle_bin(angle_deg: np.ndarray) -> np.ndarray:
     return np.mod(a, ANGLE_BINS)
 
 
-def sample(grey: np.ndarray, keypoints: np.ndarray) -> np.ndarray:
-    """uint8 [N, SAMPLES]: the ring context of `keypoints` ([N, >=4]: x, y, size, angle in degrees) on the
-    grey image `grey` (uint8 [H, W])."""
+def _placed(grey: np.ndarray, keypoints: np.ndarray) -> tuple:
+    """What `sample` and `gradients` share: the image's integral (int64 [H+1, W+1]), each sample's pixel cx, cy
+    (int64 [N, SAMPLES]), its box half-width before the floor at 0 or 1 (`floor(half * s + 0.5)`), each
+    keypoint's angle bin, and the image's size."""
     grey = np.asarray(grey)
     if grey.ndim != 2 or grey.dtype != np.uint8:
         raise ValueError("a grey uint8 image is required")
     h, w = grey.shape
-    n = len(keypoints)
-    if n == 0:
-        return np.zeros((0, SAMPLES), dtype=np.uint8)
     integral = np.zeros((h + 1, w + 1), dtype=np.int64)
     integral[1:, 1:] = grey.astype(np.int64).cumsum(0).cumsum(1)
-    kp = np.asarray(keypoints, dtype=np.float64)
+    kp = np.asarray(keypoints, dtype=np.float64) if len(keypoints) else np.zeros((0, 4))
     x, y, s = kp[:, 0:1], kp[:, 1:2], kp[:, 2:3]
     dx, dy, half = _TABLE
     a = angle_bin(kp[:, 3])
     cx = np.clip(np.floor(x + s * dx[a] + 0.5), 0, w - 1).astype(np.int64)
     cy = np.clip(np.floor(y + s * dy[a] + 0.5), 0, h - 1).astype(np.int64)
-    hw = np.maximum(np.floor(half[None, :] * s + 0.5), 0).astype(np.int64)
-    x0, x1 = np.maximum(cx - hw, 0), np.minimum(cx + hw + 1, w)
-    y0, y1 = np.maximum(cy - hw, 0), np.minimum(cy + hw + 1, h)
-    total = integral[y1, x1] - integral[y0, x1] - integral[y1, x0] + integral[y0, x0]
-    area = (x1 - x0) * (y1 - y0)
-    return ((total + area // 2) // area).astype(np.uint8).reshape(n, SAMPLES)
+    return integral, cx, cy, np.floor(half[None, :] * s + 0.5).astype(np.int64), a, w, h
+
+
+def sample(grey: np.ndarray, keypoints: np.ndarray) -> np.ndarray:
+    """uint8 [N, SAMPLES]: the ring context of `keypoints` ([N, >=4]: x, y, size, angle in degrees) on the
+    grey image `grey` (uint8 [H, W])."""
+    integral, cx, cy, hw, _, w, h = _placed(grey, keypoints)
+    hw = np.maximum(hw, 0)
+    total, area = _box_sums(integral, np.maximum(cx - hw, 0), np.minimum(cx + hw + 1, w), np.maximum(cy - hw, 0),
+                            np.minimum(cy + hw + 1, h))
+    return ((total + area // 2) // area).astype(np.uint8).reshape(len(keypoints), SAMPLES)
 
 
 def _box_sums(integral: np.ndarray, x0, x1, y0, y1) -> tuple[np.ndarray, np.ndarray]:
@@ -111,23 +114,10 @@ def gradients(grey: np.ndarray, keypoints: np.ndarray) -> np.ndarray:
     the boxes [cx+1, cx+g] x [cy-g, cy+g], [cx-g, cx-1] x [cy-g, cy+g] and their transposes, each cut to the
     image (a difference with an empty box is 0). Turned into the frame of the keypoint's quantised angle t:
     u = gx cos t + gy sin t (along the keypoint's direction), v = gy cos t - gx sin t; each halved (so that a
-    full black-to-white step fits), rounded half up and clamped to -127..127. Columns: u of every sample (in `sample`'s order), then v of every sample."""
-    grey = np.asarray(grey)
-    if grey.ndim != 2 or grey.dtype != np.uint8:
-        raise ValueError("a grey uint8 image is required")
-    h, w = grey.shape
-    n = len(keypoints)
-    if n == 0:
-        return np.zeros((0, GRADIENTS), dtype=np.int8)
-    integral = np.zeros((h + 1, w + 1), dtype=np.int64)
-    integral[1:, 1:] = grey.astype(np.int64).cumsum(0).cumsum(1)
-    kp = np.asarray(keypoints, dtype=np.float64)
-    x, y, s = kp[:, 0:1], kp[:, 1:2], kp[:, 2:3]
-    dx, dy, half = _TABLE
-    a = angle_bin(kp[:, 3])
-    cx = np.clip(np.floor(x + s * dx[a] + 0.5), 0, w - 1).astype(np.int64)
-    cy = np.clip(np.floor(y + s * dy[a] + 0.5), 0, h - 1).astype(np.int64)
-    g = np.maximum(np.floor(half[None, :] * s + 0.5), 1).astype(np.int64)
+    full black-to-white step fits), rounded half up and clamped to -127..127. Columns: u of every sample (in
+    `sample`'s order), then v of every sample."""
+    integral, cx, cy, g, a, w, h = _placed(grey, keypoints)
+    g = np.maximum(g, 1)
     lo_x, hi_x = np.maximum(cx - g, 0), np.minimum(cx + g + 1, w)
     lo_y, hi_y = np.maximum(cy - g, 0), np.minimum(cy + g + 1, h)
     gx = _difference(_box_sums(integral, np.minimum(cx + 1, w), hi_x, lo_y, hi_y), _box_sums(integral, lo_x, cx, lo_y, hi_y))
