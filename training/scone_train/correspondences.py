@@ -217,8 +217,11 @@ def _axis_neighbours(scene: Scene, n: int) -> dict[int, list[int]]:
 _AXIS_CACHE: dict = {}
 
 
-def landmarks(scene: Scene, feats: list[FrameFeatures], params: GeometryParams | None = None) -> list[np.ndarray]:
-    """Landmark id per keypoint of every frame (-1 = not part of a consistent track of >= 2 frames)."""
+def landmarks(scene: Scene, feats: list[FrameFeatures], params: GeometryParams | None = None,
+              stats: dict | None = None) -> list[np.ndarray]:
+    """Landmark id per keypoint of every frame (-1 = not part of a consistent track of >= 2 frames). `stats`, when
+    given, receives the keypoints that some link joined to another frame's (`linked`), those of them dropped
+    because their track holds two keypoints of one frame (`conflicted`), and those kept (`kept`)."""
     p = params or GeometryParams()
     offsets = np.cumsum([0] + [len(f) for f in feats])
     uf = UnionFind(int(offsets[-1]))
@@ -255,6 +258,9 @@ def landmarks(scene: Scene, feats: list[FrameFeatures], params: GeometryParams |
     for k in range(len(roots)):
         dup[k] = roots[k] in bad_roots or size[roots[k]] < 2
     ids = np.where(dup, -1, roots)
+    if stats is not None:
+        linked = size[roots] >= 2
+        stats.update(linked=int(linked.sum()), conflicted=int((linked & dup).sum()), kept=int((~dup).sum()))
     # Renumber to 0..L-1.
     uniq, inv = np.unique(ids[ids >= 0], return_inverse=True)
     out_ids = np.full(len(ids), -1)

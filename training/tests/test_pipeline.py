@@ -275,6 +275,14 @@ def test_epipolar_landmarks_from_geometry_only():
         assert len(set(points.tolist())) == 1 and points[0] >= 0, "a track mixes different 3D points or clutter"
         linked += 1
     assert linked >= 20
+    # `stats` accounts for every linked keypoint: kept, or dropped with a track that holds two keypoints of one
+    # frame (also with a second keypoint of frame 0 on point 0's projection).
+    doubled = [_frame(np.r_[frames[0].keypoints, frames[0].keypoints[:1]]), frames[1], frames[2]]
+    for fs in (frames, doubled):
+        stats = {}
+        ids = C.landmarks(scene, fs, C.GeometryParams(scale_tol=2.0), stats)
+        assert stats["kept"] == sum(int((i >= 0).sum()) for i in ids) >= 40
+        assert stats["linked"] == stats["kept"] + stats["conflicted"]
 
 
 def test_pair_sampler_gives_consistent_positives(tiny_unit):
