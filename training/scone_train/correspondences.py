@@ -37,6 +37,9 @@ class GeometryParams:
     third_px: float = 1.5
     window: int = 0  # link frames at most this far apart in index (0 = all pairs)
     neighbours: int = 0  # >0: link each frame only to this many others with the nearest optical axes
+    # "drop": join every link, then drop each track that holds two keypoints of one frame; "refuse": refuse a
+    # link that would join two tracks seen in a common frame (first come, first kept), so no track is dropped
+    tracks: str = "drop"
 
 
 class UnionFind:
@@ -55,6 +58,38 @@ class UnionFind:
         ra, rb = self.find(a), self.find(b)
         if ra != rb:
             self.parent[max(ra, rb)] = min(ra, rb)
+
+
+class Tracks:
+    """Keypoints (numbered across frames, `frame_of` giving each one's frame) joined into tracks link by link.
+    With `refuse`, a link that would join two tracks seen in a common frame is refused and counted (`refused`),
+    so no track ever holds two keypoints of one frame; without, every link is joined."""
+
+    def __init__(self, frame_of: np.ndarray, refuse: bool):
+        self.uf = UnionFind(len(frame_of))
+        self.frame_of = frame_of
+        self.refuse = refuse
+        self.frames: dict[int, set] = {}  # the frames of each track of two or more keypoints, by its root
+        self.refused = 0
+
+    def join(self, a: int, b: int) -> None:
+        if not self.refuse:
+            self.uf.union(a, b)
+            return
+        ra, rb = self.uf.find(a), self.uf.find(b)
+        if ra == rb:
+            return
+        fa = self.frames.get(ra) or {int(self.frame_of[ra])}
+        fb = self.frames.get(rb) or {int(self.frame_of[rb])}
+        if fa & fb:
+            self.refused += 1
+            return
+        self.frames.pop(ra, None)
+        self.frames.pop(rb, None)
+        self.uf.union(ra, rb)
+        big, small = (fa, fb) if len(fa) >= len(fb) else (fb, fa)
+        big |= small
+        self.frames[self.uf.find(ra)] = big
 
 
 def _world_to_cam(T_wc: np.ndarray, X: np.ndarray) -> np.ndarray:
@@ -221,11 +256,16 @@ def landmarks(scene: Scene, feats: list[FrameFeatures], params: GeometryParams |
               stats: dict | None = None) -> list[np.ndarray]:
     """Landmark id per keypoint of every frame (-1 = not part of a consistent track of >= 2 frames). `stats`, when
     given, receives the keypoints that some link joined to another frame's (`linked`), those of them dropped
-    because their track holds two keypoints of one frame (`conflicted`), and those kept (`kept`)."""
+    because their track holds two keypoints of one frame (`conflicted`), those kept (`kept`), and the links
+    refused (`refused`, with `params.tracks` "refuse")."""
     p = params or GeometryParams()
+    if p.tracks not in ("drop", "refuse"):
+        raise ValueError(f"tracks must be 'drop' or 'refuse', not {p.tracks!r}")
     offsets = np.cumsum([0] + [len(f) for f in feats])
-    uf = UnionFind(int(offsets[-1]))
     n = len(feats)
+    frame_of = np.repeat(np.arange(n), [len(f) for f in feats])
+    tracks = Tracks(frame_of, refuse=p.tracks == "refuse")
+    join = tracks.join
     posed = [k for k in range(n) if scene.T_wc[k] is not None]
     pairs = [(i, j) for i in posed for j in posed if i < j and (not p.window or j - i <= p.window)]
     if p.neighbours:
@@ -240,14 +280,13 @@ def landmarks(scene: Scene, feats: list[FrameFeatures], params: GeometryParams |
     for i, j in pairs:
         if depths[i] is not None and depths[j] is not None:
             for a, b in _depth_links(scene, feats, depths, i, j, p):
-                uf.union(offsets[i] + a, offsets[j] + b)
+                join(offsets[i] + a, offsets[j] + b)
         elif not all_depth:
             if trees is None:
                 trees = [cKDTree(f.keypoints[:, :2]) if len(f) else None for f in feats]
             for (fa, a), (fb, b) in _epipolar_links(scene, feats, trees, i, j, p):
-                uf.union(offsets[fa] + a, offsets[fb] + b)
-    roots = np.array([uf.find(x) for x in range(offsets[-1])])
-    frame_of = np.repeat(np.arange(n), [len(f) for f in feats])
+                join(offsets[fa] + a, offsets[fb] + b)
+    roots = np.array([tracks.uf.find(x) for x in range(offsets[-1])])
     # Drop tracks with two keypoints in one frame, and singletons.
     order = np.lexsort((frame_of, roots))
     r_sorted, f_sorted = roots[order], frame_of[order]
@@ -260,7 +299,8 @@ def landmarks(scene: Scene, feats: list[FrameFeatures], params: GeometryParams |
     ids = np.where(dup, -1, roots)
     if stats is not None:
         linked = size[roots] >= 2
-        stats.update(linked=int(linked.sum()), conflicted=int((linked & dup).sum()), kept=int((~dup).sum()))
+        stats.update(linked=int(linked.sum()), conflicted=int((linked & dup).sum()), kept=int((~dup).sum()),
+                     refused=tracks.refused)
     # Renumber to 0..L-1.
     uniq, inv = np.unique(ids[ids >= 0], return_inverse=True)
     out_ids = np.full(len(ids), -1)

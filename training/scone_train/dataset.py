@@ -59,8 +59,10 @@ def build_unit(
     if keep is not None:
         scene, frames = subset(scene, frames, keep)
     p = params or C.GeometryParams()
+    # The default track rule ("drop") is left out of the key: it is how every cache before the option was made.
+    geometry = {k: v for k, v in p.__dict__.items() if not (k == "tracks" and v == "drop")}
     key = hashlib.sha256(
-        json.dumps([str(npz), npz.with_suffix(".key").read_text(), keep, p.__dict__], sort_keys=True).encode()
+        json.dumps([str(npz), npz.with_suffix(".key").read_text(), keep, geometry], sort_keys=True).encode()
     ).hexdigest()[:16]
     lm_path = cache / f"{scene_dir.name}.{key}.landmarks.npz"
     if lm_path.exists():

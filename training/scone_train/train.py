@@ -8,6 +8,7 @@ the selection split is kept as `best.pt`; validation scenes are never read here.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import math
 import os
@@ -88,7 +89,10 @@ def load_units(cfg: dict, rendered_root: Path | None = None) -> tuple[list[Unit]
                 continue
             geo = C.GeometryParams(**spec.get("geometry", {}))
             src, keep = part(name, "train")
-            u = build_unit(src, cache / "real", keep, geo, f"{name}-train", args)
+            # `train_tracks` changes how the training parts' links become tracks (C.GeometryParams.tracks); the
+            # selection parts keep the labels every earlier run was selected on.
+            train_geo = dataclasses.replace(geo, tracks=d.get("train_tracks", "drop"))
+            u = build_unit(src, cache / "real", keep, train_geo, f"{name}-train", args)
             u.real = True
             u.scene = True
             train.append(u)

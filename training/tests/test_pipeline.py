@@ -283,6 +283,27 @@ def test_epipolar_landmarks_from_geometry_only():
         ids = C.landmarks(scene, fs, C.GeometryParams(scale_tol=2.0), stats)
         assert stats["kept"] == sum(int((i >= 0).sum()) for i in ids) >= 40
         assert stats["linked"] == stats["kept"] + stats["conflicted"]
+        # Refusing conflicting links instead drops no track, and keeps at least what dropping kept.
+        refused = {}
+        kept = C.landmarks(scene, fs, C.GeometryParams(scale_tol=2.0, tracks="refuse"), refused)
+        assert refused["conflicted"] == 0 and refused["kept"] >= stats["kept"]
+        for lm in np.unique(np.concatenate(kept)):
+            if lm >= 0:
+                assert all(int((k == lm).sum()) <= 1 for k in kept)
+    with pytest.raises(ValueError, match="tracks"):
+        C.landmarks(scene, frames, C.GeometryParams(tracks="merge"))
+
+
+def test_tracks_refuse_a_link_that_would_hold_two_keypoints_of_one_frame():
+    """Keypoints 0, 1 in frame 0, 2 in frame 1, 3 in frame 2: 0-2 and 2-3 join; 1-3 would put 0 and 1 (both of
+    frame 0) in one track, so it is refused, and without refusal it joins."""
+    frame_of = np.array([0, 0, 1, 2])
+    for refuse, together, refused in ((True, False, 1), (False, True, 0)):
+        t = C.Tracks(frame_of, refuse)
+        for a, b in ((0, 2), (2, 3), (1, 3)):
+            t.join(a, b)
+        assert t.uf.find(0) == t.uf.find(3)
+        assert (t.uf.find(1) == t.uf.find(0)) == together and t.refused == refused
 
 
 def test_pair_sampler_gives_consistent_positives(tiny_unit):
