@@ -89,9 +89,11 @@ def load_units(cfg: dict, rendered_root: Path | None = None) -> tuple[list[Unit]
                 continue
             geo = C.GeometryParams(**spec.get("geometry", {}))
             src, keep = part(name, "train")
-            # `train_tracks` changes how the training parts' links become tracks (C.GeometryParams.tracks); the
-            # selection parts keep the labels every earlier run was selected on.
-            train_geo = dataclasses.replace(geo, tracks=d.get("train_tracks", "drop"))
+            # `train_tracks` changes how the training parts' links become tracks (C.GeometryParams.tracks): one
+            # rule for every part, or a rule per scene name (the rest "drop"). The selection parts keep the
+            # labels every earlier run was selected on.
+            rule = d.get("train_tracks", "drop")
+            train_geo = dataclasses.replace(geo, tracks=rule.get(name, "drop") if isinstance(rule, dict) else rule)
             u = build_unit(src, cache / "real", keep, train_geo, f"{name}-train", args)
             u.real = True
             u.scene = True
