@@ -31,6 +31,11 @@ pub const SAME_CORNER_PX: f32 = 2.0;
 /// relocalisation, the evaluation).
 pub const DEFAULT_RATIO: f32 = 0.8;
 
+/// Whether `ratio` is a usable ratio-test threshold: in (0, 1] (NaN is not).
+pub fn is_ratio(ratio: f32) -> bool {
+    ratio > 0.0 && ratio <= 1.0
+}
+
 /// Candidates examined for a competitor beyond the same-corner radius. FAST's non-maximum suppression leaves
 /// a corner about one keypoint per pyramid level, so 10 covers the default eight levels with room to spare; when
 /// all of them are the same corner the last one's distance stands in, which can only make the test stricter.

@@ -260,3 +260,9 @@ fn rerank_orders_freak_candidates_by_scone_distance() {
     let b1 = SconeFrame { embeddings: &eb[..2], dim: 2, freak: &one, points: &PTS[..1], sizes: &[] };
     assert!(match_scone(SconeMatcher::Rerank, &a, &b1, &RatioTest::new(0.8)).unwrap().is_empty());
 }
+
+#[test]
+fn a_ratio_threshold_lies_in_zero_to_one() {
+    assert!(is_ratio(0.8) && is_ratio(1.0) && is_ratio(f32::MIN_POSITIVE));
+    assert!(!is_ratio(0.0) && !is_ratio(-0.5) && !is_ratio(1.01) && !is_ratio(f32::NAN) && !is_ratio(f32::INFINITY));
+}

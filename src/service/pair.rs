@@ -55,7 +55,7 @@ impl PairOutcome {
 impl Service {
     /// SConE matches between two frames (ratio test, optional mutual check) and their relative pose.
     pub fn match_pair(&self, a: FrameInput, b: FrameInput, options: PairOptions) -> Result<PairOutcome, ServiceError> {
-        if !(options.ratio > 0.0 && options.ratio <= 1.0) {
+        if !crate::matching::is_ratio(options.ratio) {
             return Err(ServiceError::invalid("ratio", format!("{} is outside (0, 1]", options.ratio)));
         }
         self.check_source(&a.source)?;

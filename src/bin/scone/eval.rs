@@ -434,7 +434,7 @@ fn run_merge(
 /// `--scone-ratio` is a ratio-test threshold: in (0, 1].
 fn check_scone_ratio(ratio: Option<f32>) -> anyhow::Result<()> {
     if let Some(r) = ratio {
-        anyhow::ensure!(r > 0.0 && r <= 1.0, "--scone-ratio must be in (0, 1], got {r}");
+        anyhow::ensure!(scone::matching::is_ratio(r), "--scone-ratio must be in (0, 1], got {r}");
     }
     Ok(())
 }
