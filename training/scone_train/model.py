@@ -249,10 +249,11 @@ class RingInvariants(nn.Module):
 
     An error of the FREAK angle turns every ring of the context by the same amount: its 16 samples shift
     cyclically. The discrete Fourier transform of each ring turns that shift into a phase, so these do not change
-    under a shift by whole steps (22.5°), and change less than the samples under a fraction of a step: each
-    ring's amplitude at harmonics 1..8 (7 x 8), and, for harmonics 1 and 2, the product of a ring's coefficient
-    with the next ring's conjugate (real and imaginary parts, 6 x 2 x 2), which keeps the rings' relative phase. Harmonic 0 is each ring's mean, which the raw samples already give
-    linearly. A fixed matrix product and element-wise arithmetic: one MatMul and a few cheap nodes in ONNX.
+    under a shift by whole steps (22.5°), and change less than the samples under a fraction of a step: each ring's
+    amplitude at harmonics 1..8 (7 x 8), and, for harmonics 1 and 2, the product of a ring's coefficient with the
+    next ring's conjugate (real and imaginary parts, 6 x 2 x 2), which keeps the rings' relative phase. Harmonic 0
+    is each ring's mean, which the raw samples already give linearly. A fixed matrix product and element-wise
+    arithmetic: one MatMul and a few cheap nodes in ONNX.
     """
 
     RINGS = 7
