@@ -7,6 +7,7 @@ mod console;
 mod conventions;
 mod durability;
 mod embedding;
+mod eval_cli;
 mod full_disk;
 mod hostile;
 mod input_bounds;

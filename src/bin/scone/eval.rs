@@ -29,8 +29,8 @@ pub enum EvalCommand {
         /// RANSAC seeds to average over.
         #[arg(long, default_value_t = 5)]
         seeds: u64,
-        /// Ratio-test threshold.
-        #[arg(long, default_value_t = scone::matching::DEFAULT_RATIO)]
+        /// Ratio-test threshold, in (0, 1].
+        #[arg(long, default_value_t = scone::matching::DEFAULT_RATIO, value_parser = ratio_arg)]
         ratio: f32,
         /// Keep only mutual nearest neighbours.
         #[arg(long)]
@@ -45,7 +45,7 @@ pub enum EvalCommand {
         scone_matcher: Option<scone::matching::SconeMatcher>,
         /// The embedding's own ratio-test threshold in the fused matchers (union, both); FREAK's part there
         /// keeps --ratio. Default: --ratio.
-        #[arg(long)]
+        #[arg(long, value_parser = ratio_arg)]
         scone_ratio: Option<f32>,
         /// RANSAC inlier threshold in pixels.
         #[arg(long, default_value_t = 1.0)]
@@ -168,8 +168,8 @@ pub enum EvalCommand {
         /// Methods to compare.
         #[arg(long, value_delimiter = ',', default_value = "scone,scone-plain,freak,orb,sift")]
         methods: Vec<Method>,
-        /// Ratio-test threshold.
-        #[arg(long, default_value_t = scone::matching::DEFAULT_RATIO)]
+        /// Ratio-test threshold, in (0, 1].
+        #[arg(long, default_value_t = scone::matching::DEFAULT_RATIO, value_parser = ratio_arg)]
         ratio: f32,
         /// Ratio test's same-corner radius in pixels (0 = OpenCV's plain test).
         #[arg(long, default_value_t = scone::matching::SAME_CORNER_PX)]
@@ -180,7 +180,7 @@ pub enum EvalCommand {
         scone_matcher: Option<scone::matching::SconeMatcher>,
         /// The embedding's own ratio-test threshold in the fused matchers (union, both); FREAK's part there
         /// keeps --ratio. Default: --ratio.
-        #[arg(long)]
+        #[arg(long, value_parser = ratio_arg)]
         scone_ratio: Option<f32>,
         /// MAGSAC++ inlier threshold of the fitted homography, pixels.
         #[arg(long, default_value_t = 3.0)]
@@ -254,7 +254,6 @@ pub fn run(cmd: EvalCommand) -> anyhow::Result<()> {
             let same_corner_px =
                 same_corner_px.unwrap_or(if single_scale { 0.0 } else { scone::matching::SAME_CORNER_PX });
             check_same_corner(same_corner_px)?;
-            check_scone_ratio(scone_ratio)?;
             ransac.validate().map_err(|e| {
                 anyhow::anyhow!("--ransac-px / --ransac-iters / --ransac-confidence / --duplicate-px: {e}")
             })?;
@@ -299,7 +298,6 @@ pub fn run(cmd: EvalCommand) -> anyhow::Result<()> {
             extractor,
         } => {
             check_same_corner(same_corner_px)?;
-            check_scone_ratio(scone_ratio)?;
             anyhow::ensure!(ransac_px > 0.0 && correct_px > 0.0, "--ransac-px and --correct-px must be > 0");
             let embedder =
                 load_embedder(methods.iter().any(|m| matches!(m, Method::Scone | Method::SconePlain)), &out)?;
@@ -431,12 +429,15 @@ fn run_merge(
     Ok(())
 }
 
-/// `--scone-ratio` is a ratio-test threshold: in (0, 1].
-fn check_scone_ratio(ratio: Option<f32>) -> anyhow::Result<()> {
-    if let Some(r) = ratio {
-        anyhow::ensure!(scone::matching::is_ratio(r), "--scone-ratio must be in (0, 1], got {r}");
+/// `--ratio` and `--scone-ratio`: a ratio-test threshold, in (0, 1]; refused while the arguments are parsed, so
+/// clap's error names the flag.
+fn ratio_arg(text: &str) -> Result<f32, String> {
+    let r: f32 = text.parse().map_err(|e| format!("{e}"))?;
+    if scone::matching::is_ratio(r) {
+        Ok(r)
+    } else {
+        Err(format!("a ratio-test threshold must be in (0, 1], got {r}"))
     }
-    Ok(())
 }
 
 fn check_same_corner(px: f32) -> anyhow::Result<()> {
