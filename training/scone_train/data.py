@@ -146,12 +146,6 @@ class FrameFeatures:
         )
 
 
-# Whether `load_features` attaches the ring's gradients (`context.gradients`) to frames it loads with their
-# scene's directory: set by `train` for a model that reads them. The Rust export does not write them yet; they
-# are computed here from the frames' images, as `src/decode.rs` decodes them, and cached beside the features.
-WANT_GRADIENTS = False
-
-
 def grey_image(path: Path) -> np.ndarray:
     """An image file as the service's decoder makes it grey (`src/decode.rs`: decoded unchanged, 16-bit scaled
     by 1/257, BGR(A) to grey with OpenCV's weights)."""
@@ -184,8 +178,10 @@ def _attach_gradients(npz_path: Path, scene_dir: Path, meta: dict, frames: list[
     np.savez(cache, **out)
 
 
-def load_features(npz_path: Path, scene_dir: Path | None = None) -> tuple[dict, list[FrameFeatures]]:
-    """The frames of an export; with `scene_dir` and `WANT_GRADIENTS`, their ring gradients too."""
+def load_features(npz_path: Path, scene_dir: Path | None = None, gradients: bool = False) -> tuple[dict, list[FrameFeatures]]:
+    """The frames of an export; with `scene_dir` and `gradients`, their ring gradients too (`context.gradients`,
+    for a model that reads them: the Rust export does not write them, so they are computed here from the frames'
+    images as `src/decode.rs` decodes them, and cached beside the features)."""
     z = np.load(npz_path)
     meta = json.loads(bytes(z["meta_json"]))
     frames = []
@@ -197,7 +193,7 @@ def load_features(npz_path: Path, scene_dir: Path | None = None) -> tuple[dict, 
                 z[p + "context"] if p + "context" in z.files else None,
             )
         )
-    if WANT_GRADIENTS and scene_dir is not None:
+    if gradients and scene_dir is not None:
         _attach_gradients(npz_path, Path(scene_dir), meta, frames)
     return meta, frames
 

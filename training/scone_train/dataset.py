@@ -48,14 +48,15 @@ def build_unit(
     params: C.GeometryParams | None = None,
     name: str | None = None,
     extractor_args: list[str] | None = None,
+    gradients: bool = False,
 ) -> Unit:
-    """Features (Rust export with `extractor_args`, cached) + landmarks (cached by a key of the inputs) for one
-    scene or a part."""
+    """Features (Rust export with `extractor_args`, cached; with `gradients`, the ring's gradients too) +
+    landmarks (cached by a key of the inputs) for one scene or a part."""
     scene_dir = Path(scene_dir)
     cache.mkdir(parents=True, exist_ok=True)
     npz = export_features(scene_dir, cache / f"{scene_dir.name}.features.npz", extractor_args)
     scene = load_scene(scene_dir)
-    _, frames = load_features(npz, scene_dir)
+    _, frames = load_features(npz, scene_dir, gradients)
     if keep is not None:
         scene, frames = subset(scene, frames, keep)
     p = params or C.GeometryParams()
@@ -116,13 +117,14 @@ def warp_ids(kp1: np.ndarray, kpk: np.ndarray, h: np.ndarray, tol_px: float = 2.
     return ids
 
 
-def build_warp_unit(seq_dir: Path, cache: Path, tol_px: float = 2.0, extractor_args: list[str] | None = None) -> Unit:
+def build_warp_unit(seq_dir: Path, cache: Path, tol_px: float = 2.0, extractor_args: list[str] | None = None,
+                    gradients: bool = False) -> Unit:
     """A sequence of `scone_train.warps` (HPatches layout plus rgb.txt) as a training unit: features from the
     Rust export, landmarks from the exact homographies (`warp_ids`; image 1's keypoint i is landmark i)."""
     seq_dir = Path(seq_dir)
     cache.mkdir(parents=True, exist_ok=True)
     npz = export_features(seq_dir, cache / f"{seq_dir.name}.features.npz", extractor_args)
-    _, frames = load_features(npz, seq_dir)
+    _, frames = load_features(npz, seq_dir, gradients)
     ids = [np.arange(len(frames[0]), dtype=np.int64)]
     for k in range(1, len(frames)):
         h = np.loadtxt(seq_dir / f"H_1_{k + 1}")

@@ -320,7 +320,7 @@ class RingNet(nn.Module):
         if not self.gradients:
             return torch.from_numpy(f.descriptors), torch.from_numpy(f.context)
         if f.gradients is None:
-            raise ValueError("this ring model reads the ring's gradients too (data.WANT_GRADIENTS)")
+            raise ValueError("this ring model reads the ring's gradients too (load_units with model.ring_gradients loads them)")
         return torch.from_numpy(f.descriptors), torch.from_numpy(f.context), torch.from_numpy(f.gradients)
 
     def example_inputs(self, n: int = 64, k: int = 0, seed: int = 0) -> tuple:

@@ -23,7 +23,6 @@ import yaml
 from tqdm import tqdm
 
 from . import correspondences as C
-from . import data as D
 from . import evaluate as E
 from .data import FrameFeatures, shared_data
 from .dataset import GroupSampler, PairSampler, Unit, build_unit, shared_anchors
@@ -54,9 +53,11 @@ def extractor_args(settings: dict | None) -> list[str]:
 
 def load_units(cfg: dict, rendered_root: Path | None = None) -> tuple[list[Unit], list[Unit]]:
     """(train units, selection units) as the config says; renders what is missing. Features come from the
-    extraction `data.extractor` sets (a cache of its own per setting)."""
+    extraction `data.extractor` sets (a cache of its own per setting), with the ring's gradients on every frame
+    when the model reads them (`model.ring_gradients`)."""
     d = cfg["data"]
     args = extractor_args(d.get("extractor"))
+    grads = bool(cfg["model"].get("ring_gradients", False))
     cache = prefix() / "data" / ("cache" if not args else "cache-" + "".join(a.strip("-") for a in args))
     rendered_root = rendered_root or prefix() / "data" / f"rendered-{d['rendered_seed']}"
     seqs = []
@@ -67,7 +68,7 @@ def load_units(cfg: dict, rendered_root: Path | None = None) -> tuple[list[Unit]
     n_sel = d["selection_sequences"]
     train, select = [], []
     for k, s in enumerate(tqdm(seqs, desc="features + landmarks", leave=False)):
-        unit = build_unit(s, cache / rendered_root.name, extractor_args=args)
+        unit = build_unit(s, cache / rendered_root.name, extractor_args=args, gradients=grads)
         (select if k >= len(seqs) - n_sel else train).append(unit)
     # Wide-orbit sequences (training only, so the selection split stays as it was): the default paths sweep
     # 20-60 degrees of azimuth, and 99 % of their frame pairs are within 43 degrees of each other.
@@ -79,7 +80,7 @@ def load_units(cfg: dict, rendered_root: Path | None = None) -> tuple[list[Unit]
         wide_root = prefix() / "data" / f"rendered-orbit{lo:g}-{hi:g}-{seed}"
         wide = render_dataset(wide_root, d["wide_sequences"], d["rendered_frames"], seed, orbit_deg=(lo, hi))
         for s in tqdm(wide, desc="wide features + landmarks", leave=False):
-            train.append(build_unit(s, cache / wide_root.name, name=f"wide-{s.name}", extractor_args=args))
+            train.append(build_unit(s, cache / wide_root.name, name=f"wide-{s.name}", extractor_args=args, gradients=grads))
     if d.get("real_split"):
         # The real training scenes, split by scone_train.splits (written down before training on them).
         from .splits import SPLIT, part, scene_dir
@@ -94,11 +95,11 @@ def load_units(cfg: dict, rendered_root: Path | None = None) -> tuple[list[Unit]
             # labels every earlier run was selected on.
             rule = d.get("train_tracks", "drop")
             train_geo = dataclasses.replace(geo, tracks=rule.get(name, "drop") if isinstance(rule, dict) else rule)
-            u = build_unit(src, cache / "real", keep, train_geo, f"{name}-train", args)
+            u = build_unit(src, cache / "real", keep, train_geo, f"{name}-train", args, grads)
             u.real = True
             u.scene = True
             train.append(u)
-            select.append(build_unit(src, cache / "real", part(name, "select")[1], geo, f"{name}-sel", args))
+            select.append(build_unit(src, cache / "real", part(name, "select")[1], geo, f"{name}-sel", args, grads))
     if d.get("warps"):
         # Exact-warp sequences (scone_train.warps): training from the training frames and scikit-image's
         # photographs, and a few selection sequences beside the real selection units.
@@ -115,7 +116,7 @@ def load_units(cfg: dict, rendered_root: Path | None = None) -> tuple[list[Unit]
                 generate(role, root, seed, per_scene, tuple(kinds))
             seqs = sorted(p.parent for p in root.glob("*/H_1_2"))
             for s in tqdm(seqs, desc=f"{role} warps", leave=False):
-                into.append(build_warp_unit(s, cache / root.name, extractor_args=args))
+                into.append(build_warp_unit(s, cache / root.name, extractor_args=args, gradients=grads))
     if d.get("castle") and not d.get("real_split"):
         castle = shared_data() / "scenes" / d["castle"]
         if castle.is_dir():
@@ -125,10 +126,10 @@ def load_units(cfg: dict, rendered_root: Path | None = None) -> tuple[list[Unit]
             # training frames (0), chance third-view hits make nearly every link ambiguous: 23 observations
             # per frame and 12 usable pairs, against 188 and 166 with a window of 3.
             geo = C.GeometryParams(window=d.get("castle_window", 0))
-            train.append(build_unit(castle, cache / "real", list(range(cut)), geo, "castle-train", args))
+            train.append(build_unit(castle, cache / "real", list(range(cut)), geo, "castle-train", args, grads))
             train[-1].real = True
             train[-1].scene = True
-            select.append(build_unit(castle, cache / "real", list(range(cut, total)), C.GeometryParams(), "castle-sel", args))
+            select.append(build_unit(castle, cache / "real", list(range(cut, total)), C.GeometryParams(), "castle-sel", args, grads))
     return train, select
 
 
@@ -371,8 +372,6 @@ def train(cfg: dict, run_dir: Path, steps: int | None = None, units=None) -> Pat
         raise ValueError(f"train.stop_after {stop} is outside 1..steps ({steps})")
     torch.set_num_threads(t["threads"])
     torch.manual_seed(cfg["seed"])
-    # A ring model that reads the ring's gradients needs them on every frame it loads.
-    D.WANT_GRADIENTS = bool(cfg["model"].get("ring_gradients", False))
     train_units, sel_units = units or load_units(cfg)
     freak_sel = float(
         np.concatenate(

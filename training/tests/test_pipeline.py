@@ -145,7 +145,6 @@ def test_ring_gradients_are_their_definition_and_a_gradient_ring_model_trains_an
                             frame_loss="softmax+triplet", group_frames=3, select_on="ratio_f1")
         best = train(cfg, tmp_path / "grad", units=([tiny_unit], [tiny_unit]))
     finally:
-        D.WANT_GRADIENTS = False
         for f in tiny_unit.frames:
             f.gradients = None
     model = RingNet(gradients=True)
