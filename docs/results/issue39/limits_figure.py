@@ -5,10 +5,10 @@ reports already committed here.
 Left: runs of the shipped recipe, round 5's rerun over the whole 10,000-step schedule and round 12's three seeds
 to step 3,000. The training loss keeps falling while the selection F1 (the ratio test on the held-out selection
 units and warps) stops rising by step 1,000-2,000 and then falls: more fitting of these training data does not
-carry over. Right: on the selection warps (round 4's report, the shipped model's
-extraction), how many of a keypoint's context samples land within 3 px of its correspondent's, above chance,
-for the detected neighbours and for the ring placed in the keypoint's own frame, by zoom. The ring is placed
-by the keypoint's pyramid level and FREAK angle, so it is only as shared as the detector's scale and angle.
+carry over. Right: on the selection warps, how many of a keypoint's context samples land within 3 px of its
+correspondent's, above chance, by zoom: the detected neighbours (round 4's report) and the ring placed by
+several keypoint frames (`frames/frames.py`, its variants A, B, G, S and E): the ring is only as shared as the
+frame it is placed in.
 
     $SCONE_PREFIX/venv-train/bin/python docs/results/issue39/limits_figure.py
 """
@@ -67,16 +67,24 @@ def main():
     left.legend(handles, [h.get_label() for h in handles], fontsize=8, loc="center right")
     left.set_title("The loss keeps falling; the held-out F1 stops by step 1,000-2,000, then falls", fontsize=10)
 
-    labels, nbr, ring, pairs = shares_by_zoom(HERE / "round4" / "warps-union.json")
+    labels, nbr, _, pairs = shares_by_zoom(HERE / "round4" / "warps-union.json")
+    frames = json.loads((HERE / "frames" / "frames.json").read_text())
     x = range(len(labels))
-    right.plot(x, nbr, marker="o", color="tab:gray", label="detected neighbours (20 nearest)")
-    right.plot(x, ring, marker="s", color="tab:blue", label="ring in the keypoint's own frame (113 samples)")
+    right.plot(x, nbr, marker="o", color="tab:gray", ls="--", label="detected neighbours (20 nearest; shipped before)")
+    for variant, colour, text in (
+        ("A", "tab:blue", "ring, FAST's level and FREAK's angle (shipped)"),
+        ("B", "tab:cyan", "ring, the best level of the same corner"),
+        ("G", "tab:purple", "ring, a Laplacian scale between levels"),
+        ("S", "tab:orange", "ring, SIFT's scale and angle (SIFT: 6.25x FREAK's time a pair)"),
+        ("E", "tab:green", "ring, the exact scale and angle (no detector)"),
+    ):
+        right.plot(x, [frames[lab][variant][0] for lab in labels], marker="s", color=colour, label=text)
     right.set_xticks(list(x), [f"{lab}\n({n} pairs)" for lab, n in zip(labels, pairs)], fontsize=8)
     right.set_xlabel("zoom of the true homography (selection warps)")
     right.set_ylabel("context samples within 3 px, above chance")
-    right.set_ylim(0, 0.5)
-    right.legend(fontsize=8)
-    right.set_title("Either context is mostly not the same in the other view", fontsize=10)
+    right.set_ylim(0, 1.0)
+    right.legend(fontsize=7, loc="center right", bbox_to_anchor=(1.0, 0.71))
+    right.set_title("The ring is as shared as the frame it is placed in", fontsize=10)
     fig.tight_layout()
     out = HERE.parents[1] / "figures" / "issue39-limits.png"
     fig.savefig(out, dpi=110)
