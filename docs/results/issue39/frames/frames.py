@@ -2,7 +2,8 @@
 """Issue 39, session 53: how much of the ring's sharing is lost to the keypoint's frame (a measurement, no choice).
 
 On the selection warps that `score.sh` scores (`$SCONE_PREFIX/work/warps/selection-g2`, 80 sequences, 400 pairs),
-keypoints extracted as the shipped model's (8 levels at 1.2, 2,000 keypoints, `scone features`). For each pair
+keypoints extracted as the shipped model's (8 levels at 1.2, 2,000 keypoints, `scone features`), images
+made grey as the service decodes them (`data.grey_image`) for G and S. For each pair
 (1, k) and each keypoint i of image 1 with a keypoint of image k within 3 px of its image under the true H, the
 ring's 112 samples (the centre left out) of i are sent through H and compared, slot by slot, with the samples of
 k's keypoint placed by one of these frames:
@@ -45,7 +46,7 @@ from scipy.spatial import cKDTree
 HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE.parents[3] / "training"))
 from scone_train import context as CX  # noqa: E402
-from scone_train.data import export_features, load_features, prefix_dir  # noqa: E402
+from scone_train.data import export_features, grey_image, load_features, prefix_dir  # noqa: E402
 from scone_train.train import extractor_args  # noqa: E402
 
 BINS = [("1-1.25x", 1.0, 1.25), ("1.25-1.6x", 1.25, 1.6), ("1.6-2x", 1.6, 2.0), ("2-2.5x", 2.0, 2.5), ("2.5-3x", 2.5, 3.0)]
@@ -182,13 +183,13 @@ def main():
     fast_sizes, sift_sizes, sifts, pairs_seen = [], [], [], []
     for seq in seqs:
         _, frames = load_features(export_features(seq, cache / f"{seq.name}.features.npz", args))
-        greys = [cv2.imread(str(seq / f"{k + 1}.png"), cv2.IMREAD_GRAYSCALE) for k in range(len(frames))]
+        greys = [grey_image(seq / f"{k + 1}.png") for k in range(len(frames))]
         hgt, w = greys[0].shape
         refined = [refined_sizes(g, f.keypoints) for g, f in zip(greys, frames)]
         sift = [sift_keypoints(g) for g in greys]
         fast_sizes += [f.keypoints[:, 2] for f in frames]
         sift_sizes += [k[:, 2] for k in sift]
-        sifts.append((seq, sift))
+        sifts.append(sift)
         for k in range(1, len(frames)):
             h = np.loadtxt(seq / f"H_1_{k + 1}")
             z = zoom_at(h, w / 2.0, hgt / 2.0)
@@ -203,7 +204,7 @@ def main():
     factor = float(np.median(np.concatenate(fast_sizes)) / np.median(np.concatenate(sift_sizes)))
     sift_errs = []
     for label, n, k, h in pairs_seen:
-        sift = sifts[n][1]
+        sift = sifts[n]
         res, errs = sift_shares(sift[0], sift[k], h, factor)
         sift_errs += errs
         if res is not None:
