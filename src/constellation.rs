@@ -229,7 +229,8 @@ impl Grid {
 }
 
 /// Which keypoints make a constellation. [`NeighbourRule::Nearest`] is the shipped model's (the module docs);
-/// the others are candidates under study (issue 25: constellations that survive zoom), built by brute force.
+/// the others are candidates for zoom (constellations meant to keep their members when the scale changes,
+/// measured by `scone eval homography`'s neighbour share), built by brute force.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Default, serde::Serialize, serde::Deserialize, clap::ValueEnum)]
 #[serde(rename_all = "kebab-case")]
 pub enum NeighbourRule {

@@ -77,12 +77,13 @@ impl Default for EmbedderSettings {
     }
 }
 
-/// The committed model, next to the sources: the ring-context model of issue 39.
+/// The committed model, next to the sources: the ring-context model (`models/scone-ring-e1-real.md`).
 pub fn default_model_path() -> PathBuf {
     PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("models/scone-ring-e1-real.onnx")
 }
 
-/// The model the service embedded before issue 39 (the paper's constellation), kept for maps built with it.
+/// The paper's constellation model (`models/scone-freak-k20.md`), kept for maps built with it, which the
+/// ring-context model refuses.
 pub fn constellation_model_path() -> PathBuf {
     PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("models/scone-freak-k20.onnx")
 }
@@ -446,7 +447,7 @@ pub struct Lease<'a> {
 }
 
 impl Lease<'_> {
-    /// Embeddings of every keypoint of `features`, on this session alone.
+    /// Embeddings of every keypoint of `features`, on this lease's session alone.
     pub fn embed(&mut self, features: &Features) -> Result<Vec<f32>, EmbeddingError> {
         let e = self.embedder;
         let context = e.context_of(features)?;

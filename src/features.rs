@@ -43,7 +43,7 @@ const FREAK_PATTERN_SCALE: f32 = 22.0;
 const FREAK_OCTAVES: i32 = 4;
 
 /// Settings of detection and description. Defaults suit a 640x480 image: they are the client contract's
-/// revision 3 (E1 of issue 39, what the embedded model declares); [`ExtractorSettings::revision_2`] is what
+/// revision 3 (the extraction E1, which the embedded model declares); [`ExtractorSettings::revision_2`] is what
 /// models before it were trained at.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields, default)]

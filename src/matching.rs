@@ -167,8 +167,8 @@ pub fn match_descriptors_masked(
 /// How SConE picks its matches between two frames. Every variant runs on the same keypoints, and the two that
 /// combine SConE with FREAK read the FREAK descriptors those keypoints already carry (no second extraction).
 /// The default, used by MatchPair and `scone eval pairs` alike, was chosen on the selection split under a rule
-/// fixed before scoring (docs/model-experiments.md): session 7 chose rerank (+0.015 mean AUC@10 over plain,
-/// union -0.004); issue 25 chose scale-aware (rerank, with union where the images differ by a zoom of 1.6 or
+/// fixed before scoring (docs/model-experiments.md): rerank on real pairs (+0.015 mean AUC@10 over plain,
+/// union -0.004), then scale-aware for zoom (rerank, with union where the images differ by a zoom of 1.6 or
 /// more: the same AUC on the real selection pairs, 0.575 against 0.250 of the zoomed warps within 5 px).
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Default, serde::Serialize, serde::Deserialize, clap::ValueEnum)]
 #[serde(rename_all = "kebab-case")]
@@ -180,9 +180,9 @@ pub enum SconeMatcher {
     Union,
     /// Every SConE ratio-test match and every FREAK ratio-test match (the same test), each pair of keypoints
     /// once. A keypoint the two answer differently keeps both candidates and the pose's robust estimate
-    /// decides, so no match FREAK finds is lost because SConE answered otherwise (round 11 of
-    /// docs/model-experiments.md, issue 39). Inliers count matches: with both answers on the epipolar line, or
-    /// one corner found on two pyramid levels, a keypoint counts twice.
+    /// decides, so no match FREAK finds is lost because SConE answered otherwise
+    /// (docs/model-experiments.md, "every match of both"). Inliers count matches: with both answers on the
+    /// epipolar line, or one corner found on two pyramid levels, a keypoint counts twice.
     Both,
     /// FREAK's [`RERANK_CANDIDATES`] nearest descriptors of each keypoint, re-ordered by SConE distance; the
     /// ratio test runs on the SConE distances of those candidates.
@@ -191,15 +191,15 @@ pub enum SconeMatcher {
     /// median size ratio of FREAK's ratio-test matches, at least [`SCALE_AWARE_MIN_MATCHES`] of them); then
     /// [`SconeMatcher::Union`]. Under such a zoom the constellations share fewer than half their members
     /// (`scone eval homography`'s neighbour share), so FREAK answers where SConE cannot. The default, chosen
-    /// on the selection split (docs/model-experiments.md, issue 25).
+    /// on the selection split (docs/model-experiments.md, "the matcher under zoom").
     #[default]
     ScaleAware,
     /// One descriptor of both: each keypoint's unit embedding followed by its FREAK bits as ±1/√512. The
     /// squared distance is |Δe|² + 4·Hamming/512, each part over [0, 4], so every match is judged on both
     /// descriptors with equal weight. The ratio applies to that squared distance, as FREAK's does to Hamming
-    /// (itself a squared distance of the bits): 0.8 there is 0.894 on the L2 distance (round 7 of
-    /// docs/model-experiments.md, issue 39). A frame without FREAK bits for every keypoint is matched by the
-    /// embedding alone, with the ratio as given.
+    /// (itself a squared distance of the bits): 0.8 there is 0.894 on the L2 distance
+    /// (docs/model-experiments.md, "the joint descriptor's test in FREAK's unit"). A frame without FREAK bits
+    /// for every keypoint is matched by the embedding alone, with the ratio as given.
     Joint,
     /// FREAK descriptors alone (Hamming nearest neighbour, the same ratio test): the baseline SConE is
     /// compared with, so that a client or the console can put the two side by side on the same keypoints.

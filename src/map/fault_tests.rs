@@ -154,7 +154,7 @@ fn a_failed_index_dump_keeps_the_previous_dump_whole() {
     }
 }
 
-/// Issue 26: a graph loaded from a dump was dumped by hnsw_rs under another name (`index-NNNN`), while
+/// Regression: a graph loaded from a dump was dumped by hnsw_rs under another name (`index-NNNN`), while
 /// `index.json` kept naming the old files with the new count: the next start loaded the old graph and never
 /// searched the keyframes added in between.
 #[test]

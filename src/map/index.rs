@@ -100,17 +100,17 @@ fn live_views(data: &MapData, landmark: &Landmark, limit: usize) -> usize {
 /// Extra neighbours an unfiltered search asks for, so that a few points that may not be results (tombstones,
 /// replaced representatives) do not force a filtered search.
 const SEARCH_SLACK: usize = 2;
-/// The fewest searches [`EmbeddingIndex::search_many`] gives one thread (64 before session 47, which left a
-/// capped stage 1's 100 searches on one thread).
+/// The fewest searches [`EmbeddingIndex::search_many`] gives one thread (not 64, which left a capped stage 1's
+/// 100 searches on one thread).
 const SEARCH_CHUNK: usize = 16;
 
 /// Memory of one point of the graph beyond its vector: hnsw_rs's node (16 preallocated layer lists, two `Arc`s)
 /// and its links (each its own `Arc`, ~40 bytes with its pointer, 20-23 per point at m = 16), with what the
 /// allocator keeps of a reload. Calibrated against the RSS of the reloc bench's 728k-observation map opened
-/// from its dump, one point per landmark: 3,300 B under glibc's allocator (issue 31; 1.50 against 1.44-1.45
-/// KB/obs of RSS at 728k in sessions 48-49), 2,800 B since the crate allocates through mimalloc, which keeps no
-/// header beside each small allocation (1.32 against 1.33 KB/obs; BENCHMARKS.md, "mimalloc"). Smaller maps'
-/// RSS under mimalloc depends on what it still holds of maps freed before them, so the larger map calibrates.
+/// from its dump, one point per landmark: 3,300 B under glibc's allocator (1.50 against 1.44-1.45 KB/obs of
+/// RSS at 728k), 2,800 B since the crate allocates through mimalloc, which keeps no header beside each small
+/// allocation (1.32 against 1.33 KB/obs; BENCHMARKS.md, "mimalloc"). Smaller maps' RSS under mimalloc depends
+/// on what it still holds of maps freed before them, so the larger map calibrates.
 const GRAPH_POINT_BYTES: usize = 2_800;
 /// A landmark's entry in the representatives' map.
 const REPRESENTATIVE_BYTES: usize = 32;

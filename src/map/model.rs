@@ -30,7 +30,7 @@ pub fn validate_map_id(id: &str) -> Result<(), MapError> {
 }
 
 /// What the HNSW graph indexes (the exact search below `exact_below` always reads every observation). The
-/// service's default is one point per landmark (issue 31: the rule in BENCHMARKS.md); dump manifests written
+/// service's default is one point per landmark (chosen by its rule in BENCHMARKS.md); dump manifests written
 /// before the setting existed read as one point per observation, which is what they hold. Here, beside the
 /// data it names, so the index ([`crate::map::index`]) and its dump's manifest share it.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize, clap::ValueEnum)]

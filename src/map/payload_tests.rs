@@ -1,4 +1,4 @@
-//! Keyframe payloads off the heap (issue 41): a snapshot's payloads stay in its file and are read back
+//! Keyframe payloads off the heap: a snapshot's payloads stay in its file and are read back
 //! checked; a map of format 2 opens, upgrades (crash-safe at each step) and localises as before, on both
 //! backends.
 

@@ -1,5 +1,5 @@
-//! Unit tests of issue 27's stages: localisation against candidate keyframes (stage 2, with FREAK's bits),
-//! guided search (stage 3), and map building that uses the known poses.
+//! Unit tests of the stages beyond the plain search: localisation against candidate keyframes (stage 2, with
+//! FREAK's bits), guided search (stage 3), and map building that uses the known poses.
 
 use nalgebra::{Isometry3, Point3, Translation3, UnitQuaternion};
 

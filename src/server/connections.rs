@@ -17,7 +17,7 @@
 //!   reading).
 //! - **`body_read_timeout_ms`**: an HTTP request body must be complete within this long of its head
 //!   ([`DeadlineBody`]); gRPC calls are bounded by tonic's call timeout and by the gap allowed between the
-//!   messages of a client stream (both set in `grpc.rs`).
+//!   messages of a client stream (set in `src/server/grpc/mod.rs` and `src/server/grpc/api.rs`).
 //! - **`tcp_keepalive_ms`**: TCP keepalive on accepted sockets, so vanished peers are noticed.
 //!
 //! A connection the server closes lingers ([`LINGER`], as nginx's `lingering_close`): after its FIN it reads

@@ -54,7 +54,7 @@ pub(super) fn match_candidates(
 }
 
 /// The new keyframe's matches with one candidate: the embedding's (OpenCV's plain ratio test with the mutual
-/// check, as the maps' figures of issue 5 were measured), within the epipolar window when it is on, joined by
+/// check, with which the maps' figures were measured), within the epipolar window when it is on, joined by
 /// FREAK's for the keypoints still unmatched when that is on.
 fn candidate_matches(
     input: &KeyframeInput,

@@ -14,7 +14,7 @@
 //!    `reproj_px` in both, and the rays meet at `min_parallax_deg` or more. It becomes a landmark observed by
 //!    both keyframes; a keypoint is used by at most one landmark.
 //!
-//! **With the known poses** ([`BuildSettings::with_known_poses`], issue 27; off by default, because the rule
+//! **With the known poses** ([`BuildSettings::with_known_poses`]; off by default, because the rule
 //! fixed before scoring did not keep it on the selection scenes, BENCHMARKS.md): step 1 adds the
 //! `covisible_candidates` keyframes sharing the most landmarks with the nearest ones; step 2 lets a keypoint
 //! compete only with the candidate keypoints within `epipolar_px` of its epipolar line (the fundamental matrix

@@ -1,5 +1,5 @@
 //! The settings of map building: the matching, the tolerances of new landmarks, external landmarks, and the
-//! use of the known poses (issue 27).
+//! use of the known poses.
 
 use serde::{Deserialize, Serialize};
 
@@ -68,13 +68,14 @@ impl Default for BuildSettings {
 }
 
 impl BuildSettings {
-    /// Map building before issue 27, and the default (issue 27's rule did not keep the alternative): the
-    /// nearest keyframes, every keypoint competing, pairs only, the embedding alone.
+    /// Map building that ignores the known poses, and the default (the rule fixed before scoring on the
+    /// selection scenes did not keep the alternative): the nearest keyframes, every keypoint competing, pairs
+    /// only, the embedding alone.
     pub fn unguided(self) -> Self {
         Self { epipolar_px: 0.0, covisible_candidates: 0, extend_tracks: false, freak_matches: false, ..self }
     }
 
-    /// Map building that uses the known poses (issue 27, section 2): an 8 px epipolar window, 3 covisible
+    /// Map building that uses the known poses: an 8 px epipolar window, 3 covisible
     /// candidates, tracks extended across keyframes, FREAK's matches joined.
     pub fn with_known_poses(self) -> Self {
         Self { epipolar_px: 8.0, covisible_candidates: 3, extend_tracks: true, freak_matches: true, ..self }

@@ -15,7 +15,7 @@
 //! * 2: [`crate::map::model::MapData`] gained `external_ids` (landmarks given by an external SfM, see
 //!   [`crate::map::model`]), and [`Record`] the variant `AddExternalKeyframe`, appended last so a format-1
 //!   record decodes unchanged. A format-1 snapshot decodes through its own layout with no external ids.
-//! * 3 (issue 41): the snapshot split into a payload section and a core, so that a loaded map keeps its
+//! * 3: the snapshot split into a payload section and a core, so that a loaded map keeps its
 //!   keyframes' payloads on disk ([`crate::map::payload`]) and loading decodes only the core. Records,
 //!   segments and the log are unchanged (a record still carries its keyframe whole); their header says 3 so
 //!   that a build that reads only format 2 refuses a map whose snapshot it could not read. A format-1/2

@@ -26,7 +26,7 @@ pub struct HomographyPair {
     pub image: usize,
     pub zoom: f64,
     pub rotation_deg: f64,
-    /// Out-of-plane angle of the true H at image 1's centre, degrees (reports before issue 39: 0).
+    /// Out-of-plane angle of the true H at image 1's centre, degrees (0 in reports written without it).
     #[serde(default)]
     pub tilt_deg: f64,
     pub matches: usize,
