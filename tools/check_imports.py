@@ -9,8 +9,9 @@ From the code:
   (TRANSPORT_CRATES), and no module outside `offline/` imports `offline/` (what the service never calls).
 
 Against the documents:
-- the README's module table ("Where things are"): every top-level module of src/ has a row, every row names a
-  path of src/, and no module imports one listed below it (the table is bottom layer first);
+- the module table of docs/architecture.md ("Where things are", in its layout section): every top-level module
+  of src/ has a row, every row names a path of src/, and no module imports one listed below it (the table is
+  bottom layer first);
 - every `//!` paragraph that begins "Who imports whom": its chain `a -> b / c -> d` (top to bottom, the
   names in backquotes, `this file` for the file itself, parentheses being comments) names every child module
   of its directory once, and each child imports only from children of later layers.
@@ -151,9 +152,12 @@ def transport_offences(src, modules, edges):
     return offences
 
 
-def readme_table(readme):
-    """The first column of the README's "Where things are" table, in order."""
-    text = readme.read_text()
+TABLE_DOC = Path("docs") / "architecture.md"
+
+
+def module_table(doc):
+    """The first column of the "Where things are" table of docs/architecture.md, in order."""
+    text = doc.read_text()
     start = text.find("**Where things are**")
     if start < 0:
         return None
@@ -167,24 +171,24 @@ def readme_table(readme):
     return rows
 
 
-def readme_offences(src, modules, edges, readme):
-    if not readme.is_file():
-        return [f"{readme}: missing (the module table lives there)"]
-    rows = readme_table(readme)
+def table_offences(src, modules, edges, doc):
+    if not doc.is_file():
+        return [f"{TABLE_DOC}: missing (the module table lives there)"]
+    rows = module_table(doc)
     if not rows:
-        return [f"{readme.name}: no module table under **Where things are**"]
+        return [f"{TABLE_DOC}: no module table under **Where things are**"]
     offences = []
     position = {}
     for i, row in enumerate(rows):
         path = src / row.rstrip("/")
         if not (path.is_dir() if row.endswith("/") else path.is_file()):
-            offences.append(f"README table: `{row}` is not a {'directory' if row.endswith('/') else 'file'} of src/")
+            offences.append(f"{TABLE_DOC} table: `{row}` is not a {'directory' if row.endswith('/') else 'file'} of src/")
         module = tuple(Path(row.rstrip("/")).with_suffix("").parts) if row.endswith(".rs") else tuple(Path(row).parts)
         if module in modules:
             position[module] = i
     for m, f in sorted(modules.items()):
         if len(m) == 1 and m not in position:
-            offences.append(f"README table: no row for the top-level module {f.relative_to(src)}")
+            offences.append(f"{TABLE_DOC} table: no row for the top-level module {f.relative_to(src)}")
     files = {f: m for m, f in modules.items()}
     for f, targets in edges.items():
         a = files[f][:1]
@@ -192,7 +196,7 @@ def readme_offences(src, modules, edges, readme):
             b = files[g][:1]
             if a != b and a in position and b in position and position[b] > position[a]:
                 offences.append(
-                    f"README table: `{rows[position[a]]}` imports `{rows[position[b]]}`, which the table lists below it "
+                    f"{TABLE_DOC} table: `{rows[position[a]]}` imports `{rows[position[b]]}`, which the table lists below it "
                     f"({f.relative_to(src)} -> {g.relative_to(src)})"
                 )
     return offences
@@ -268,7 +272,7 @@ def main():
     offences = (
         layering_offences(src, modules, edges)
         + transport_offences(src, modules, edges)
-        + readme_offences(src, modules, edges, src.parent / "README.md")
+        + table_offences(src, modules, edges, src.parent / TABLE_DOC)
         + chain_offences(src, modules, edges)
     )
     for o in sorted(set(offences)):
