@@ -130,8 +130,8 @@ pub enum EvalCommand {
         /// (one graph), with the same fallback; each is a row of its own.
         #[arg(long, value_delimiter = ',')]
         also_caps: Vec<usize>,
-        /// Exactly these parts of the staged pipeline on (`none`: today's stage 1 and map building before
-        /// issue 27); without the flag, the service's defaults.
+        /// Exactly these parts of the staged pipeline on (`none`: stage 1 as the service runs it, and map
+        /// building without the known poses); without the flag, the service's defaults.
         #[arg(long, value_delimiter = ',')]
         stages: Option<Vec<StageArg>>,
         /// Frames of other scenes localised against the map (each pose is a false one).
@@ -188,7 +188,7 @@ pub enum EvalCommand {
         /// A match is correct within this many pixels of the true homography's image.
         #[arg(long, default_value_t = 3.0)]
         correct_px: f64,
-        /// Also measure the neighbour share of these constellation rules (candidates of issue 25).
+        /// Also measure the neighbour share of these constellation rules (the candidates for zoom).
         #[arg(long, value_delimiter = ',', value_enum)]
         neighbour_rules: Vec<scone::constellation::NeighbourRule>,
         #[command(flatten)]
