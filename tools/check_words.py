@@ -261,7 +261,7 @@ EXPECTED = {
 CLEAN = {
     "README.md": "# Demo\n\nIt matches images (`src/lib.rs`, [docs](docs/guide.md)).\n",
     "docs/guide.md": "# Guide\n\nOne ONNX Runtime session per worker; a write is one round trip; rounding is half\n"
-                     "up, over 20 rounds. See [the readme](../README.md).\n",
+                     "up, over 20 rounds, around 20 centres. See [the readme](../README.md).\n",
     "proto/demo/v1/demo.proto": "syntax = \"proto3\";\n// Revision 3 adds step 9.\nmessage A {}\n",
     "models/card.md": "# Card\n\nShipped by its rule.\n\n## Training record\n\nSession 36 kept it.\n",
     "src/lib.rs": "//! Matching under zoom.\n// session 3 is a plain comment\n"
