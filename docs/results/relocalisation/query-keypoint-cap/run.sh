@@ -2,9 +2,9 @@
 # Issue 41, section 3: the validation scenes once with the cap the selection rule chose (BENCHMARKS.md, "A
 # query whose cost does not grow with the map"): issue 31's far-map protocol (SConE, 100k distractor
 # observations, a foreign scene), every query keypoint searched against stage 1 capped at 800.
-#   docs/results/issue41/val.sh          (reports to $OUT, default $SCONE_PREFIX/work/i41/val)
+#   docs/results/relocalisation/query-keypoint-cap/run.sh          (reports to $OUT, default $SCONE_PREFIX/work/i41/val)
 set -euo pipefail
-here="$(cd "$(dirname "${BASH_SOURCE[0]}")/../../.." && pwd)"
+here="$(cd "$(dirname "${BASH_SOURCE[0]}")/../../../.." && pwd)"
 # shellcheck source=scripts/env.sh
 . "$here/scripts/env.sh"
 B="$CARGO_TARGET_DIR/release/scone"

@@ -10,7 +10,7 @@ correspondent's, above chance, by zoom: the detected neighbours (round 4's repor
 several keypoint frames (`frames/frames.py`, its variants A, B, G, S and E): the ring is only as shared as the
 frame it is placed in.
 
-    $SCONE_PREFIX/venv-train/bin/python docs/results/issue39/limits_figure.py
+    $SCONE_PREFIX/venv-train/bin/python docs/results/training/limits_figure.py
 """
 
 import json
@@ -24,10 +24,10 @@ import matplotlib.pyplot as plt  # noqa: E402
 HERE = Path(__file__).resolve().parent
 # (report directory, drawn as): the shipped recipe's runs whose logs are kept here
 RUNS = [
-    ("round5/ring-e1-real-nnp", "-"),
-    ("round12/ring-e1-real-10k", ":"),
-    ("round12/ring-e1-real-10k-s1", ":"),
-    ("round12/ring-e1-real-10k-s2", ":"),
+    ("runs/ring-e1-real-nnp", "-"),
+    ("runs/ring-e1-real-10k", ":"),
+    ("runs/ring-e1-real-10k-s1", ":"),
+    ("runs/ring-e1-real-10k-s2", ":"),
 ]
 
 
@@ -67,7 +67,7 @@ def main():
     left.legend(handles, [h.get_label() for h in handles], fontsize=8, loc="center right")
     left.set_title("The loss keeps falling; the held-out F1 stops by step 1,000-2,000, then falls", fontsize=10)
 
-    labels, nbr, _, pairs = shares_by_zoom(HERE / "round4" / "warps-union.json")
+    labels, nbr, _, pairs = shares_by_zoom(HERE / "runs" / "ring-e1-warps24" / "warps-union.json")
     frames = json.loads((HERE / "frames" / "frames.json").read_text())
     x = range(len(labels))
     right.plot(x, nbr, marker="o", color="tab:gray", ls="--", label="detected neighbours (20 nearest; shipped before)")

@@ -1,7 +1,7 @@
 #!/usr/bin/env python3
 """Issue 39, round 2: applies the rule written in docs/model-experiments.md to the reports of score.sh.
 
-    python3 docs/results/issue39/round2.py [--work $SCONE_PREFIX/work/i39] ring-e1 ring-e1-real
+    python3 docs/results/matching/selection_rule.py [--work $SCONE_PREFIX/work/i39] ring-e1 ring-e1-real
 
 A (model, matcher) pair passes when (1) its mean AUC@10 over the five real selection parts is at least FREAK's +
 0.01 and at least the shipped model's (scale-aware) on the same keypoints; (2) its share of warp pairs within 5 px

@@ -5,7 +5,7 @@
 #   2. real homographies: graffiti and the five EF sequences (SIFT beside);
 #   3. relocalisation, far-map protocol with 100k distractors (SConE and FREAK; SIFT's single-frame rows are
 #      docs/results/issue43/val.sh's, at its own settings).
-#   docs/results/issue39/validate.sh MODEL.onnx      (reports to $SCONE_PREFIX/work/i39/val-ring-e1-real)
+#   docs/results/matching/validate.sh MODEL.onnx      (reports to $SCONE_PREFIX/work/i39/val-ring-e1-real)
 set -euo pipefail
 here="$(cd "$(dirname "${BASH_SOURCE[0]}")/../../.." && pwd)"
 # shellcheck source=scripts/env.sh
@@ -18,7 +18,7 @@ mkdir -p "$out"
 e1=(--levels 8 --max-keypoints 2000 --opencv-threads 1 --embed-threads 1)
 part=${2:-all}
 if [ "$part" = all ] || [ "$part" = pairs ]; then
-  SPLIT=validation OUT="$out" "$here/docs/results/issue39/score.sh" ring-e1-real "$model" union --levels 8 --max-keypoints 2000
+  SPLIT=validation OUT="$out" "$here/docs/results/matching/score.sh" ring-e1-real "$model" union --levels 8 --max-keypoints 2000
   f="$out/real-h.json"
   [ -s "$f" ] || "$B" eval homography --data "$D/hpatches-v_graffiti,$D/ef-notredame,$D/ef-obama,$D/ef-paintedladies,$D/ef-rushmore,$D/ef-yosemite" \
     --methods scone,freak,sift --scone-matcher union --model "$model" "${e1[@]}" --json "$f" > "$out/real-h.md"

@@ -29,7 +29,7 @@ A sample counts as shared within 3 px, and (second figure) within its own box's 
 `floor(0.2 r s + 0.5)` pixels on each side, at least 1), each minus chance (the sent samples turned 90 degrees
 about the centre). Pairs are binned by the zoom at image 1's centre, as `scone eval homography` bins them.
 
-    $SCONE_PREFIX/venv-train/bin/python docs/results/issue39/frames/frames.py > docs/results/issue39/frames/frames.txt
+    $SCONE_PREFIX/venv-train/bin/python docs/results/training/frames/frames.py > docs/results/training/frames/frames.txt
 
 (also writes frames.json beside it, which `limits_figure.py` draws).
 """

@@ -5,7 +5,7 @@ config, or the same with another schedule, seed, checkpoint rule or averaged wei
 session 42's rebuild of the data) are drawn apart from other recipes, so their spread can be read beside the
 differences between recipes.
 
-    $SCONE_PREFIX/venv-train/bin/python docs/results/issue39/candidates_figure.py
+    $SCONE_PREFIX/venv-train/bin/python docs/results/training/ring_runs_figure.py
 """
 
 import sys
@@ -17,31 +17,31 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 
 HERE = Path(__file__).resolve().parent
-sys.path.insert(0, str(HERE))
-from round2 import PARTS, pair_means  # noqa: E402
+sys.path.insert(0, str(HERE.parent / "matching"))
+from selection_rule import PARTS, pair_means  # noqa: E402
 
 # (report directory, label, a run of the shipped recipe?)
 RUNS = [
-    ("round4/ring-e1-real", "ring-e1-real\n(shipped)", True),
-    ("round5/ring-e1-real-nnp", "rerun, NN-prec.\ncheckpoint (r5)", True),
-    ("round8/ring-e1-real-4k", "4k steps (r8)", True),
-    ("round9/ring-e1-real-4k-s1", "4k steps,\nseed 1 (r9)", True),
-    ("round9/ring-e1-ema", "4k, averaged (r9)", True),
-    ("round9/ring-e1-ema-s1", "4k, averaged,\nseed 1 (r9)", True),
-    ("round9/ring-e1-ema-s2", "4k, averaged,\nseed 2 (r9)", True),
-    ("round12/ring-e1-real-10k", "own schedule,\nseed 0 again (r12)", True),
-    ("round12/ring-e1-real-10k-s1", "own schedule,\nseed 1 (r12)", True),
-    ("round12/ring-e1-real-10k-s2", "own schedule,\nseed 2 (r12)", True),
-    ("round3", "narrow (r3)", False),
-    ("round4", "warps24 (r4)", False),
-    ("round5/ring-e1-warps24-s4000", "warps24 at\n4,000 (r5)", False),
-    ("round8/ring-e1-inv", "ring invariants\n(r8)", False),
-    ("round10/ring-e1-real75-ema", "3/4 real views,\naveraged (r10)", False),
-    ("round10/ring-e1-real75-ema-s1", "3/4 real, avg.,\nseed 1 (r10)", False),
-    ("round10/ring-e1-real75-ema-s2", "3/4 real, avg.,\nseed 2 (r10)", False),
-    ("round16/ring-e1-tracks3", "tracks kept (r16)", False),
-    ("round16/ring-e1-tracks3-s1", "tracks kept,\nseed 1 (r16)", False),
-    ("round16/ring-e1-tracks3-s2", "tracks kept,\nseed 2 (r16)", False),
+    ("runs/ring-e1-real", "ring-e1-real\n(shipped)", True),
+    ("runs/ring-e1-real-nnp", "rerun, NN-prec.\ncheckpoint (r5)", True),
+    ("runs/ring-e1-real-4k", "4k steps (r8)", True),
+    ("runs/ring-e1-real-4k-s1", "4k steps,\nseed 1 (r9)", True),
+    ("runs/ring-e1-ema", "4k, averaged (r9)", True),
+    ("runs/ring-e1-ema-s1", "4k, averaged,\nseed 1 (r9)", True),
+    ("runs/ring-e1-ema-s2", "4k, averaged,\nseed 2 (r9)", True),
+    ("runs/ring-e1-real-10k", "own schedule,\nseed 0 again (r12)", True),
+    ("runs/ring-e1-real-10k-s1", "own schedule,\nseed 1 (r12)", True),
+    ("runs/ring-e1-real-10k-s2", "own schedule,\nseed 2 (r12)", True),
+    ("runs/ring-e1-narrow", "narrow (r3)", False),
+    ("runs/ring-e1-warps24", "warps24 (r4)", False),
+    ("runs/ring-e1-warps24-s4000", "warps24 at\n4,000 (r5)", False),
+    ("runs/ring-e1-inv", "ring invariants\n(r8)", False),
+    ("runs/ring-e1-real75-ema", "3/4 real views,\naveraged (r10)", False),
+    ("runs/ring-e1-real75-ema-s1", "3/4 real, avg.,\nseed 1 (r10)", False),
+    ("runs/ring-e1-real75-ema-s2", "3/4 real, avg.,\nseed 2 (r10)", False),
+    ("runs/ring-e1-tracks3", "tracks kept (r16)", False),
+    ("runs/ring-e1-tracks3-s1", "tracks kept,\nseed 1 (r16)", False),
+    ("runs/ring-e1-tracks3-s2", "tracks kept,\nseed 2 (r16)", False),
 ]
 SHOWN = {"strecha-castle-P30-sel": "castle", "7scenes-redkitchen-sel": "redkitchen", "middlebury-templeRing-sel": "templeRing"}
 

@@ -2,7 +2,7 @@
 """Issue 41, session 43: applies the rule for a capped stage 1 that falls back to every keypoint (BENCHMARKS.md,
 "A capped search that falls back to every keypoint") to `sel.sh`'s reports.
 
-    python3 docs/results/issue41/fallback.py REFERENCE_DIR RUN_DIR [K ...]
+    python3 docs/results/relocalisation/query-keypoint-cap/fallback.py REFERENCE_DIR RUN_DIR [K ...]
 
 REFERENCE_DIR holds the every-keypoint reports the rule compares with (session 41's run); RUN_DIR holds this
 run's, `all--SCENE.json` and `K-fallback100--SCENE.json`. Prints one table row per configuration and the

@@ -3,7 +3,7 @@
 on one graph") to the reports of `sel.sh` or `val.sh` run with `ALSO_CAPS` (one report per scene, every
 keypoint and each cap on the same map).
 
-    python3 docs/results/issue41/same_graph.py RUN_DIR [SCENE ...]
+    python3 docs/results/relocalisation/query-keypoint-cap/same_graph.py RUN_DIR [SCENE ...]
 
 Prints one table row per configuration (queries within (0.25 m, 2°) / within (0.5 m, 5°), mean query time),
 the verdict per cap under the selection rule (each count at least every keypoint's on every scene, no foreign

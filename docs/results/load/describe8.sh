@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
 # Describe throughput at 8 clients: two scone binaries, each with its own embedded default, in the same run.
-#   docs/results/issue40/describe8.sh OLD_BINARY NEW_BINARY [ROUNDS]
+#   docs/results/load/describe8.sh OLD_BINARY NEW_BINARY [ROUNDS]
 # Each round starts OLD then NEW on a fresh data directory, pinned to core 0 (taskset -c 0: one core, as
 # load-tests/run pins its servers), and drives it with wrk on core 1: 8 connections, closed loop, 30 s,
 # POST /v1/describe with the 640x480 JPEGs of rgbd-slambook-5 (quality 90) in turn, after a 5 s warm-up.

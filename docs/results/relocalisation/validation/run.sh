@@ -3,7 +3,7 @@
 # 39, step 4: relocalisation chosen again"), every method (SConE, FREAK on the same keypoints, SIFT):
 # far-map protocol (map: the first half of the posed frames; 100k distractor observations of the two distractor
 # scenes; castle as the foreign scene) and the sparse protocol (every 10th frame, scenes of at least 30 frames).
-#   STAGES=candidates docs/results/issue39/reloc/val.sh   (reports to $OUT, default $SCONE_PREFIX/work/i39/reloc-val)
+#   STAGES=candidates docs/results/relocalisation/validation/run.sh   (reports to $OUT, default $SCONE_PREFIX/work/i39/reloc-val)
 set -euo pipefail
 here="$(cd "$(dirname "${BASH_SOURCE[0]}")/../../../.." && pwd)"
 # shellcheck source=scripts/env.sh
