@@ -6,7 +6,7 @@
 # POST /v1/describe with the 640x480 JPEGs of rgbd-slambook-5 (quality 90) in turn, after a 5 s warm-up.
 # Prints one line per server and round (req/s, latency p50/p99 from wrk's HdrHistogram) and the ratio of the
 # rounds' means. SCONE_DESCRIBE_CLIENTS=N sets the connections (default 8), SCONE_DESCRIBE_UNPINNED=1 leaves
-# the server and wrk free to use both cores (a lone client's latency, session 48). Needs wrk (apt-get install wrk) and python3 with OpenCV (the client venv) for the JPEGs.
+# the server and wrk free to use both cores (a lone client's latency). Needs wrk (apt-get install wrk) and python3 with OpenCV (the client venv) for the JPEGs.
 set -euo pipefail
 old="$1" new="$2" rounds="${3:-2}"
 clients="${SCONE_DESCRIBE_CLIENTS:-8}"

@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# Issue 39: scores one model on the selection split (or, with SPLIT=validation, the validation scenes once):
+# Scores one model on the selection split (or, with SPLIT=validation, the validation scenes once):
 # the pair protocol on each part (3 seeds) and the exact warps, for SConE with the given matchers and for FREAK
 # on the same keypoints. Reports go to $OUT (default $SCONE_PREFIX/work/i39/<name>).
 #   docs/results/matching/score.sh NAME MODEL.onnx "plain union" [extractor flags...]

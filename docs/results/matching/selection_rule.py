@@ -1,5 +1,5 @@
 #!/usr/bin/env python3
-"""Issue 39, round 2: applies the rule written in docs/model-experiments.md to the reports of score.sh.
+"""Applies the rule that chose the shipped model (written in docs/model-experiments.md) to the reports of score.sh.
 
     python3 docs/results/matching/selection_rule.py [--work $SCONE_PREFIX/work/i39] ring-e1 ring-e1-real
 

@@ -1,10 +1,10 @@
 #!/usr/bin/env bash
-# Issue 39: the validation scenes, once, for the pair that round 2's rule ships (ring-e1-real with `union`), at
+# The validation scenes, once, for the pair that the selection rule ships (ring-e1-real with `union`), at
 # its extraction (E1: 8 levels, 2,000 keypoints), FREAK on the same keypoints:
 #   1. the pair protocol on the five validation scenes and the validation warps (score.sh, SPLIT=validation);
 #   2. real homographies: graffiti and the five EF sequences (SIFT beside);
-#   3. relocalisation, far-map protocol with 100k distractors (SConE and FREAK; SIFT's single-frame rows are
-#      docs/results/issue43/val.sh's, at its own settings).
+#   3. relocalisation, far-map protocol with 100k distractors (SConE and FREAK; BENCHMARKS.md's relocalisation
+#      figures, SIFT's included, are docs/results/relocalisation/validation/run.sh's).
 #   docs/results/matching/validate.sh MODEL.onnx      (reports to $SCONE_PREFIX/work/i39/val-ring-e1-real)
 set -euo pipefail
 here="$(cd "$(dirname "${BASH_SOURCE[0]}")/../../.." && pwd)"

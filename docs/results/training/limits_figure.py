@@ -1,12 +1,12 @@
 #!/usr/bin/env python3
-"""Issue 39: why sixteen rounds stop short of +0.03, as one picture (docs/figures/issue39-limits.png), read from
-reports already committed here.
+"""Why the ring model's candidates stop short of +0.03 over FREAK, as one picture (docs/figures/issue39-limits.png),
+read from the reports kept in runs/ and frames/.
 
-Left: runs of the shipped recipe, round 5's rerun over the whole 10,000-step schedule and round 12's three seeds
-to step 3,000. The training loss keeps falling while the selection F1 (the ratio test on the held-out selection
-units and warps) stops rising by step 1,000-2,000 and then falls: more fitting of these training data does not
-carry over. Right: on the selection warps, how many of a keypoint's context samples land within 3 px of its
-correspondent's, above chance, by zoom: the detected neighbours (round 4's report) and the ring placed by
+Left: runs of the shipped recipe, its rerun over the whole 10,000-step schedule (ring-e1-real-nnp) and three
+seeds to step 3,000 (ring-e1-real-10k*). The training loss keeps falling while the selection F1 (the ratio test
+on the held-out selection units and warps) stops rising by step 1,000-2,000 and then falls: more fitting of these
+training data does not carry over. Right: on the selection warps, how many of a keypoint's context samples land within 3 px of its
+correspondent's, above chance, by zoom: the detected neighbours (ring-e1-warps24's report) and the ring placed by
 several keypoint frames (`frames/frames.py`, its variants A, B, G, S and E): the ring is only as shared as the
 frame it is placed in.
 

@@ -1,8 +1,8 @@
 #!/usr/bin/env python3
-"""Issue 39: every ring model scored with `union` on the selection pairs whose reports are kept here, as one
-picture (docs/figures/issue39-ring-runs.png). Runs of the shipped model's network, loss and data mix (its own
-config, or the same with another schedule, seed, checkpoint rule or averaged weights; round 5's rerun read
-session 42's rebuild of the data) are drawn apart from other recipes, so their spread can be read beside the
+"""Every ring model scored with `union` on the selection pairs whose reports are kept in runs/, as one picture
+(docs/figures/issue39-ring-runs.png). Runs of the shipped model's network, loss and data mix (its own config, or
+the same with another schedule, seed, checkpoint rule or averaged weights; the rerun ring-e1-real-nnp read a
+rebuild of the data) are drawn apart from other recipes, so their spread can be read beside the
 differences between recipes.
 
     $SCONE_PREFIX/venv-train/bin/python docs/results/training/ring_runs_figure.py

@@ -1,10 +1,11 @@
 #!/usr/bin/env python3
-"""Issue 41, session 43: applies the rule for a capped stage 1 that falls back to every keypoint (BENCHMARKS.md,
-"A capped search that falls back to every keypoint") to `sel.sh`'s reports.
+"""Applies the rule for a capped stage 1 that falls back to every keypoint (docs/history/benchmarks-log.md, "A
+capped search that falls back to every keypoint") to the selection scenes' reports; same_graph.py reads its
+`summary_figures`.
 
     python3 docs/results/relocalisation/query-keypoint-cap/fallback.py REFERENCE_DIR RUN_DIR [K ...]
 
-REFERENCE_DIR holds the every-keypoint reports the rule compares with (session 41's run); RUN_DIR holds this
+REFERENCE_DIR holds the every-keypoint reports the rule compares with (an earlier run); RUN_DIR holds this
 run's, `all--SCENE.json` and `K-fallback100--SCENE.json`. Prints one table row per configuration and the
 verdict per K. Standard library only.
 """
@@ -46,7 +47,7 @@ def main():
     ref = [figures(reference / f"all--{s}.json") for s in SCENES]
     print("| stage 1 searches | " + " | ".join(SCENES) + " | score | foreign localised |")
     print("|---" * (len(SCENES) + 3) + "|")
-    print(row("every keypoint (session 41's run, the rule's reference)", ref))
+    print(row("every keypoint (the reference run)", ref))
     print(row("every keypoint (this run)", [figures(run / f"all--{s}.json") for s in SCENES]))
     verdicts = []
     for k in caps:

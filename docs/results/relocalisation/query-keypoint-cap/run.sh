@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
-# Issue 41, section 3: the validation scenes once with the cap the selection rule chose (BENCHMARKS.md, "A
-# query whose cost does not grow with the map"): issue 31's far-map protocol (SConE, 100k distractor
-# observations, a foreign scene), every query keypoint searched against stage 1 capped at 800.
+# The validation scenes once with stage 1's cap on query keypoints (BENCHMARKS.md, "Relocalisation on the
+# validation scenes"): the far-map protocol (SConE, 100k distractor observations, a foreign scene), every query
+# keypoint searched against stage 1 capped (CAPS, default 800; ALSO_CAPS compares caps on one graph).
 #   docs/results/relocalisation/query-keypoint-cap/run.sh          (reports to $OUT, default $SCONE_PREFIX/work/i41/val)
 set -euo pipefail
 here="$(cd "$(dirname "${BASH_SOURCE[0]}")/../../../.." && pwd)"
@@ -12,12 +12,12 @@ D=${SCONE_DATA:-$here/../shared/data}/scenes
 out="${OUT:-$SCONE_PREFIX/work/i41/val}"
 mkdir -p "$out"
 for scene in kitti-clip2 middlebury-dino48 strecha-fountain-P11 tum-fr3-long-office; do
-  # ALSO_CAPS=K1,K2,...: every keypoint and each cap on the same map, one report per scene (session 45's rule).
+  # ALSO_CAPS=K1,K2,...: every keypoint and each cap on the same map, one report per scene (the rule same_graph.py applies).
   caps=${CAPS:-all 800}; [ -n "${ALSO_CAPS:-}" ] && caps=all
   for cap in $caps; do
     k=$cap; [ "$cap" = all ] && k=1000000000
     extra=(); tag=$cap
-    # FALLBACK=T: a capped query short of T inliers is searched with every keypoint (session 43's rule).
+    # FALLBACK=T: a capped query short of T inliers is searched with every keypoint (the default's fallback).
     if [ -n "${FALLBACK:-}" ] && [ "$cap" != all ]; then extra=(--full-search-below-inliers "$FALLBACK"); tag=$cap-fallback$FALLBACK; fi
     if [ -n "${ALSO_CAPS:-}" ]; then
       extra=(--also-caps "$ALSO_CAPS"); tag=same-graph

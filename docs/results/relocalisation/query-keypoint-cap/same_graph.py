@@ -1,7 +1,7 @@
 #!/usr/bin/env python3
-"""Issue 41, session 45: applies the rule for stage 1's caps compared on one graph (BENCHMARKS.md, "Caps compared
-on one graph") to the reports of `sel.sh` or `val.sh` run with `ALSO_CAPS` (one report per scene, every
-keypoint and each cap on the same map).
+"""Applies the rule for stage 1's caps compared on one graph (docs/history/benchmarks-log.md, "Caps compared on
+one graph") to the reports of `run.sh` (or of the selection scenes' run) with `ALSO_CAPS` (one report per scene,
+every keypoint and each cap on the same map).
 
     python3 docs/results/relocalisation/query-keypoint-cap/same_graph.py RUN_DIR [SCENE ...]
 
@@ -14,7 +14,7 @@ import json
 import sys
 from pathlib import Path
 
-from fallback import summary_figures  # the figures session 43's rule read
+from fallback import summary_figures  # the figures the fallback's rule read
 
 SELECTION = ["strecha-castle-P30", "templeRing-1-31", "7scenes-redkitchen-sel", "sun3d-studyroom-sel", "liberty-internet-sel"]
 

@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
-# Issue 39, step 4: the validation scenes once with the configuration sel.sh's rule chose (BENCHMARKS.md, "Issue
-# 39, step 4: relocalisation chosen again"), every method (SConE, FREAK on the same keypoints, SIFT):
+# The validation scenes once with the stages the selection rule chose (BENCHMARKS.md, "Relocalisation on the
+# validation scenes"), every method (SConE, FREAK on the same keypoints, SIFT):
 # far-map protocol (map: the first half of the posed frames; 100k distractor observations of the two distractor
 # scenes; castle as the foreign scene) and the sparse protocol (every 10th frame, scenes of at least 30 frames).
 #   STAGES=candidates docs/results/relocalisation/validation/run.sh   (reports to $OUT, default $SCONE_PREFIX/work/i39/reloc-val)

@@ -1,5 +1,5 @@
 #!/usr/bin/env python3
-"""Issue 39, session 53: how much of the ring's sharing is lost to the keypoint's frame (a measurement, no choice).
+"""How much of the ring's sharing is lost to the keypoint's frame (a measurement, no choice).
 
 On the selection warps that `score.sh` scores (`$SCONE_PREFIX/work/warps/selection-g2`, 80 sequences, 400 pairs),
 keypoints extracted as the shipped model's (8 levels at 1.2, 2,000 keypoints, `scone features`), images
