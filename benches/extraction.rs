@@ -1,6 +1,6 @@
 //! Feature extraction on a 640x480 photograph, stage by stage: decode, FAST (pyramid + bucketing),
 //! FREAK, constellations (k = 20), and the whole path; plus single-scale FAST for comparison.
-//! Run: `scripts/bench extraction` (or `cargo bench --bench extraction`).
+//! Run: `. scripts/env.sh && cargo bench --bench extraction` (docs/development.md, "Benchmarks").
 
 use criterion::{criterion_group, criterion_main, Criterion};
 use opencv::core::{KeyPoint, Vector};

@@ -5,7 +5,8 @@
 //!
 //! The core never imports a transport: no module outside [`server`] imports it or names tonic, axum, hyper,
 //! http, tower or prost, and none outside [`offline`] (what the service never calls) imports it.
-//! `tools/check_imports.py` checks both, with the layering of the README's module table.
+//! `tools/check_imports.py` checks both, with the layering of the module table in `docs/architecture.md`
+//! ("Where things are").
 //!
 //! The description path, in the order an image takes it:
 //! - [`decode`]: encoded image bytes -> grey image, with size limits checked before decoding; depth PNGs;
@@ -80,8 +81,9 @@ pub(crate) mod test_dir;
 
 /// Rust's allocations go through mimalloc in every binary that links this crate (the service, the CLI, the
 /// benches and tests alike). A map's HNSW graph is millions of small allocations, one per link: a reload of
-/// the 728k bench map's graph took 0.46x glibc's time under it, in less memory (BENCHMARKS.md, "mimalloc").
-/// onnxruntime and OpenCV allocate through their own C++ runtimes, untouched by this. Not in fuzzing builds
+/// the 728k bench map's graph took 0.46x glibc's time under it, in less memory
+/// (`docs/history/benchmarks-log.md`, "mimalloc"). onnxruntime and OpenCV allocate through their own C++
+/// runtimes, untouched by this. Not in fuzzing builds
 /// (`cfg(fuzzing)`, set by cargo-fuzz), where AddressSanitizer must see every allocation.
 #[cfg(not(fuzzing))]
 #[global_allocator]
