@@ -2,7 +2,7 @@
 scenes, and write the model card and the golden fixture. The command behind `scripts/train`.
 
 Steps, each skipped when its output exists (delete the file to redo it):
-1. train `configs/scone.yaml` into `$SCONE_PREFIX/runs/<name>` (best checkpoint by selection-split precision);
+1. train `configs/scone-set.yaml` into `$SCONE_PREFIX/runs/<name>` (best checkpoint by selection-split precision);
 2. k ablation (k = 0, 5, 10, 20 with equal, shorter schedules) for the precision-vs-k figure;
 3. export `models/scone-freak-k20.onnx` (+ onnx.checker, onnxruntime parity on random and real inputs);
 4. validation on fountain-P11, kitti-clip2, rgbd-slambook-5: NN precision, SConE vs FREAK, bootstrap CI;
@@ -22,12 +22,13 @@ import onnxruntime
 import torch
 import yaml
 
-from . import evaluate as E
-from . import export as X
-from .data import REPO
-from .golden import make_golden
-from .train import load_units, plot_log, prefix, train
-from .validate import load_checkpoint, validate, validation_units
+from .evaluation import nn_precision as E
+from .evaluation.validate import validate, validation_units
+from .model import export as X
+from .model.golden import make_golden
+from .model.network import load_checkpoint
+from .paths import REPO, prefix_dir
+from .train import load_units, plot_log, train
 
 CONFIG = Path(__file__).resolve().parents[1] / "configs" / "scone-set.yaml"
 MODEL = REPO / "models" / "scone-freak-k20.onnx"
@@ -44,7 +45,7 @@ def k_ablation(cfg: dict, units, steps: int, scene: str) -> dict:
         c["model"]["k"] = k
         c["train"]["steps"] = steps
         c["train"]["eval_every"] = max(steps // 4, 1)
-        best = train(c, prefix() / "runs" / c["name"], steps, units=units)
+        best = train(c, prefix_dir() / "runs" / c["name"], steps, units=units)
         model = load_checkpoint(best)
         out[str(k)] = E.scone_precision(model, unit.frames, unit.ids, window).as_dict()
     out["freak"] = E.freak_precision(unit.frames, unit.ids, window).as_dict()
@@ -222,7 +223,7 @@ def main() -> None:
     a = ap.parse_args()
     torch.set_num_threads(2)
     cfg = yaml.safe_load(Path(a.config).read_text())
-    run = prefix() / "runs" / cfg["name"]
+    run = prefix_dir() / "runs" / cfg["name"]
     units = load_units(cfg)
     best = train(cfg, run, a.steps, units=units)
     ckpt = torch.load(best, weights_only=False)

@@ -1,8 +1,12 @@
-"""Train SConE: `python -m scone_train.train --config configs/scone.yaml [--steps N] [--run-dir DIR]`.
+"""Train SConE: `python -m scone_train.train --config configs/scone-ring-real.yaml [--steps N] [--run-dir DIR]`.
 
 Seeded, resumable (a checkpoint every `checkpoint_every` steps; rerunning the same command continues), with a
 per-interval log of loss and selection-split precision (`log.jsonl`, `curves.png`). The best checkpoint on
 the selection split is kept as `best.pt`; validation scenes are never read here.
+
+The configs of the shipped models are `configs/scone-ring-real.yaml` (the embedded ring-context model, the default
+here) and `configs/scone-set.yaml` (the constellation model, which `scone_train.release` trains); every other
+config, a candidate or a reading of the lab notebook (docs/model-experiments.md), is in `configs/experiments/`.
 """
 
 from __future__ import annotations
@@ -22,33 +26,12 @@ import torch.nn.functional as F
 import yaml
 from tqdm import tqdm
 
-from . import correspondences as C
-from . import evaluate as E
-from .data import FrameFeatures, shared_data
-from .dataset import GroupSampler, PairSampler, Unit, build_unit, shared_anchors
-from .export import REVISION_2_EXTRACTION
-from .model import RingNet, SconeNet
-
-
-def prefix() -> Path:
-    return Path(os.environ.get("SCONE_PREFIX", Path.home() / ".cache" / "scone"))
-
-
-# The Rust extractor's defaults: the client contract's revision 3 (E1 of issue 39, src/features.rs).
-REVISION_3_EXTRACTION = {**REVISION_2_EXTRACTION, "levels": 8, "max_keypoints": 2000}
-
-
-def extractor_args(settings: dict | None) -> list[str]:
-    """`scone features` flags for the config's `data.extractor` settings, which are relative to revision 2 (the
-    extractor's defaults when every config before issue 39 was written): a flag for each setting given and each
-    where revision 2 differs from the extractor's defaults (revision 3), so a config means what it meant."""
-    settings = settings or {}
-    full = {**REVISION_2_EXTRACTION, **settings}
-    out: list[str] = []
-    for key, value in sorted(full.items()):
-        if key in settings or value != REVISION_3_EXTRACTION[key]:
-            out += [f"--{key.replace('_', '-')}", str(value)]
-    return out
+from .data import correspondences as C
+from .data.features import FrameFeatures, extractor_args
+from .data.training_units import GroupSampler, PairSampler, Unit, build_unit, shared_anchors
+from .evaluation import nn_precision as E
+from .model.network import SconeNet, build_model
+from .paths import prefix_dir, shared_data
 
 
 def load_units(cfg: dict, rendered_root: Path | None = None) -> tuple[list[Unit], list[Unit]]:
@@ -58,11 +41,11 @@ def load_units(cfg: dict, rendered_root: Path | None = None) -> tuple[list[Unit]
     d = cfg["data"]
     args = extractor_args(d.get("extractor"))
     grads = bool(cfg["model"].get("ring_gradients", False))
-    cache = prefix() / "data" / ("cache" if not args else "cache-" + "".join(a.strip("-") for a in args))
-    rendered_root = rendered_root or prefix() / "data" / f"rendered-{d['rendered_seed']}"
+    cache = prefix_dir() / "data" / ("cache" if not args else "cache-" + "".join(a.strip("-") for a in args))
+    rendered_root = rendered_root or prefix_dir() / "data" / f"rendered-{d['rendered_seed']}"
     seqs = []
     if d["rendered_sequences"] > 0:
-        from .render import render_dataset
+        from .data.render import render_dataset
 
         seqs = render_dataset(rendered_root, d["rendered_sequences"], d["rendered_frames"], d["rendered_seed"])
     n_sel = d["selection_sequences"]
@@ -73,17 +56,17 @@ def load_units(cfg: dict, rendered_root: Path | None = None) -> tuple[list[Unit]
     # Wide-orbit sequences (training only, so the selection split stays as it was): the default paths sweep
     # 20-60 degrees of azimuth, and 99 % of their frame pairs are within 43 degrees of each other.
     if d.get("wide_sequences", 0) > 0:
-        from .render import render_dataset
+        from .data.render import render_dataset
 
         lo, hi = (float(x) for x in d.get("wide_orbit_deg", [70, 120]))
         seed = d.get("wide_seed", 1)
-        wide_root = prefix() / "data" / f"rendered-orbit{lo:g}-{hi:g}-{seed}"
+        wide_root = prefix_dir() / "data" / f"rendered-orbit{lo:g}-{hi:g}-{seed}"
         wide = render_dataset(wide_root, d["wide_sequences"], d["rendered_frames"], seed, orbit_deg=(lo, hi))
         for s in tqdm(wide, desc="wide features + landmarks", leave=False):
             train.append(build_unit(s, cache / wide_root.name, name=f"wide-{s.name}", extractor_args=args, gradients=grads))
     if d.get("real_split"):
-        # The real training scenes, split by scone_train.splits (written down before training on them).
-        from .splits import SPLIT, part, scene_dir
+        # The real training scenes, split by scone_train.data.splits (written down before training on them).
+        from .data.splits import SPLIT, part, scene_dir
 
         for name, spec in SPLIT.items():
             if not scene_dir(name).is_dir():
@@ -101,17 +84,17 @@ def load_units(cfg: dict, rendered_root: Path | None = None) -> tuple[list[Unit]
             train.append(u)
             select.append(build_unit(src, cache / "real", part(name, "select")[1], geo, f"{name}-sel", args, grads))
     if d.get("warps"):
-        # Exact-warp sequences (scone_train.warps): training from the training frames and scikit-image's
+        # Exact-warp sequences (scone_train.data.warps): training from the training frames and scikit-image's
         # photographs, and a few selection sequences beside the real selection units.
-        from .dataset import build_warp_unit
-        from .warps import GENERATOR, generate
+        from .data.training_units import build_warp_unit
+        from .data.warps import GENERATOR, generate
 
         w = d["warps"]
         for role, seed, per_scene, kinds, into in (
             ("training", w.get("seed", 1), w.get("per_scene", 12), w.get("kinds", ["zoom", "viewpoint", "photometric"]), train),
             ("selection", 1, w.get("selection_per_scene", 1), w.get("selection_kinds", ["zoom", "viewpoint"]), select),
         ):
-            root = prefix() / "data" / f"warps-g{GENERATOR}-{role}-{seed}-{per_scene}-{'+'.join(kinds)}"
+            root = prefix_dir() / "data" / f"warps-g{GENERATOR}-{role}-{seed}-{per_scene}-{'+'.join(kinds)}"
             if not (root / "manifest.json").exists():
                 generate(role, root, seed, per_scene, tuple(kinds))
             seqs = sorted(p.parent for p in root.glob("*/H_1_2"))
@@ -145,25 +128,6 @@ class TensorCache:
         if key not in self.cache:
             self.cache[key] = self.model.frame_inputs(f)
         return self.cache[key]
-
-
-def build_model(m: dict):
-    """`context: ring` is the ring-context network (`RingNet`); otherwise the constellation network, where k = 0
-    is the ablation without neighbours (central descriptor only)."""
-    if m.get("context") == "ring":
-        return RingNet(
-            embed_dim=m["embed_dim"], bits_hidden=tuple(m.get("bits_hidden", [256])), bits_dim=m.get("bits_dim", 128),
-            ring_hidden=tuple(m.get("ring_hidden", [256])), ring_dim=m.get("ring_dim", 128),
-            head_hidden=tuple(m.get("head_hidden_layers", [128])), invariants=m.get("ring_invariants", False),
-            gradients=m.get("ring_gradients", False),
-        )
-    return SconeNet(
-        k=max(m["k"], 1), embed_dim=m["embed_dim"], desc_dim=m["desc_dim"], lstm_hidden=m["lstm_hidden"],
-        use_neighbours=m["k"] > 0, encoder=m.get("encoder", "lstm"), desc_hidden=tuple(m.get("desc_hidden", [512, 256])),
-        set_hidden=m.get("set_hidden", 64), head_hidden=m.get("head_hidden", 64), bits_skip=m.get("bits_skip", 0),
-        central_orientation=m.get("central_orientation", True), activation=m.get("activation", "selu"),
-        member_activation=m.get("member_activation"),
-    )
 
 
 def pair_distances(x: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
@@ -500,7 +464,7 @@ def train(cfg: dict, run_dir: Path, steps: int | None = None, units=None) -> Pat
 
 def main() -> None:
     ap = argparse.ArgumentParser()
-    ap.add_argument("--config", default=str(Path(__file__).resolve().parents[1] / "configs" / "scone.yaml"))
+    ap.add_argument("--config", default=str(Path(__file__).resolve().parents[1] / "configs" / "scone-ring-real.yaml"))
     ap.add_argument("--run-dir", default=None)
     ap.add_argument("--steps", type=int, default=None)
     ap.add_argument("--set", action="append", default=[], help="override, e.g. train.hard_negatives=false")
@@ -513,7 +477,7 @@ def main() -> None:
         for p in path:
             node = node[p]
         node[last] = yaml.safe_load(val)
-    run_dir = Path(args.run_dir) if args.run_dir else prefix() / "runs" / cfg["name"]
+    run_dir = Path(args.run_dir) if args.run_dir else prefix_dir() / "runs" / cfg["name"]
     best = train(cfg, run_dir, args.steps)
     print(f"best checkpoint: {best}")
 

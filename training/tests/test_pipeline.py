@@ -12,16 +12,17 @@ import pytest
 import torch
 import yaml
 
-from scone_train import correspondences as C
-from scone_train import evaluate as E
-from scone_train import export as X
-from scone_train.data import FrameFeatures, scone_binary
-from scone_train.dataset import PairSampler, build_unit
-from scone_train.model import SconeNet, unpack_bits
-from scone_train.render import render_sequence
+from scone_train.data import correspondences as C
+from scone_train.data.features import FrameFeatures
+from scone_train.data.render import render_sequence
+from scone_train.data.training_units import PairSampler, build_unit
+from scone_train.evaluation import nn_precision as E
+from scone_train.model import export as X
+from scone_train.model.network import SconeNet, unpack_bits
+from scone_train.paths import scone_binary
 from scone_train.train import train
 
-CONFIG = Path(__file__).resolve().parents[1] / "configs" / "scone.yaml"
+CONFIG = Path(__file__).resolve().parents[1] / "configs" / "experiments" / "scone.yaml"
 TINY_ROOT: list[Path] = []
 
 
@@ -70,12 +71,12 @@ def test_training_steps_export_and_parity(tiny_unit, tmp_path):
 
 
 def test_ring_context_of_the_rust_export_equals_the_reference_and_a_ring_model_exports(tiny_unit, tmp_path):
-    """The Rust export's ring contexts are byte for byte `context.sample` on the frames' images; a RingNet
+    """The Rust export's ring contexts are byte for byte `ring_context.sample` on the frames' images; a RingNet
     trains a few steps on them, exports to ONNX, and onnxruntime agrees with PyTorch on real inputs."""
     import cv2
 
-    from scone_train import context as CX
-    from scone_train.model import RingNet
+    from scone_train.data import ring_context as CX
+    from scone_train.model.network import RingNet
 
     root = tiny_unit_root(tiny_unit)
     for k, f in enumerate(tiny_unit.frames[:2]):
@@ -98,14 +99,14 @@ def test_ring_context_of_the_rust_export_equals_the_reference_and_a_ring_model_e
 
 
 def test_ring_gradients_are_their_definition_and_a_gradient_ring_model_trains_and_exports(tiny_unit, tmp_path):
-    """`context.gradients` is its definition from the pixels (box means by plain sums, turned by the angle's
+    """`ring_context.gradients` is its definition from the pixels (box means by plain sums, turned by the angle's
     cosine and sine, halved and rounded half up), and a RingNet reading them trains, exports with a third
     input and keeps parity with onnxruntime."""
     import math
 
-    from scone_train import context as CX
-    from scone_train import data as D
-    from scone_train.model import RingNet
+    from scone_train.data import features as D
+    from scone_train.data import ring_context as CX
+    from scone_train.model.network import RingNet
 
     h, w = 41, 67
     img = np.random.default_rng(0).integers(0, 256, (h, w)).astype(np.uint8)
@@ -158,8 +159,7 @@ def test_ring_invariants_ignore_a_turn_and_an_averaged_ring_model_resumes_and_ex
     """`RingInvariants` do not change when every ring turns by whole steps (what an error of the angle does),
     and a RingNet with them trains with averaged weights (`train.ema`), resumes with the average, saves the
     average as its checkpoint and exports with parity."""
-    from scone_train.model import RingInvariants
-    from scone_train.train import build_model
+    from scone_train.model.network import RingInvariants, build_model
 
     inv = RingInvariants()
     c = torch.randn(6, 113)
@@ -244,7 +244,7 @@ def _frame(kps: np.ndarray) -> FrameFeatures:
 def test_epipolar_landmarks_from_geometry_only():
     """Three cameras see random 3D points; keypoints are their exact projections plus clutter; geometry alone
     recovers tracks, and every track's keypoints are projections of one point."""
-    from scone_train.data import Scene
+    from scone_train.data.scenes import Scene
 
     rng = np.random.default_rng(1)
     K = np.array([[500.0, 0, 320], [0, 500, 240], [0, 0, 1]])
@@ -321,7 +321,7 @@ SET_CONFIG = Path(__file__).resolve().parents[1] / "configs" / "scone-set.yaml"
 def test_set_encoder_training_steps_export_and_parity(tiny_unit, tmp_path):
     """The committed configuration (set encoder, bits skip, whole-frame loss over frame groups) trains, resumes,
     exports with the same five-input contract and matches onnxruntime on real features."""
-    from scone_train.train import build_model
+    from scone_train.model.network import build_model
 
     cfg = yaml.safe_load(SET_CONFIG.read_text())
     cfg["train"].update(steps=4, eval_every=2, checkpoint_every=2, anchors=32, threads=1, group_frames=3)
@@ -361,7 +361,7 @@ def test_set_encoder_ignores_padding_and_member_order():
 
 
 def test_group_sampler_pairs_share_landmarks(tiny_unit):
-    from scone_train.dataset import GroupSampler
+    from scone_train.data.training_units import GroupSampler
 
     s = GroupSampler([tiny_unit], size=3, seed=0, min_shared=4)
     for _ in range(5):
@@ -426,7 +426,7 @@ def test_constellation_augmentation_distorts_offsets_and_drops_only_real_members
 def test_group_sampler_real_share(tiny_unit):
     from dataclasses import replace
 
-    from scone_train.dataset import GroupSampler
+    from scone_train.data.training_units import GroupSampler
 
     real = replace(tiny_unit, name="real", real=True)
     s = GroupSampler([tiny_unit, real], size=3, seed=0, min_shared=4, real_share=0.25)

@@ -1,4 +1,4 @@
-"""Tests of the correct-match layout diagnostic (scone_train.planarity) on synthetic geometry."""
+"""Tests of the correct-match layout diagnostic (scone_train.evaluation.planarity) on synthetic geometry."""
 
 from __future__ import annotations
 
@@ -9,7 +9,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from scone_train import planarity as P  # noqa: E402
+from scone_train.evaluation import planarity as P  # noqa: E402
 
 
 def test_same_corner_copy_does_not_compete_but_a_distinct_corner_does():

@@ -1,4 +1,4 @@
-"""Tests of the synthetic sequence renderer (scone_train.render): layout, poses, depth, geometric consistency
+"""Tests of the synthetic sequence renderer (scone_train.data.render): layout, poses, depth, geometric consistency
 between views and determinism. Small images keep the whole file to a few seconds."""
 
 from __future__ import annotations
@@ -12,7 +12,7 @@ import pytest
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from scone_train import render  # noqa: E402
+from scone_train.data import render  # noqa: E402
 
 W, H = 160, 120
 FRAMES = 4

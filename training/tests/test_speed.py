@@ -2,10 +2,10 @@
 
 import torch
 
-from scone_train import export as X
-from scone_train.distill import start_from_teacher
-from scone_train.model import SconeNet
-from scone_train.speed_gate import compare
+from scone_train.evaluation.speed_gate import compare
+from scone_train.model import export as X
+from scone_train.model.distill import start_from_teacher
+from scone_train.model.network import SconeNet
 
 
 def reference_set_encoder(enc, d, neighbours, geo, m):

@@ -1,4 +1,4 @@
-"""Tests of the exact-warp generator (scone_train.warps): the written H_1_k carries image 1 onto image k, the
+"""Tests of the exact-warp generator (scone_train.data.warps): the written H_1_k carries image 1 onto image k, the
 pair parameters are what the file says, and a seed gives the same sequences."""
 
 from __future__ import annotations
@@ -11,7 +11,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from scone_train import warps  # noqa: E402
+from scone_train.data import warps  # noqa: E402
 
 
 def _photo() -> np.ndarray:
@@ -80,7 +80,7 @@ def test_a_seed_gives_the_same_sequences(tmp_path):
 
 
 def test_warp_ids_label_the_keypoints_a_homography_carries():
-    from scone_train.dataset import warp_ids
+    from scone_train.data.training_units import warp_ids
 
     rng = np.random.default_rng(5)
     n = 200
