@@ -10,7 +10,7 @@
 //! of a square box of the grey image centred on the sample's pixel (`floor(x + s * dx + 0.5)`, clamped into
 //! the image) with half-width `floor(BOX * r * s + 0.5)` pixels (r the ring's radius factor; 0 at the centre,
 //! one pixel), cut to the image, read from OpenCV's integral image and rounded half up to 0..255: from the
-//! positions on the arithmetic is exact (integer sums, see [`sample`]), so `training/scone_train/context.py`
+//! positions on the arithmetic is exact (integer sums, see [`sample`]), so `training/scone_train/data/ring_context.py`
 //! (the reference the network was trained on) and a client computing it from the same image agree byte for
 //! byte.
 

@@ -15,7 +15,7 @@
 //! Output `embeddings`, float32 [N, D] (D = 48 for the shipped models), L2-normalised. All normalisation of
 //! the raw values happens inside the graph.
 //!
-//! What a model declares (its ONNX metadata, written by `scone_train.export`): `scone.extraction`, the
+//! What a model declares (its ONNX metadata, written by `scone_train.model.export`): `scone.extraction`, the
 //! [`ExtractorSettings`] it was trained at, as JSON with every field; `scone.matcher`, the MatchPair matcher it
 //! ships with (a `SconeMatcher` name). The service runs the declared extraction unless `[extractor]` is set,
 //! and answers MatchPair's default with the declared matcher. A model that declares neither was made before

@@ -1,5 +1,5 @@
 //! Golden parity: Rust extraction + tensor layout + ort inference against Python onnxruntime on the same
-//! committed image and model (`training/scone_train/golden.py` made the fixtures): the embedded ring-context
+//! committed image and model (`training/scone_train/model/golden.py` made the fixtures): the embedded ring-context
 //! model at the extraction it declares (`golden-ring/`), and the constellation model at revision 2 (`golden/`).
 //! Then what a model declares, and the models that are refused.
 
