@@ -3,8 +3,8 @@
 # the pair protocol on each part (3 seeds) and the exact warps, for SConE with the given matchers and for FREAK
 # on the same keypoints. Reports go to $OUT (default $SCONE_PREFIX/work/i39/<name>).
 #   docs/results/matching/score.sh NAME MODEL.onnx "plain union" [extractor flags...]
-# Selection parts: python -m scone_train.splits --out $SCONE_PREFIX/work/sel (written once).
-# Warps: python -m scone_train.warps --role selection --per-scene 4 --out $SCONE_PREFIX/work/warps/selection-g2
+# Selection parts: python -m scone_train.data.splits --out $SCONE_PREFIX/work/sel (written once).
+# Warps: python -m scone_train.data.warps --role selection --per-scene 4 --out $SCONE_PREFIX/work/warps/selection-g2
 #        (validation: --role validation --out .../validation-g2, generated once before any candidate was scored).
 set -euo pipefail
 here="$(cd "$(dirname "${BASH_SOURCE[0]}")/../../.." && pwd)"

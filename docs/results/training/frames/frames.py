@@ -45,9 +45,9 @@ from scipy.spatial import cKDTree
 
 HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE.parents[3] / "training"))
-from scone_train import context as CX  # noqa: E402
-from scone_train.data import export_features, grey_image, load_features, prefix_dir  # noqa: E402
-from scone_train.train import extractor_args  # noqa: E402
+from scone_train.data import ring_context as CX  # noqa: E402
+from scone_train.data.features import export_features, extractor_args, grey_image, load_features  # noqa: E402
+from scone_train.paths import prefix_dir  # noqa: E402
 
 BINS = [("1-1.25x", 1.0, 1.25), ("1.25-1.6x", 1.25, 1.6), ("1.6-2x", 1.6, 2.0), ("2-2.5x", 2.0, 2.5), ("2.5-3x", 2.5, 3.0)]
 VARIANTS = "ABCDEFGHS"
