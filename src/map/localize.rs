@@ -1,6 +1,7 @@
 //! Relocalisation: a query's keypoints and embeddings against a map -> camera-to-world pose, in three stages,
 //! each a setting of [`LocalizeSettings`]. The defaults were chosen by a rule fixed before scoring on the
-//! selection scenes (BENCHMARKS.md, issue 27): stages 1 and 2 on, FREAK's join and stage 3 off.
+//! selection scenes (`docs/history/benchmarks-log.md`; their figures: BENCHMARKS.md, "Relocalisation on the
+//! validation scenes"): stages 1 and 2 on, FREAK's join and stage 3 off.
 //!
 //! 1. **Index search.** Each of the query's `max_query_keypoints` strongest keypoints (100 by default) takes
 //!    its `knn` nearest observations in the map's index (optionally only those whose landmark lies within a
@@ -32,7 +33,8 @@
 //!
 //! Confidence in [0, 1] is the probability, under the pose's scaled covariance, that the pose lies within
 //! [`CONFIDENCE_ROTATION_DEG`] and within [`CONFIDENCE_DEPTH_FRACTION`] of the inliers' median depth of the
-//! truth ([`confidence`]): it is as calibrated as the covariance is (BENCHMARKS.md has both on real scenes),
+//! truth ([`confidence`]): it is as calibrated as the covariance is (`docs/history/benchmarks-log.md`, "Clients
+//! without calibration, and how sure a pose is", has both on real scenes),
 //! and, like the covariance, it does not see a wrong pose that many inliers support.
 
 use serde::{Deserialize, Serialize};
@@ -62,11 +64,11 @@ pub struct LocalizeSettings {
     /// index by stage 1 (all of them are still embedded). Stages 2 and 3 read every keypoint: stage 1 only has
     /// to find the candidate keyframes, and stage 2 matches the whole query against their landmarks, at a
     /// cost that does not grow with the map. The index search is the largest stage on a large map and grows
-    /// with the number of queries. Default 100, with `full_search_below_inliers` = 100: chosen by issue 41's
-    /// rule with caps and every keypoint compared on one graph (BENCHMARKS.md, "Caps compared on one graph");
-    /// a cap of at least the query's keypoints (say 1000000000) searches every keypoint, the default before
-    /// session 45. A cap alone, without the fallback, lost far queries on the validation scenes (800: KITTI
-    /// 5 -> 3 of 25 within (0.25 m, 2°)).
+    /// with the number of queries. Default 100, with `full_search_below_inliers` = 100: chosen by a rule
+    /// written before scoring, with caps and every keypoint compared on one graph
+    /// (`docs/history/benchmarks-log.md`, "Caps compared on one graph"); a cap of at least the query's keypoints
+    /// (say 1000000000) searches every keypoint. A cap alone, without the fallback, lost far queries on the
+    /// validation scenes (800: KITTI 5 -> 3 of 25 within (0.25 m, 2°)).
     /// Keypoints of equal response keep their order, so client keypoints without responses are searched in
     /// the order sent.
     pub max_query_keypoints: usize,
@@ -81,8 +83,8 @@ pub struct LocalizeSettings {
     /// Multiplies the pose covariance of the refinement (`σ² (JᵀJ)⁻¹`), which counts only the query's pixel
     /// noise: the map's landmarks have errors of their own, so the raw ellipsoid is too small. 26: the 95th
     /// percentile of the raw squared Mahalanobis distance over 17 localised far-map queries of the training
-    /// scenes with pixel-accurate ground truth, over χ²₆(0.95) (BENCHMARKS.md, "Clients without calibration,
-    /// and how sure a pose is").
+    /// scenes with pixel-accurate ground truth, over χ²₆(0.95) (`docs/history/benchmarks-log.md`, "Clients
+    /// without calibration, and how sure a pose is").
     pub covariance_scale: f64,
     /// Stage 1's covisibility vote: how many keyframes become candidates for stages 2 and 3.
     pub candidate_keyframes: usize,
@@ -150,7 +152,7 @@ impl LocalizeSettings {
         Ok(())
     }
 
-    /// The pipeline before issue 27: stage 1 alone, every query keypoint searched (the baseline of the
+    /// The pipeline without stages 2 and 3: stage 1 alone, every query keypoint searched (the baseline of the
     /// benchmarks; a cap leans on stage 2 to match the keypoints it does not search).
     pub fn stage_one_only(self) -> Self {
         Self {
@@ -191,6 +193,9 @@ pub struct Localization {
     pub confidence: f64,
     /// The matched landmarks' positions, in the order of `matches`.
     pub points: Vec<[f64; 3]>,
+    /// Stage 1's matches (one per keypoint and per landmark) of the search the answer came from: what the
+    /// covisibility vote of stage 2 read. An evaluation reads them to tell where a query was lost.
+    pub stage1: Vec<LandmarkMatch>,
     /// Wall time of the index search (with the ratio test), of PnP (every estimate), and of stages 2 and 3's
     /// own matching, seconds.
     pub search_s: f64,
@@ -566,6 +571,9 @@ struct StageTimes {
     stages_s: f64,
 }
 
+/// What [`after_search`] answers: the matches the pose was estimated from, the pose, and stage 1's matches.
+type Searched = (Vec<Ranked>, Option<AbsolutePose>, Vec<LandmarkMatch>);
+
 /// From stage 1's matches (one per landmark) to the matches and pose: PnP, then stages 2 and 3 as `params` say.
 fn after_search(
     data: &MapData,
@@ -573,7 +581,7 @@ fn after_search(
     stage1: Vec<Ranked>,
     params: &LocalizeSettings,
     times: &mut StageTimes,
-) -> Result<(Vec<Ranked>, Option<AbsolutePose>), MapError> {
+) -> Result<Searched, MapError> {
     let Query { features, embeddings, camera, prior } = *query;
     let estimate = |matches: &[Ranked], pnp_s: &mut f64| -> Result<Option<AbsolutePose>, MapError> {
         let t = std::time::Instant::now();
@@ -594,6 +602,7 @@ fn after_search(
         // Stage 1 alone keeps the order it always had: the nearest embeddings first, ties in keypoint order.
         matches.sort_by(|a, b| a.m.distance.total_cmp(&b.m.distance).then(a.m.keypoint.cmp(&b.m.keypoint)));
     }
+    let stage1: Vec<LandmarkMatch> = matches.iter().map(|r| r.m).collect();
     let mut pose = estimate(&matches, &mut times.pnp_s)?;
     if params.candidate_matching && inliers(&pose) < params.candidate_skip_inliers {
         let t = std::time::Instant::now();
@@ -622,7 +631,7 @@ fn after_search(
             }
         }
     }
-    Ok((matches, pose))
+    Ok((matches, pose, stage1))
 }
 
 /// Localises a query (features with their embeddings, intrinsics) against a map.
@@ -667,7 +676,7 @@ pub fn localize(
     // The capped hits are kept for the fallback only when there can be one.
     let may_fall_back = rows.len() < features.len() && params.full_search_below_inliers > 0;
     let first = if may_fall_back { found.clone() } else { std::mem::take(&mut found) };
-    let (mut matches, mut pose) = after_search(data, &query, one_per_landmark(first), params, &mut timing)?;
+    let (mut matches, mut pose, mut stage1) = after_search(data, &query, one_per_landmark(first), params, &mut timing)?;
     if may_fall_back && pose.as_ref().map_or(0, |p| p.inliers.len()) < params.full_search_below_inliers {
         // The fallback: the other keypoints searched too, and the query answered as without the cap (per
         // keypoint, a search and its acceptance do not depend on the others, so the hits are the same).
@@ -678,7 +687,7 @@ pub fn localize(
         found.extend(index_hits(data, index, embeddings, &rest, prior, params));
         found.sort_by_key(|r| r.m.keypoint);
         search_s += t.elapsed().as_secs_f64();
-        (matches, pose) = after_search(data, &query, one_per_landmark(found), params, &mut timing)?;
+        (matches, pose, stage1) = after_search(data, &query, one_per_landmark(found), params, &mut timing)?;
     }
     let StageTimes { pnp_s, stages_s } = timing;
     if let Some(c) = pose.as_mut().and_then(|p| p.covariance_w2c.as_mut()) {
@@ -687,5 +696,5 @@ pub fn localize(
     let p3: Vec<[f64; 3]> = matches.iter().map(|r| data.landmarks[&r.m.landmark].point).collect();
     let confidence = pose.as_ref().map_or(0.0, |p| confidence(p, &p3));
     let matches = matches.into_iter().map(|r| r.m).collect();
-    Ok(Localization { pose, matches, confidence, points: p3, search_s, pnp_s, stages_s })
+    Ok(Localization { pose, matches, confidence, points: p3, stage1, search_s, pnp_s, stages_s })
 }

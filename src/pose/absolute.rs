@@ -8,7 +8,7 @@ use opencv::prelude::*;
 use crate::camera::{validate_camera, Camera};
 use crate::error::PoseError;
 use crate::pose::covariance::{covariance_at, world_to_camera};
-use crate::pose::ransac::RansacSettings;
+use crate::pose::ransac::{PnpMethod, RansacSettings};
 
 /// An absolute camera pose with its RANSAC support.
 #[derive(Debug, Clone)]
@@ -30,7 +30,7 @@ pub struct AbsolutePose {
 /// Correspondences the RANSAC hypotheses are drawn from (the best ones; see [`absolute_pose`]).
 pub const RANSAC_HEAD: usize = 300;
 
-/// solvePnPRansac (EPnP inside RANSAC) on the best [`RANSAC_HEAD`] correspondences (pass them best first),
+/// solvePnPRansac (the estimator of `params.pnp`) on the best [`RANSAC_HEAD`] correspondences (pass them best first),
 /// then the inliers among all correspondences by reprojection error, refined with Levenberg-Marquardt.
 /// `None` when fewer than `min_inliers` inliers support the pose.
 pub fn absolute_pose(
@@ -66,20 +66,36 @@ pub fn absolute_pose(
     let head = points3d.len().min(RANSAC_HEAD);
     let head_obj: Vector<Point3f> = obj.iter().take(head).collect();
     let head_img: Vector<Point2f> = img.iter().take(head).collect();
-    let found = opencv::calib3d::solve_pnp_ransac(
-        &head_obj,
-        &head_img,
-        &k,
-        &dist,
-        &mut rvec,
-        &mut tvec,
-        false,
-        params.max_iters,
-        params.threshold_px as f32,
-        params.confidence,
-        &mut inliers,
-        opencv::calib3d::SOLVEPNP_EPNP,
-    )?;
+    let found = match params.pnp.flag() {
+        Some(flags) => opencv::calib3d::solve_pnp_ransac(
+            &head_obj,
+            &head_img,
+            &k,
+            &dist,
+            &mut rvec,
+            &mut tvec,
+            false,
+            params.max_iters,
+            params.threshold_px as f32,
+            params.confidence,
+            &mut inliers,
+            flags,
+        )?,
+        None => {
+            let mut k_used = k.clone();
+            let usac = PnpMethod::usac_params(params)?;
+            opencv::calib3d::solve_pnp_ransac_1(
+                &head_obj,
+                &head_img,
+                &mut k_used,
+                &dist,
+                &mut rvec,
+                &mut tvec,
+                &mut inliers,
+                usac,
+            )?
+        }
+    };
     if !found || inliers.len() < 6 {
         return Ok(None);
     }

@@ -25,7 +25,7 @@ pub use absolute::{
     absolute_pose, absolute_pose_unknown_focal, focal_candidates, AbsolutePose, CANDIDATE_ITERATIONS, RANSAC_HEAD,
 };
 pub use covariance::{pose_covariance, pose_difference, CHI2_6_95};
-pub use ransac::{ransac_iterations_needed, EssentialMethod, RansacSettings};
+pub use ransac::{ransac_iterations_needed, EssentialMethod, PnpMethod, RansacSettings};
 pub use relative::{relative_pose, RelativePose};
 pub use track::{track_pose, FrameOutcome, TrackFrame, TrackPose, TrackScale, TrackerError};
 

@@ -16,6 +16,8 @@ pub struct RansacSettings {
     /// corner matched again through its copies on other pyramid levels) is left out of the estimation and
     /// takes that one's inlier flag. 0 = off.
     pub duplicate_px: f64,
+    /// The absolute-pose (PnP) estimator (relocalisation only).
+    pub pnp: PnpMethod,
 }
 
 /// The relative-pose defaults: 1 px, USAC_ACCURATE, and a search of up to 10,000 iterations at confidence
@@ -31,6 +33,7 @@ impl Default for RansacSettings {
             max_iters: 10_000,
             essential: EssentialMethod::UsacAccurate,
             duplicate_px: 0.0,
+            pnp: PnpMethod::default(),
         }
     }
 }
@@ -56,7 +59,14 @@ impl RansacSettings {
     /// OpenCV's `findEssentialMat` defaults (plain RANSAC, 1,000 iterations, confidence 0.999) at `threshold_px`:
     /// the data README's baseline pipeline.
     pub fn opencv(threshold_px: f64) -> Self {
-        Self { threshold_px, confidence: 0.999, max_iters: 1000, essential: EssentialMethod::Ransac, duplicate_px: 0.0 }
+        Self {
+            threshold_px,
+            confidence: 0.999,
+            max_iters: 1000,
+            essential: EssentialMethod::Ransac,
+            duplicate_px: 0.0,
+            pnp: PnpMethod::default(),
+        }
     }
 }
 
@@ -82,6 +92,60 @@ impl EssentialMethod {
             EssentialMethod::UsacAccurate => opencv::calib3d::USAC_ACCURATE,
             EssentialMethod::UsacMagsac => opencv::calib3d::USAC_MAGSAC,
         }
+    }
+}
+
+/// How `solvePnPRansac` searches for an absolute pose. Every method draws its hypotheses from the best
+/// correspondences, passed best first, and the inliers are then taken from all of them and refined the same
+/// way (`pose::absolute_pose`).
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize, Deserialize, clap::ValueEnum)]
+#[serde(rename_all = "kebab-case")]
+pub enum PnpMethod {
+    /// Classic RANSAC over EPnP on samples of 5 correspondences (OpenCV's `SOLVEPNP_EPNP`): at an inlier ratio
+    /// w a sample is clean with probability w^5.
+    #[default]
+    Epnp,
+    /// Classic RANSAC over AP3P on samples of 4 (three for the solver, one to choose among its solutions):
+    /// clean with probability w^4, ten times as often as EPnP's at 10 % inliers.
+    P3p,
+    /// OpenCV's USAC with P3P minimal samples of 3, MSAC scoring and local optimisation of the best model
+    /// (`USAC_DEFAULT`).
+    Usac,
+    /// USAC with PROSAC's sampling, which draws from the best-ranked correspondences first (`USAC_PROSAC`).
+    UsacProsac,
+    /// USAC with MAGSAC++ scoring, which marginalises the threshold, and its sigma-consensus local
+    /// optimisation (`USAC_MAGSAC`).
+    UsacMagsac,
+    /// USAC with PROSAC's sampling, MAGSAC++ scoring and sigma-consensus local optimisation together
+    /// (OpenCV's `UsacParams`; no preset has all three).
+    UsacProsacMagsac,
+}
+
+impl PnpMethod {
+    /// The `flags` of OpenCV's `solvePnPRansac`: a PnP solver for classic RANSAC, a USAC preset otherwise;
+    /// `None` for the method that needs `UsacParams` ([`PnpMethod::usac_params`]).
+    pub(super) fn flag(self) -> Option<i32> {
+        match self {
+            PnpMethod::Epnp => Some(opencv::calib3d::SOLVEPNP_EPNP),
+            PnpMethod::P3p => Some(opencv::calib3d::SOLVEPNP_AP3P),
+            PnpMethod::Usac => Some(opencv::calib3d::USAC_DEFAULT),
+            PnpMethod::UsacProsac => Some(opencv::calib3d::USAC_PROSAC),
+            PnpMethod::UsacMagsac => Some(opencv::calib3d::USAC_MAGSAC),
+            PnpMethod::UsacProsacMagsac => None,
+        }
+    }
+
+    /// OpenCV's `UsacParams` for [`PnpMethod::UsacProsacMagsac`] at `params`' threshold, confidence and cap.
+    pub(super) fn usac_params(params: &RansacSettings) -> opencv::Result<opencv::calib3d::UsacParams> {
+        use opencv::calib3d::{LocalOptimMethod, SamplingMethod, ScoreMethod, UsacParams};
+        let mut p = UsacParams::default()?;
+        p.sampler = SamplingMethod::SAMPLING_PROSAC;
+        p.score = ScoreMethod::SCORE_METHOD_MAGSAC;
+        p.lo_method = LocalOptimMethod::LOCAL_OPTIM_SIGMA;
+        p.threshold = params.threshold_px;
+        p.confidence = params.confidence;
+        p.max_iterations = params.max_iters;
+        Ok(p)
     }
 }
 

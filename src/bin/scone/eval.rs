@@ -154,6 +154,23 @@ pub enum EvalCommand {
         /// The tracker's rotation error per frame of the track, degrees.
         #[arg(long, default_value_t = 0.5)]
         track_degrees_per_frame: f64,
+        /// The PnP estimator (default: the service's `store.localize.ransac.pnp`).
+        #[arg(long, value_enum)]
+        pnp: Option<scone::pose::PnpMethod>,
+        /// PnP's iteration cap (default: the service's `store.localize.ransac.max_iters`).
+        #[arg(long)]
+        pnp_iters: Option<i32>,
+        /// Inliers a pose needs (default: the service's `store.localize.min_inliers`).
+        #[arg(long)]
+        min_inliers: Option<usize>,
+        /// Also localise every query with each of these PnP estimators on the same map, each a row of its own
+        /// (METHOD:ITERS, e.g. p3p:2000,usac-magsac:2000).
+        #[arg(long, value_delimiter = ',')]
+        also_pnp: Vec<reloc::PnpVariant>,
+        /// Write each single-frame query's matches (correct or not) and where it was lost to this folder, one
+        /// JSON file per method and query, for pictures.
+        #[arg(long)]
+        dump_matches: Option<PathBuf>,
         #[command(flatten)]
         report: ReportArgs,
         #[command(flatten)]
@@ -340,6 +357,11 @@ pub fn run(cmd: EvalCommand) -> anyhow::Result<()> {
             track,
             track_translation_share,
             track_degrees_per_frame,
+            pnp,
+            pnp_iters,
+            min_inliers,
+            also_pnp,
+            dump_matches,
             report: out,
             extractor,
         } => {
@@ -383,6 +405,19 @@ pub fn run(cmd: EvalCommand) -> anyhow::Result<()> {
             if let Some(t) = full_search_below_inliers {
                 rc.localize.full_search_below_inliers = t;
             }
+            if let Some(p) = pnp {
+                rc.localize.ransac.pnp = p;
+            }
+            if let Some(n) = pnp_iters {
+                rc.localize.ransac.max_iters = n;
+            }
+            if let Some(n) = min_inliers {
+                rc.localize.min_inliers = n;
+            }
+            rc.localize.ransac.validate().map_err(|e| anyhow::anyhow!("--pnp-iters: {e}"))?;
+            rc.dump_matches = dump_matches;
+            anyhow::ensure!(also_pnp.is_empty() || track < 2, "--also-pnp is for single frames, not --track");
+            rc.also_pnp = also_pnp;
             for &k in &also_caps {
                 let capped = scone::map::localize::LocalizeSettings { max_query_keypoints: k, ..rc.localize };
                 capped.validate().map_err(|e| anyhow::anyhow!("--also-caps {k}: {e}"))?;

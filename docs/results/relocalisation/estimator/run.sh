@@ -10,7 +10,7 @@ B="$CARGO_TARGET_DIR/release/scone"
 D=${SCONE_DATA:-$here/../shared/data}/scenes
 out="${OUT:-$SCONE_PREFIX/work/reloc-estimator}"
 mkdir -p "$out"
-candidates=${CANDIDATES:-p3p:2000,usac:2000,usac-prosac:2000,usac-magsac:2000}
+candidates=${CANDIDATES:-p3p:2000,usac:2000,usac-prosac:2000,usac-magsac:2000,usac-prosac-magsac:2000}
 for sc in ${SCENES:-llff-ethiopianhead llff-blowtorch llff-lemontea-office turntable-squirrel strecha-castle-P30}; do
   foreign=$D/strecha-castle-P30
   [ "$sc" = strecha-castle-P30 ] && foreign=$D/llff-lemontea-office

@@ -22,7 +22,7 @@
 //!   index is the service's (HNSW above `IndexSettings::exact_below` observations), as a deployment's is.
 //! * `unit_scale`: the success thresholds are multiplied by it (scenes whose units are not metres).
 //!
-//! **What a client without calibration gets, and how sure a pose is** (issue 28):
+//! **What a client without calibration gets, and how sure a pose is**:
 //! * `unknown_focal`: every query is localised without its focal length, as Localize does for a client that
 //!   leaves `fx`, `fy` out (with `centre_principal_point`, the principal point is the image centre as well);
 //!   each record keeps the focal length used, and the summary the median relative error against the scene's.
@@ -31,7 +31,7 @@
 //!   of localised queries within the 95 % ellipsoid (`pose::CHI2_6_95`), which should be close to 0.95.
 
 //!
-//! **Tracks** (`track`, issue 43): each query is localised together with its nearest query frames, their poses
+//! **Tracks** (`track`): each query is localised together with its nearest query frames, their poses
 //! relative to it from the ground truth with a tracker's error added (`track_noise`); foreign scenes as tracks
 //! of consecutive frames.
 //!
@@ -43,8 +43,10 @@ use crate::decode::{decode_grey, ImageLimitSettings};
 use crate::embedding::Embedder;
 use crate::map::localize::LocalizeSettings;
 use crate::offline::scene::Scene;
+use crate::pose::RansacSettings;
 use crate::progress::Progress;
 
+mod diagnose;
 mod protocol;
 mod report;
 mod stages;
@@ -53,7 +55,8 @@ mod tables;
 mod tests;
 mod tracks;
 
-pub use protocol::{check_block, with_stages, RelocConfig, Stage, TrackNoise};
+pub use diagnose::{Diagnosis, LostAt};
+pub use protocol::{check_block, with_stages, PnpVariant, RelocConfig, Stage, TrackNoise};
 pub use report::{BinSummary, QueryRecord, RelocReport, RelocSummary, ANGLE_BINS};
 pub use tables::markdown;
 
@@ -75,23 +78,34 @@ pub fn evaluate(scene: &Scene, cfg: &RelocConfig, embedder: Option<&Embedder>) -
         let bytes = std::fs::read(&f.rgb).map_err(|e| format!("{}: {e}", f.rgb.display()))?;
         images.push(decode_grey(&bytes, &limits)?);
     }
-    if cfg.track >= 2 && !cfg.also_caps.is_empty() {
-        return Err("stage 1 caps on the same map (also_caps) are for single frames, not tracks".into());
+    if cfg.track >= 2 && !(cfg.also_caps.is_empty() && cfg.also_pnp.is_empty()) {
+        return Err("stage 1 caps and estimators on the same map (also_caps, also_pnp) are for single frames".into());
     }
     let mut summaries = Vec::new();
     let mut queries = Vec::new();
-    let per_method = images.len() + map_frames.len() + (1 + cfg.also_caps.len()) * query_frames.len();
+    let variants = 1 + cfg.also_caps.len() + cfg.also_pnp.len();
+    let per_method = images.len() + map_frames.len() + variants * query_frames.len();
     let mut progress = Progress::new("eval reloc", cfg.methods.len() * per_method);
     for &method in &cfg.methods {
         let (build, localize) = cfg.settings_for(method);
         let view = MethodView::describe(scene, &images, method, cfg, embedder, &mut progress)?;
         let map = view.build_map(&map_frames, cfg, &build, embedder, &mut progress)?;
         let scene_focal = (scene.camera.fx + scene.camera.fy) / 2.0;
-        // The configuration's own settings, then each of `also_caps` on the same map, so the same graph: those
-        // rows differ from the first only by the cap.
-        for cap in std::iter::once(None).chain(cfg.also_caps.iter().copied().map(Some)) {
-            let localize =
+        // The configuration's own settings, then each of `also_caps` and `also_pnp` on the same map, so the same
+        // graph: those rows differ from the first only by the cap or the estimator.
+        let variants = std::iter::once((None, None))
+            .chain(cfg.also_caps.iter().map(|&c| (Some(c), None)))
+            .chain(cfg.also_pnp.iter().map(|&p| (None, Some(p))));
+        for (cap, pnp) in variants {
+            let mut localize =
                 LocalizeSettings { max_query_keypoints: cap.unwrap_or(localize.max_query_keypoints), ..localize };
+            if let Some(p) = pnp {
+                localize.ransac = RansacSettings { pnp: p.method, max_iters: p.max_iters, ..localize.ransac };
+            }
+            // Pictures are of the configuration's own answers.
+            let own = cap.is_none() && pnp.is_none();
+            let variant_cfg = RelocConfig { dump_matches: None, ..cfg.clone() };
+            let cfg = if own { cfg } else { &variant_cfg };
             let (mut records, foreign) = if cfg.track >= 2 {
                 let records = view.localise_tracks(&query_frames, &map_frames, &map, cfg, &localize, &mut progress)?;
                 (records, foreign_tracks(&map, method, cfg, &localize, embedder)?)
@@ -99,9 +113,9 @@ pub fn evaluate(scene: &Scene, cfg: &RelocConfig, embedder: Option<&Embedder>) -
                 let records = view.localise_queries(&query_frames, &map_frames, &map, cfg, &localize, &mut progress)?;
                 (records, foreign_poses(&map.data, &map.index, method, cfg, &localize, embedder)?)
             };
-            records.iter_mut().for_each(|r| r.stage1_cap = cap);
+            records.iter_mut().for_each(|r| (r.stage1_cap, r.pnp) = (cap, pnp));
             let summary = summarise(method, &records, map.figures(), foreign, scene_focal, cfg.unit_scale);
-            summaries.push(RelocSummary { stage1_cap: cap, ..summary });
+            summaries.push(RelocSummary { stage1_cap: cap, pnp, ..summary });
             queries.extend(records.into_iter().map(|r| (method, r)));
         }
     }

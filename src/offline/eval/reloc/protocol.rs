@@ -1,5 +1,5 @@
 //! The protocol of a relocalisation evaluation: its settings (which methods, how the map and the queries are
-//! chosen, distractors, foreign scenes, the stages of issue 27 turned on) and the split of the scene's posed
+//! chosen, distractors, foreign scenes, the stages of the pipeline turned on) and the split of the scene's posed
 //! frames into the map and the queries.
 
 use serde::{Deserialize, Serialize};
@@ -9,6 +9,7 @@ use crate::map::builder::BuildSettings;
 use crate::map::index::{IndexPoints, IndexSettings};
 use crate::map::localize::LocalizeSettings;
 use crate::offline::eval::methods::Method;
+use crate::pose::PnpMethod;
 
 type BoxError = Box<dyn std::error::Error + Send + Sync>;
 
@@ -52,7 +53,7 @@ pub struct RelocConfig {
     /// written before the setting read as one point per observation, which they ran with).
     #[serde(default)]
     pub index_points: IndexPoints,
-    /// Tracks instead of single frames (issue 43): each query is localised with its `track - 1` nearest query
+    /// Tracks instead of single frames: each query is localised with its `track - 1` nearest query
     /// frames by sequence position, their poses relative to it from the ground truth with [`TrackNoise`]
     /// added (0 or 1: single frames).
     #[serde(default)]
@@ -64,6 +65,35 @@ pub struct RelocConfig {
     /// graph differs a little (hnsw_rs inserts in parallel). Single frames only.
     #[serde(default)]
     pub also_caps: Vec<usize>,
+    /// Other PnP estimators also run on the same map, each a summary of its own (the rest of `localize` as it
+    /// is): estimators compared on one graph. Single frames only.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub also_pnp: Vec<PnpVariant>,
+    /// Each single-frame query's matches and diagnosis written under this folder, for pictures.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub dump_matches: Option<std::path::PathBuf>,
+}
+
+/// A PnP estimator with its iteration cap (`also_pnp`), written `METHOD:ITERS` on the command line.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+pub struct PnpVariant {
+    pub method: PnpMethod,
+    pub max_iters: i32,
+}
+
+impl std::str::FromStr for PnpVariant {
+    type Err = String;
+
+    fn from_str(s: &str) -> Result<Self, String> {
+        use clap::ValueEnum;
+        let (m, n) = s.split_once(':').ok_or_else(|| format!("{s:?}: expected METHOD:ITERS, e.g. p3p:2000"))?;
+        let method = PnpMethod::from_str(m, true).map_err(|e| format!("{s:?}: {e}"))?;
+        let max_iters: i32 = n.parse().map_err(|_| format!("{s:?}: {n:?} is not a number of iterations"))?;
+        if max_iters < 1 {
+            return Err(format!("{s:?}: at least one iteration"));
+        }
+        Ok(Self { method, max_iters })
+    }
 }
 
 /// The error a tracker makes, added to a track's relative poses (seeded by `seed` and the query).
@@ -92,7 +122,7 @@ impl Default for TrackNoise {
     }
 }
 
-/// The parts of issue 27 an evaluation can turn on one by one (`--stages`); the rest stay as today's pipeline.
+/// The parts of the staged pipeline an evaluation can turn on one by one (`--stages`); the rest stay as today's pipeline.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, clap::ValueEnum)]
 #[serde(rename_all = "kebab-case")]
 pub enum Stage {
@@ -106,7 +136,7 @@ pub enum Stage {
     Build,
 }
 
-/// Settings with exactly `stages` of issue 27 on, over today's pipeline.
+/// Settings with exactly `stages` of the staged pipeline on, over today's pipeline.
 pub fn with_stages(
     build: BuildSettings,
     localize: LocalizeSettings,
@@ -160,6 +190,8 @@ impl Default for RelocConfig {
             track: 0,
             track_noise: TrackNoise::default(),
             also_caps: Vec::new(),
+            also_pnp: Vec::new(),
+            dump_matches: None,
         }
     }
 }

@@ -5,7 +5,8 @@
 use serde::{Deserialize, Serialize};
 
 use crate::offline::eval::methods::Method;
-use crate::offline::eval::reloc::protocol::RelocConfig;
+use crate::offline::eval::reloc::diagnose::Diagnosis;
+use crate::offline::eval::reloc::protocol::{PnpVariant, RelocConfig};
 use crate::offline::eval::stats::median;
 use crate::pose::CHI2_6_95;
 
@@ -42,6 +43,12 @@ pub struct QueryRecord {
     /// Stage 1's cap of an `also_caps` run on the same map (absent: the configuration's own settings).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub stage1_cap: Option<usize>,
+    /// The estimator of an `also_pnp` run on the same map (absent: the configuration's own).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub pnp: Option<PnpVariant>,
+    /// Where the query was lost (single frames with a known focal length; `diagnose`).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub diagnosis: Option<Diagnosis>,
 }
 
 /// Success of the queries whose viewing angle to the map falls in one bin.
@@ -102,6 +109,9 @@ pub struct RelocSummary {
     /// Stage 1's cap of an `also_caps` run on the same map (absent: the configuration's own settings).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub stage1_cap: Option<usize>,
+    /// The estimator of an `also_pnp` run on the same map (absent: the configuration's own).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub pnp: Option<PnpVariant>,
 }
 
 #[derive(Debug, Clone, Serialize, Deserialize)]
@@ -177,6 +187,7 @@ pub(super) fn summarise(
         foreign_queries: foreign.0,
         foreign_localised: foreign.1,
         stage1_cap: None,
+        pnp: None,
         median_focal_error: {
             let truth = scene_focal;
             median(&recs.iter().filter_map(|r| r.focal).map(|f| (f - truth).abs() / truth).collect::<Vec<_>>())

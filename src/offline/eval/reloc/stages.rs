@@ -12,9 +12,11 @@ use crate::embedding::Embedder;
 use crate::features::Features;
 use crate::map::builder::{plan_keyframe, BuildSettings, Depth, KeyframeInput};
 use crate::map::index::{EmbeddingIndex, IndexSettings};
+use crate::map::localize::Localization;
 use crate::map::localize::{localize, within_confidence_tolerance, LocalizeSettings};
 use crate::map::model::{MapData, MapMeta};
 use crate::offline::eval::methods::{describe, Described, Method};
+use crate::offline::eval::reloc::diagnose::{diagnose, Diagnosis, QueryTruth};
 use crate::offline::eval::reloc::protocol::RelocConfig;
 use crate::offline::eval::reloc::report::{MapFigures, QueryRecord};
 use crate::offline::scene::Scene;
@@ -233,6 +235,23 @@ impl<'a> MethodView<'a> {
             };
             let within_confidence_tolerance =
                 out.pose.as_ref().map(|p| within_confidence_tolerance(p, &out.points, &gt));
+            let diagnosis = match cfg.track < 2 && !query_camera.focal_unknown() {
+                true => {
+                    let truth = QueryTruth {
+                        truth: &gt,
+                        camera: &query_camera,
+                        keypoints: &features.keypoints,
+                        precision_px: cfg.precision_px,
+                        within: (0.25 * cfg.unit_scale, 2.0),
+                    };
+                    let d = diagnose(data, &truth, &out, correct, loc)?;
+                    if let Some(dir) = &cfg.dump_matches {
+                        dump_matches(dir, self, i, &out, &truth, data, &d)?;
+                    }
+                    Some(d)
+                }
+                false => None,
+            };
             let mahalanobis2 = out.pose.as_ref().and_then(|p| {
                 let sigma = pose_covariance(PoseConvention::default(), &p.camera_to_world, p.covariance_w2c.as_ref()?);
                 let e = pose_difference(&gt, &p.camera_to_world);
@@ -254,10 +273,50 @@ impl<'a> MethodView<'a> {
                 mahalanobis2,
                 within_confidence_tolerance,
                 stage1_cap: None,
+                pnp: None,
+                diagnosis,
             });
         }
         Ok(recs)
     }
+}
+
+/// Writes one query's matches for a picture (`dump_matches`): `DIR/<method>--<frame>.json` with the image, the
+/// matches in the estimator's order (keypoint, where the truth projects the landmark, correct or not) and the
+/// diagnosis.
+fn dump_matches(
+    dir: &std::path::Path,
+    view: &MethodView,
+    frame: usize,
+    out: &Localization,
+    q: &QueryTruth,
+    data: &MapData,
+    diagnosis: &Diagnosis,
+) -> Result<(), BoxError> {
+    let w2c = q.truth.inverse();
+    let matches: Vec<serde_json::Value> = out
+        .matches
+        .iter()
+        .map(|m| {
+            let k = &q.keypoints[m.keypoint];
+            let p = nalgebra::Point3::from(data.landmarks[&m.landmark].point);
+            let projected = q.camera.project(&(w2c * p));
+            let error = projected.map_or(f64::INFINITY, |(u, v)| (u - f64::from(k.x)).hypot(v - f64::from(k.y)));
+            serde_json::json!({
+                "x": k.x, "y": k.y, "projected": projected, "correct": error <= q.precision_px,
+            })
+        })
+        .collect();
+    let inliers: Vec<usize> = out.pose.as_ref().map(|p| p.inliers.clone()).unwrap_or_default();
+    let f = &view.scene.frames[frame];
+    let doc = serde_json::json!({
+        "scene": view.scene.name, "frame": f.stamp, "image": f.rgb, "method": view.method.name(),
+        "keypoints": q.keypoints.len(), "matches": matches, "inliers": inliers, "diagnosis": diagnosis,
+    });
+    std::fs::create_dir_all(dir)?;
+    let name = format!("{}--{}.json", view.method.name(), f.stamp.replace('/', "_"));
+    std::fs::write(dir.join(name), serde_json::to_vec(&doc)?)?;
+    Ok(())
 }
 
 /// Baseline to the nearest map camera centre, and viewing angle to the most similarly oriented map keyframe.

@@ -91,10 +91,11 @@ pub fn markdown(r: &RelocReport) -> String {
     s
 }
 
-/// The method, and stage 1's cap where the row is one of `also_caps`.
+/// The method, and stage 1's cap or the estimator where the row is one of `also_caps` or `also_pnp`.
 fn row_name(m: &RelocSummary) -> String {
-    match m.stage1_cap {
-        Some(cap) => format!("{}, stage 1 capped at {cap}", m.method.name()),
-        None => m.method.name().to_string(),
+    match (m.stage1_cap, m.pnp) {
+        (Some(cap), _) => format!("{}, stage 1 capped at {cap}", m.method.name()),
+        (None, Some(p)) => format!("{}, PnP {:?} x {}", m.method.name(), p.method, p.max_iters),
+        (None, None) => m.method.name().to_string(),
     }
 }

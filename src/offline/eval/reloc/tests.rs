@@ -34,6 +34,8 @@ fn queries_fall_into_their_angle_bins_with_scaled_thresholds() {
         mahalanobis2: None,
         within_confidence_tolerance: None,
         stage1_cap: None,
+        pnp: None,
+        diagnosis: None,
     };
     let recs = [rec(5.0, 0.01), rec(15.0, 0.3), rec(50.0, 0.1)];
     let bins = bin_summaries(&recs, 1.0);

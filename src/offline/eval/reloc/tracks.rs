@@ -1,4 +1,4 @@
-//! Tracks instead of single frames (`--track N`, issue 43): each query with its `N - 1` nearest query frames by
+//! Tracks instead of single frames (`--track N`): each query with its `N - 1` nearest query frames by
 //! sequence position, located together by the service's track estimator ([`crate::pose::track_pose`]), their
 //! poses relative to the query from the ground truth with a tracker's error added ([`TrackNoise`]). The query's
 //! pose in the map is the answer measured; foreign scenes are localised as tracks of consecutive frames.
@@ -177,6 +177,8 @@ impl MethodView<'_> {
                     .as_ref()
                     .map(|p| within_confidence_tolerance(p, &frames[0].points3d, &gt)),
                 stage1_cap: None,
+                pnp: None,
+                diagnosis: None,
             });
         }
         Ok(recs)
