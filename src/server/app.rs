@@ -85,7 +85,10 @@ impl App {
                 self.hold_refusal().await;
                 Err(ServiceError::Overloaded { queued: self.pool.stats().queued.load(Ordering::Relaxed) })
             }
-            Err(PoolError::Expired) => Err(ServiceError::DeadlineExceeded { ms: timeout }),
+            Err(PoolError::Expired) => {
+                let write = authorized.operation().access() == crate::settings::Access::Write;
+                Err(ServiceError::DeadlineExceeded { ms: timeout, write })
+            }
             Err(PoolError::Closed) => Err(ServiceError::ShuttingDown),
             Err(PoolError::Panicked) => Err(ServiceError::Internal(format!("{operation} panicked"))),
         }

@@ -4,6 +4,11 @@
 use crate::error::{EmbeddingError, FeatureError, MapError, PoseError};
 use crate::pipeline::DescribeError;
 
+/// What a write's deadline answer adds: the outcome is unknown, and how a client learns it.
+pub const WRITE_OUTCOME: &str = "; the write may still complete: read the map (GetMap, or GET \
+     /v1/maps/{map_id}/contents for its keyframes) to see whether it did, or send it again, which is answered \
+     ALREADY_EXISTS (HTTP 409) once it has";
+
 /// What went wrong, for a client; [`ServiceError::kind`] classifies it for the transports.
 #[derive(Debug, thiserror::Error)]
 pub enum ServiceError {
@@ -25,8 +30,11 @@ pub enum ServiceError {
     ShuttingDown,
     #[error("the service is saturated ({queued} requests waiting): retry later")]
     Overloaded { queued: usize },
-    #[error("the request did not finish within {ms} ms")]
-    DeadlineExceeded { ms: u64 },
+    /// The deadline passed while the request was queued or running. A write may still complete after it
+    /// (its work is not interrupted half way, which could lose what it had acknowledged to storage), so its
+    /// answer says how to find out.
+    #[error("the request did not finish within {ms} ms{}", if *write { WRITE_OUTCOME } else { "" })]
+    DeadlineExceeded { ms: u64, write: bool },
     #[error("missing or unknown API key: send one in the x-api-key header")]
     Unauthenticated,
     #[error("this API key is read-only; {operation} needs a write key")]
@@ -161,5 +169,20 @@ impl ServiceError {
             Self::Map(MapError::StorageUnavailable { .. }) => Some(1),
             _ => None,
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_write_past_its_deadline_says_it_may_still_complete_and_how_to_find_out() {
+        let write = ServiceError::DeadlineExceeded { ms: 10_000, write: true }.client_message();
+        assert!(write.starts_with("the request did not finish within 10000 ms; the write may still complete"));
+        assert!(write.contains("/v1/maps/{map_id}/contents") && write.contains("ALREADY_EXISTS (HTTP 409)"), "{write}");
+        let read = ServiceError::DeadlineExceeded { ms: 10_000, write: false }.client_message();
+        assert_eq!(read, "the request did not finish within 10000 ms");
+        assert_eq!(ServiceError::DeadlineExceeded { ms: 1, write: true }.kind(), ErrorKind::DeadlineExceeded);
     }
 }

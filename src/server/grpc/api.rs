@@ -55,7 +55,7 @@ impl GrpcApi {
         let ms = self.app.settings.server.idle_timeout_ms;
         match tokio::time::timeout(Duration::from_millis(ms), inbound.message()).await {
             Ok(r) => r,
-            Err(_) => Err(to_status(&ServiceError::DeadlineExceeded { ms })),
+            Err(_) => Err(to_status(&ServiceError::DeadlineExceeded { ms, write: false })),
         }
     }
 }
