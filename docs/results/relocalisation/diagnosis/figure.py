@@ -3,7 +3,7 @@
 green when the landmark projects within the precision radius under the true pose, red otherwise; the
 estimator's inliers ringed. From the match dumps of run.sh (`eval reloc --dump-matches`).
 
-    python figure.py --dumps OUT/matches/llff-goldcape --frame 040 --methods scone,sift --out fig.png
+    python figure.py --dumps OUT/matches/llff-goldcape --frame 040 --methods SConE,FREAK,SIFT --out fig.png
 (run with the training environment's Python, which has matplotlib.)
 """
 
@@ -21,7 +21,7 @@ def main():
     ap = argparse.ArgumentParser()
     ap.add_argument("--dumps", required=True, type=Path)
     ap.add_argument("--frame", required=True)
-    ap.add_argument("--methods", default="scone,sift")
+    ap.add_argument("--methods", default="SConE,FREAK,SIFT", help="as the reports name them")
     ap.add_argument("--out", required=True, type=Path)
     args = ap.parse_args()
     methods = args.methods.split(",")
@@ -42,7 +42,7 @@ def main():
                        edgecolors="#ffd400", linewidths=0.8, label=f"estimator's inliers: {len(ring)}")
         g = d["diagnosis"]
         ax.set_title(
-            f"{method.upper() if method != 'scone' else 'SConE'}: {len(matches)} matches, "
+            f"{method}: {len(matches)} matches, "
             f"{sum(m['correct'] for m in matches)} correct; lost at: {g['lost_at']}\n"
             f"reachable in map {g['reachable_map']}, among candidates {g['reachable_candidates']}, "
             f"true inliers {g['true_inliers']}",
@@ -51,7 +51,7 @@ def main():
         ax.legend(loc="lower right", fontsize=8, framealpha=0.8)
         ax.set_axis_off()
     fig.suptitle(f"{d['scene']}, query {d['frame']}: 2D-3D matches against the far map", fontsize=12)
-    fig.tight_layout()
+    fig.tight_layout(rect=(0, 0, 1, 0.94))
     args.out.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(args.out, dpi=90)
 

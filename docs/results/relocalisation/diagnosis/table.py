@@ -26,7 +26,8 @@ def records(report, variant):
 
 
 def placed(rec, scale):
-    return rec["translation_error"] <= 0.25 * scale and rec["rotation_error_deg"] <= 2.0
+    t = rec["translation_error"]
+    return t is not None and t <= 0.25 * scale and rec["rotation_error_deg"] <= 2.0
 
 
 def counts(rec):
