@@ -20,11 +20,11 @@ use std::path::PathBuf;
 use criterion::{criterion_group, criterion_main, Criterion};
 
 use scone::camera::Camera;
-use scone::decode::{decode_grey, ImageLimitSettings};
-use scone::embedding::{default_model_path, Embedder, EmbedderSettings};
-use scone::features::{self, ExtractorSettings};
+use scone::describe::decode::{decode_grey, ImageLimitSettings};
+use scone::describe::embedding::{default_model_path, Embedder, EmbedderSettings};
+use scone::describe::features::{self, ExtractorSettings};
+use scone::describe::pipeline;
 use scone::matching::{match_hamming, match_l2, match_scone, RatioTest, SconeFrame, SconeMatcher};
-use scone::pipeline;
 use scone::pose::{relative_pose, EssentialMethod, RansacSettings};
 
 fn bench(c: &mut Criterion) {
@@ -108,7 +108,7 @@ fn bench(c: &mut Criterion) {
             });
             // MatchPair's matchers on two views of the photograph: a mild change (10 degrees, 1.1x: rerank's
             // path) and a zoom of 2 (scale-aware answers with union there).
-            let frame = |img: &scone::decode::GreyImage| {
+            let frame = |img: &scone::describe::decode::GreyImage| {
                 let f = pipeline::extract_for(img, &cfg, &e).unwrap();
                 let emb = e.embed(&f).unwrap();
                 (f, emb)
@@ -161,7 +161,7 @@ fn bench(c: &mut Criterion) {
 type Points = Vec<(f32, f32)>;
 
 /// `img` zoomed by `zoom` and turned by `degrees` about its centre (the same size).
-fn warped(img: &scone::decode::GreyImage, zoom: f64, degrees: f64) -> scone::decode::GreyImage {
+fn warped(img: &scone::describe::decode::GreyImage, zoom: f64, degrees: f64) -> scone::describe::decode::GreyImage {
     use opencv::prelude::*;
     let m = img.mat();
     let centre = opencv::core::Point2f::new(m.cols() as f32 / 2.0, m.rows() as f32 / 2.0);

@@ -6,9 +6,9 @@ use criterion::{criterion_group, criterion_main, Criterion};
 use opencv::core::{KeyPoint, Vector};
 use std::hint::black_box;
 
-use scone::constellation;
-use scone::decode::{decode_grey, ImageLimitSettings};
-use scone::features::{self, describe, detect, ExtractorSettings};
+use scone::describe::constellation;
+use scone::describe::decode::{decode_grey, ImageLimitSettings};
+use scone::describe::features::{self, describe, detect, ExtractorSettings};
 
 fn bench(c: &mut Criterion) {
     features::set_opencv_threads(1).unwrap();

@@ -16,12 +16,12 @@ use rand::{Rng, SeedableRng};
 
 use scone::camera::Camera;
 use scone::camera::Pose;
-use scone::decode::ImageLimitSettings;
-use scone::embedding::{Embedder, EmbedderSettings};
-use scone::features::{Keypoint, DESCRIPTOR_BYTES};
+use scone::describe::decode::ImageLimitSettings;
+use scone::describe::embedding::{Embedder, EmbedderSettings};
+use scone::describe::features::{Keypoint, DESCRIPTOR_BYTES};
+use scone::describe::pipeline::Describer;
 use scone::map::index::{exact_search, EmbeddingIndex, IndexSettings};
 use scone::map::model::{Keyframe, MapData, MapMeta, NewObservation, Record};
-use scone::pipeline::Describer;
 
 mod common;
 

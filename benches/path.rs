@@ -17,10 +17,10 @@ use std::hint::black_box;
 use std::path::PathBuf;
 use std::time::Instant;
 
-use scone::decode::{decode_grey, ImageLimitSettings};
-use scone::embedding::{default_model_path, Embedder, EmbedderSettings};
-use scone::features;
-use scone::pipeline::{self, StageTimes};
+use scone::describe::decode::{decode_grey, ImageLimitSettings};
+use scone::describe::embedding::{default_model_path, Embedder, EmbedderSettings};
+use scone::describe::features;
+use scone::describe::pipeline::{self, StageTimes};
 
 fn median(mut v: Vec<f64>) -> f64 {
     v.sort_by(f64::total_cmp);

@@ -36,9 +36,10 @@ use opencv::core::Vector;
 use opencv::prelude::*;
 use rayon::prelude::*;
 use scone::camera::Camera;
-use scone::decode::{decode_depth_png, ImageLimitSettings, TUM_DEPTH_SCALE};
-use scone::embedding::{Embedder, EmbedderSettings};
-use scone::features::KeypointLimitSettings;
+use scone::describe::decode::{decode_depth_png, ImageLimitSettings, TUM_DEPTH_SCALE};
+use scone::describe::embedding::{Embedder, EmbedderSettings};
+use scone::describe::features::KeypointLimitSettings;
+use scone::describe::pipeline::Describer;
 use scone::map::builder::{plan, BuildSettings, Depth, KeyframeInput};
 use scone::map::index::{exact_search, EmbeddingIndex, IndexPoints, IndexSettings};
 use scone::map::localize::{localize, LocalizeSettings};
@@ -47,7 +48,6 @@ use scone::map::storage::format::FORMAT_VERSION;
 use scone::map::storage::snapshot::snapshot_version;
 use scone::map::store::{MapStore, ModelInfo, StoreSettings};
 use scone::offline::scene::Scene;
-use scone::pipeline::Describer;
 use scone::pose::rotation_error_deg;
 use scone::service::{FrameInput, FrameSource, Service};
 
@@ -147,7 +147,8 @@ fn prepare(
     if next > 0 {
         eprintln!("reloc bench: resuming the {target} map at frame {next}");
     }
-    let mut progress = scone::progress::Progress::new(format!("reloc bench: {target} map, observations"), target);
+    let mut progress =
+        scone::offline::progress::Progress::new(format!("reloc bench: {target} map, observations"), target);
     while store.summary("m").unwrap().observations < target {
         progress.set(store.summary("m").unwrap().observations);
         let Some(mf) = frames.get(next) else {
@@ -244,7 +245,7 @@ fn main() {
             return;
         }
     };
-    scone::features::set_opencv_threads(1).unwrap();
+    scone::describe::features::set_opencv_threads(1).unwrap();
     let embedder = Arc::new(Embedder::load(&EmbedderSettings::default()).unwrap());
     let info = ModelInfo { model_id: embedder.model_id().to_string(), k: embedder.k(), dim: embedder.dim() };
     let describer = Describer { extractor: embedder.extraction(), limits: ImageLimitSettings::default(), embedder };
@@ -543,7 +544,7 @@ fn run_levels() {
 }
 
 /// A query's features and embeddings with its ground-truth pose.
-type Described = (scone::pipeline::Described, Isometry3<f64>);
+type Described = (scone::describe::pipeline::Described, Isometry3<f64>);
 
 /// Whether `pose` is within (0.25 m, 2°) and within (0.5 m, 5°) of the ground truth `gt`.
 fn is_within(pose: &Isometry3<f64>, gt: &Isometry3<f64>) -> (bool, bool) {

@@ -21,14 +21,14 @@ use futures_util::TryStreamExt;
 use object_store::aws::AmazonS3Builder;
 use object_store::path::Path as ObjectPath;
 use object_store::{ObjectStore, ObjectStoreExt};
-use scone::decode::{decode_depth_png, ImageLimitSettings, TUM_DEPTH_SCALE};
-use scone::embedding::{Embedder, EmbedderSettings};
+use scone::describe::decode::{decode_depth_png, ImageLimitSettings, TUM_DEPTH_SCALE};
+use scone::describe::embedding::{Embedder, EmbedderSettings};
+use scone::describe::pipeline::Describer;
 use scone::map::builder::{Depth, KeyframeInput};
 use scone::map::storage::s3::S3Settings;
 use scone::map::storage::BackendSettings;
 use scone::map::store::{CacheSettings, MapStore, ModelInfo, StoreSettings};
 use scone::offline::scene::Scene;
-use scone::pipeline::Describer;
 use scone::MapError;
 
 const KEY: &str = "bench";
@@ -92,7 +92,7 @@ fn main() {
         return;
     };
     let target: usize = std::env::var("SCONE_BENCH_OBSERVATIONS").ok().and_then(|v| v.parse().ok()).unwrap_or(100_000);
-    scone::features::set_opencv_threads(1).unwrap();
+    scone::describe::features::set_opencv_threads(1).unwrap();
     if std::env::var_os("RUST_LOG").is_some() {
         tracing_subscriber::fmt().with_env_filter(tracing_subscriber::EnvFilter::from_default_env()).init();
     }
@@ -148,7 +148,7 @@ fn main() {
         if !reused {
             writer.create("m").unwrap();
         }
-        let mut progress = scone::progress::Progress::new("replica bench: writer map, observations", target);
+        let mut progress = scone::offline::progress::Progress::new("replica bench: writer map, observations", target);
         'scenes: for (si, scene) in [&sun3d, &kitchen].into_iter().enumerate().filter(|_| !reused) {
             for f in &scene.frames {
                 progress.set(writer.summary("m").unwrap().observations);

@@ -12,12 +12,12 @@ use std::path::PathBuf;
 use std::sync::Arc;
 use std::time::Instant;
 
-use scone::decode::ImageLimitSettings;
-use scone::embedding::{Embedder, EmbedderSettings};
-use scone::features::KeypointLimitSettings;
+use scone::describe::decode::ImageLimitSettings;
+use scone::describe::embedding::{Embedder, EmbedderSettings};
+use scone::describe::features::KeypointLimitSettings;
+use scone::describe::pipeline::Describer;
 use scone::map::store::{MapStore, ModelInfo, StoreSettings};
 use scone::offline::scene::Scene;
-use scone::pipeline::Describer;
 use scone::service::{
     FrameInput, FrameSource, KeyframeRequest, PoseConvention, Service, TrackFrameInput, TrackRequest, TrackScale,
     TrackerError,
@@ -42,7 +42,7 @@ fn percentile(mut v: Vec<f64>, p: f64) -> f64 {
 }
 
 fn main() {
-    scone::features::set_opencv_threads(1).unwrap();
+    scone::describe::features::set_opencv_threads(1).unwrap();
     let dir = scene_dir();
     let scene = Scene::load(&dir).unwrap();
     let embedder = Arc::new(Embedder::load(&EmbedderSettings::default()).unwrap());

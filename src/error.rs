@@ -17,7 +17,7 @@ pub enum FeatureError {
     InvalidKeypoint { index: usize, field: &'static str, reason: String },
     #[error("descriptors: {reason}")]
     InvalidDescriptors { reason: String },
-    /// A client's ring contexts ([`crate::context`]): missing where the model reads them, or the wrong size.
+    /// A client's ring contexts ([`crate::describe::ring_context`]): missing where the model reads them, or the wrong size.
     #[error("context: {reason}")]
     InvalidContext { reason: String },
     #[error("invalid extractor setting {field}: {reason}")]

@@ -8,33 +8,24 @@
 //! `tools/check_imports.py` checks both, with the layering of the module table in `docs/architecture.md`
 //! ("Where things are").
 //!
-//! The description path, in the order an image takes it:
-//! - [`decode`]: encoded image bytes -> grey image, with size limits checked before decoding; depth PNGs;
-//! - [`features`]: FAST on an image pyramid with grid bucketing, FREAK descriptors; validation of keypoints
-//!   supplied by clients (the client contract);
-//! - [`constellation`]: each keypoint's k nearest keypoints with relative geometry in its own frame;
-//! - [`context`]: the ring context, the image around each keypoint sampled at fixed places in its frame;
-//! - [`embedding`]: the SConE network in ONNX Runtime, checked against its contract when loaded;
-//! - [`pipeline`]: the one function chain over the four above ([`pipeline::Describer`]), with stage times.
-//!
-//! Geometry and matching:
+//! Layers, bottom first (each imports only from those before it):
+//! - [`error`]: the error types of the core modules;
+//! - [`cpu_pool`]: the bounded CPU pool every request's CPU work runs on;
 //! - [`camera`]: intrinsics and camera-to-world poses, their checks and quaternion conversions;
-//! - [`matching`]: nearest-neighbour matching with the ratio test, and the SConE matchers that add FREAK;
-//! - [`nearest`]: brute-force neighbours in both directions (the mutual check), OpenCV's answer to the bit;
+//! - [`describe`]: the description path, in the order an image takes it: decode -> FAST + FREAK features ->
+//!   the ring context or the constellation of each keypoint -> SConE embedding, and the pipeline that runs
+//!   them ([`describe::pipeline::Describer`], with stage times);
+//! - [`matching`]: nearest-neighbour matching with the ratio test, and the SConE matchers that add FREAK; its
+//!   brute-force neighbours in both directions in [`matching::nearest`];
 //! - [`pose`]: relative pose (essential matrix) and absolute pose (PnP) with OpenCV's RANSAC;
-//! - [`render`]: pictures of matches and localisations (PNG) for people debugging the service.
-//!
-//! Maps and the service:
+//! - [`render`]: pictures of matches and localisations (PNG) for people debugging the service;
 //! - [`map`]: landmarks with their SConE observations, durable storage (local or S3), the ANN index,
 //!   relocalisation;
-//! - [`service`]: the operations the API offers, in domain types, with one error type for clients;
-//! - [`cpu_pool`]: the bounded CPU pool every request's CPU work runs on;
 //! - [`settings`]: the server's typed, layered configuration;
+//! - [`service`]: the operations the API offers, in domain types, with one error type for clients;
 //! - [`server`]: the gRPC and HTTP transports, auth, connection limits, metrics, life cycle;
-//! - [`error`]: the error types of the core modules.
-//!
-//! Offline: [`offline`] (scene reader, COLMAP import, training-feature export, evaluation), with
-//! [`progress`] (a bar or log lines) on its long jobs.
+//! - [`offline`]: what the service never calls: scene reader, COLMAP import, training-feature export,
+//!   evaluation, and a progress bar (or log lines) on their long jobs.
 //!
 //! # One request, end to end
 //!
@@ -46,9 +37,10 @@
 //!    runs with it on the [`cpu_pool::CpuPool`] under the request deadline: it parses the request into a
 //!    [`service::FrameInput`] and calls [`service::Service::localize`], which checks the image header and the
 //!    intrinsics ([`camera::validate_camera`]) before any decoding;
-//! 3. [`pipeline::Describer`] decodes ([`decode::decode_grey`]), extracts FAST + FREAK
-//!    ([`features::extract`]), builds constellations ([`constellation::build`]) and embeds them
-//!    ([`embedding::Embedder`]), recording each stage's time;
+//! 3. [`describe::pipeline::Describer`] decodes ([`describe::decode::decode_grey`]), extracts FAST + FREAK
+//!    ([`describe::features::extract`]), samples ring contexts ([`describe::ring_context`]) or builds
+//!    constellations ([`describe::constellation::build`]) and embeds them ([`describe::embedding::Embedder`]),
+//!    recording each stage's time;
 //! 4. [`map::store::MapStore::localize`] searches the map's HNSW index ([`map::index`]) for each embedding's
 //!    nearest landmark observations, ratio-tests them into 2D-3D matches and runs PnP
 //!    ([`pose::absolute_pose`], in [`map::localize`]);
@@ -58,20 +50,13 @@
 //! The gRPC `Localize` call ([`server::grpc`]) takes the same path from step 2.
 
 pub mod camera;
-pub mod constellation;
-pub mod context;
 pub mod cpu_pool;
-pub mod decode;
-pub mod embedding;
+pub mod describe;
 pub mod error;
-pub mod features;
 pub mod map;
 pub mod matching;
-pub mod nearest;
 pub mod offline;
-pub mod pipeline;
 pub mod pose;
-pub mod progress;
 pub mod render;
 pub mod server;
 pub mod service;

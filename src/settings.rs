@@ -10,9 +10,9 @@ use figment::providers::{Env, Format, Serialized, Toml};
 use figment::Figment;
 use serde::{Deserialize, Serialize};
 
-use crate::decode::ImageLimitSettings;
-use crate::embedding::EmbedderSettings;
-use crate::features::{ExtractorSettings, KeypointLimitSettings};
+use crate::describe::decode::ImageLimitSettings;
+use crate::describe::embedding::EmbedderSettings;
+use crate::describe::features::{ExtractorSettings, KeypointLimitSettings};
 use crate::map::store::StoreSettings;
 use crate::pose::RansacSettings;
 
@@ -140,7 +140,7 @@ pub struct Settings {
     pub workers: WorkerSettings,
     pub model: EmbedderSettings,
     /// Detection and description: the extraction the model declares
-    /// ([`crate::embedding::Embedder::extraction`]), with each field given here (`[extractor]`,
+    /// ([`crate::describe::embedding::Embedder::extraction`]), with each field given here (`[extractor]`,
     /// `SCONE_EXTRACTOR__*`) over it; an extraction other than the model's is served with a warning.
     pub extractor: ExtractorOverrides,
     pub store: StoreSettings,

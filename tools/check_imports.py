@@ -34,11 +34,11 @@ CRATE_PATH = re.compile(r"(?<![\w:])(" + "|".join(TRANSPORT_CRATES) + r")::")
 
 def library_modules(src):
     """Module path (tuple) of every library file; binaries (src/bin) are their own crates and left out, and so
-    are test modules."""
+    are test modules (`tests.rs`, `*_tests.rs`, and a module's `tests/` folder)."""
     modules = {}
     for f in src.rglob("*.rs"):
         rel = f.relative_to(src)
-        if rel.parts[0] == "bin" or f.name.endswith("tests.rs") or f.name == "test_dir.rs":
+        if rel.parts[0] == "bin" or "tests" in rel.parts[:-1] or f.name.endswith("tests.rs") or f.name == "test_dir.rs":
             continue
         parts = list(rel.with_suffix("").parts)
         if parts[-1] in ("mod", "lib"):

@@ -4,7 +4,7 @@
 #![no_main]
 
 use libfuzzer_sys::fuzz_target;
-use scone::decode::{decode_grey, read_header, ImageLimitSettings};
+use scone::describe::decode::{decode_grey, read_header, ImageLimitSettings};
 use scone::service::{ErrorKind, ServiceError};
 
 fuzz_target!(|data: &[u8]| {

@@ -5,7 +5,7 @@
 
 use libfuzzer_sys::fuzz_target;
 use prost::Message;
-use scone::features::{from_precomputed, KeypointLimitSettings};
+use scone::describe::features::{from_precomputed, KeypointLimitSettings};
 use scone::server::grpc::frame_input;
 use scone::server::proto::{DescribeRequest, LocalizeRequest};
 use scone::service::{ErrorKind, FrameSource, ServiceError};

@@ -45,12 +45,12 @@ use opencv::core::{Mat, NORM_HAMMING, NORM_L2};
 use opencv::prelude::*;
 
 use crate::camera::Camera;
+use crate::describe::features::{bits_mat, Features};
 use crate::error::MapError;
-use crate::features::{bits_mat, Features};
 use crate::map::index::{l2_squared, EmbeddingIndex};
 use crate::map::model::MapData;
 use crate::matching::embedding_mat;
-use crate::nearest::nearest_both_ways;
+use crate::matching::nearest::nearest_both_ways;
 use crate::pose::{absolute_pose, absolute_pose_unknown_focal, AbsolutePose, RansacSettings};
 
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]

@@ -26,8 +26,8 @@ use opencv::core::{Mat, Point3d, Vector};
 use opencv::prelude::*;
 
 use crate::camera::Pose;
+use crate::describe::features::Features;
 use crate::error::MapError;
-use crate::features::Features;
 use crate::map::index::EmbeddingIndex;
 use crate::map::localize::{localize, LocalizeSettings};
 use crate::map::model::{Keyframe, MapData, NewObservation, Record};

@@ -21,19 +21,11 @@
 
 pub mod builder;
 pub mod cache;
-#[cfg(test)]
-mod cache_tests;
-#[cfg(test)]
-mod fault_tests;
 pub mod index;
 pub mod localize;
 pub mod merge;
 pub mod model;
 pub mod payload;
-#[cfg(test)]
-mod payload_tests;
-#[cfg(test)]
-mod stage_tests;
 pub mod storage;
 pub mod store;
 #[cfg(test)]

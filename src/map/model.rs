@@ -13,8 +13,8 @@ use std::sync::Arc;
 
 use serde::{Deserialize, Serialize};
 
+use crate::describe::features::DESCRIPTOR_BYTES;
 use crate::error::MapError;
-use crate::features::DESCRIPTOR_BYTES;
 use crate::map::payload::{inline_memory_bytes, StoredPayloads};
 pub use crate::map::payload::{Keyframe, MapKeyframe};
 

@@ -19,8 +19,8 @@ use std::sync::{Arc, Condvar, Mutex, MutexGuard, PoisonError};
 use serde::{Deserialize, Serialize};
 
 use crate::camera::{Camera, Pose};
+use crate::describe::features::{from_precomputed, Features, Keypoint, KeypointLimitSettings, DESCRIPTOR_BYTES};
 use crate::error::{FeatureError, MapError};
-use crate::features::{from_precomputed, Features, Keypoint, KeypointLimitSettings, DESCRIPTOR_BYTES};
 
 /// A keyframe with its payload, as records carry it and map building makes it.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]

@@ -19,8 +19,8 @@ use parking_lot::Mutex;
 use serde::{Deserialize, Serialize};
 
 use crate::camera::Camera;
+use crate::describe::features::Features;
 use crate::error::MapError;
-use crate::features::Features;
 use crate::map::builder::{plan, BuildSettings, ExternalCounts, KeyframeInput};
 pub use crate::map::cache::{CacheSettings, CacheStats, Map, MapSummary};
 use crate::map::cache::{MapCache, MapState};

@@ -24,10 +24,10 @@ use nalgebra::{Isometry3, Quaternion, Translation3, UnitQuaternion, Vector3};
 use serde::Serialize;
 
 use crate::camera::Camera;
+use crate::describe::pipeline::Describer;
 use crate::error::{ImportError, MapError, SceneError};
 use crate::map::builder::{ExternalCounts, ExternalObservation, KeyframeInput};
 use crate::map::store::{KeyframeAdded, MapStore, MapSummary};
-use crate::pipeline::Describer;
 
 /// COLMAP's pixel origin is the top-left corner, scone's the centre of the top-left pixel.
 const PIXEL_SHIFT: f64 = 0.5;

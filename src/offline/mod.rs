@@ -6,9 +6,11 @@
 //!   (`scone map import-colmap`);
 //! - [`training_features`]: a scene's features and constellations as `.npz` for training (`scone features`);
 //! - [`eval`]: the evaluation protocol on real scenes: pair matching with relative pose, relocalisation
-//!   (`scone eval pairs`, `scone eval reloc`).
+//!   (`scone eval pairs`, `scone eval reloc`);
+//! - [`progress`]: a progress bar on a terminal, log lines otherwise, for the long jobs above.
 
 pub mod colmap;
 pub mod eval;
+pub mod progress;
 pub mod scene;
 pub mod training_features;

@@ -22,13 +22,13 @@ use ndarray::{Array1, Array2, Array3};
 use ndarray_npy::NpzWriter;
 use serde::Serialize;
 
-use crate::constellation::{self, Constellations, GEOMETRY_DIM};
-use crate::context::SAMPLES;
-use crate::decode::{decode_grey, ImageLimitSettings};
+use crate::describe::constellation::{self, Constellations, GEOMETRY_DIM};
+use crate::describe::decode::{decode_grey, ImageLimitSettings};
+use crate::describe::features::{extract, ExtractorSettings, Features, DESCRIPTOR_BYTES};
+use crate::describe::ring_context::SAMPLES;
 use crate::error::SceneError;
-use crate::features::{extract, ExtractorSettings, Features, DESCRIPTOR_BYTES};
+use crate::offline::progress::Progress;
 use crate::offline::scene::Scene;
-use crate::progress::Progress;
 
 /// Version of the export layout; bumped on any change of keys, dtypes or meanings.
 pub const EXPORT_FORMAT_VERSION: u32 = 2;

@@ -18,8 +18,6 @@ mod relative;
 #[cfg(test)]
 mod tests;
 mod track;
-#[cfg(test)]
-mod track_tests;
 
 pub use absolute::{
     absolute_pose, absolute_pose_unknown_focal, focal_candidates, AbsolutePose, CANDIDATE_ITERATIONS, RANSAC_HEAD,

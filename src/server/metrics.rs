@@ -18,7 +18,7 @@ use prometheus_client::metrics::histogram::{exponential_buckets, Histogram};
 use prometheus_client::registry::Registry;
 
 use crate::cpu_pool::PoolStats;
-use crate::pipeline::StageTimes;
+use crate::describe::pipeline::StageTimes;
 use crate::service::Holdings;
 
 #[derive(Clone, Debug, Hash, PartialEq, Eq, EncodeLabelSet)]

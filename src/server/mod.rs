@@ -36,8 +36,8 @@ use tokio::sync::watch;
 use tokio::task::JoinHandle;
 
 use crate::cpu_pool::CpuPool;
-use crate::embedding::Embedder;
-use crate::pipeline::Describer;
+use crate::describe::embedding::Embedder;
+use crate::describe::pipeline::Describer;
 use crate::service::Service;
 use crate::settings::Settings;
 
@@ -95,7 +95,7 @@ pub async fn start(settings: Settings) -> anyhow::Result<Running> {
     let keys = auth::Keys::new(settings.keys()?);
     tracing::info!(settings = %settings.redacted(), api_keys = keys.len(), "starting scone");
     // The pool gives the parallelism; OpenCV's own threads inside each job would only oversubscribe.
-    crate::features::set_opencv_threads(1)?;
+    crate::describe::features::set_opencv_threads(1)?;
     let model_cfg = settings.model.clone();
     let embedder = tokio::task::spawn_blocking(move || Embedder::load(&model_cfg)).await??;
     let embedder = Arc::new(embedder);

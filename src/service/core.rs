@@ -6,12 +6,12 @@ use std::sync::{Arc, OnceLock};
 use serde::Serialize;
 
 use super::error::ServiceError;
-use crate::decode::ImageLimitSettings;
+use crate::describe::decode::ImageLimitSettings;
+use crate::describe::features::{ExtractorSettings, KeypointLimitSettings};
+use crate::describe::pipeline::Describer;
 use crate::error::{EmbeddingError, MapError};
-use crate::features::{ExtractorSettings, KeypointLimitSettings};
 use crate::map::store::{Map, MapStore, ModelInfo, StoreSettings};
 use crate::matching::SconeMatcher;
-use crate::pipeline::Describer;
 use crate::pose::RansacSettings;
 
 /// Counts of what the service holds, for metrics.

@@ -1,8 +1,8 @@
 //! What went wrong, for a client ([`ServiceError`]), and the one classification of every failure of the core
 //! into the kinds the transports map to their codes ([`ErrorKind`]: gRPC codes, HTTP statuses).
 
+use crate::describe::pipeline::DescribeError;
 use crate::error::{EmbeddingError, FeatureError, MapError, PoseError};
-use crate::pipeline::DescribeError;
 
 /// What a write's deadline answer adds: the outcome is unknown, and how a client learns it.
 pub const WRITE_OUTCOME: &str = "; the write may still complete: read the map (GetMap, or GET \

@@ -4,10 +4,10 @@
 use super::core::Service;
 use super::error::ServiceError;
 use crate::camera::{validate_camera, Camera, Distortion};
-use crate::decode::check_limits;
+use crate::describe::decode::check_limits;
+use crate::describe::features::{self, Features, Keypoint};
+use crate::describe::pipeline::{Described, StageTimes};
 use crate::error::{FeatureError, PoseError};
-use crate::features::{self, Features, Keypoint};
-use crate::pipeline::{Described, StageTimes};
 
 /// Keypoints with FREAK descriptors computed by a client (see the client contract in the proto).
 #[derive(Debug, Clone, Default)]
@@ -19,7 +19,7 @@ pub struct KeypointsInput {
     pub descriptors: Vec<u8>,
     /// The model the client targets, if it says.
     pub model_id: Option<String>,
-    /// The ring context, `context::SAMPLES` bytes per keypoint (empty: not sent).
+    /// The ring context, `ring_context::SAMPLES` bytes per keypoint (empty: not sent).
     pub context: Vec<u8>,
 }
 
@@ -251,8 +251,8 @@ mod tests {
     use std::sync::Arc;
 
     use super::*;
-    use crate::embedding::{Embedder, EmbedderSettings};
-    use crate::pipeline::Describer;
+    use crate::describe::embedding::{Embedder, EmbedderSettings};
+    use crate::describe::pipeline::Describer;
 
     /// A ring model's image described through a lens: the keypoints whose undistorted position leaves the image
     /// are dropped with their embedding rows, and every other keypoint keeps, in order, the embedding the

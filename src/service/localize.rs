@@ -5,9 +5,9 @@ use super::core::Service;
 use super::error::ServiceError;
 use super::frame::{FrameInput, FrameSource};
 use crate::camera::{Camera, Distortion, PoseConvention};
+use crate::describe::pipeline::StageTimes;
 use crate::map::localize::{LandmarkMatch, Prior};
 use crate::map::store::Map;
-use crate::pipeline::StageTimes;
 use crate::pose::AbsolutePose;
 
 /// The outcome of a relocalisation.
@@ -75,7 +75,7 @@ impl Service {
         let size = match &frame.source {
             FrameSource::Keypoints(k) => (k.width, k.height),
             FrameSource::Image(bytes) => {
-                crate::decode::read_header(bytes).map(|h| (h.width, h.height)).unwrap_or((0, 0))
+                crate::describe::decode::read_header(bytes).map(|h| (h.width, h.height)).unwrap_or((0, 0))
             }
         };
         let cam = Self::query_camera(&frame, size, "frame.intrinsics")?;

@@ -8,12 +8,12 @@ use super::core::Service;
 use super::error::ServiceError;
 use super::frame::FrameInput;
 use crate::camera::{Pose, PoseConvention, Similarity};
-use crate::decode::{decode_depth_png, TUM_DEPTH_SCALE};
+use crate::describe::decode::{decode_depth_png, TUM_DEPTH_SCALE};
+use crate::describe::pipeline::StageTimes;
 use crate::error::MapError;
 use crate::map::builder::{Depth, ExternalObservation, KeyframeInput};
 use crate::map::store::{KeyframeAdded, MapContents};
 use crate::map::store::{Map, MapSummary};
-use crate::pipeline::StageTimes;
 
 /// Landmarks a contents request may ask for at most.
 pub const MAX_CONTENTS_LANDMARKS: usize = 200_000;

@@ -3,8 +3,8 @@
 use super::core::Service;
 use super::error::ServiceError;
 use super::frame::FrameInput;
+use crate::describe::pipeline::StageTimes;
 use crate::matching::{match_scone, Match, RatioTest, SconeFrame, SconeMatcher, DEFAULT_RATIO, SAME_CORNER_PX};
-use crate::pipeline::StageTimes;
 use crate::pose::{relative_pose, RelativePose};
 
 /// Pair matching settings a client may choose. The ratio test's same-corner radius is the project's

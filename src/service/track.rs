@@ -10,9 +10,9 @@ use super::core::Service;
 use super::error::ServiceError;
 use super::frame::FrameInput;
 use crate::camera::{Pose, PoseConvention};
+use crate::describe::pipeline::StageTimes;
 use crate::map::localize::{confidence, Prior};
 use crate::map::store::Map;
-use crate::pipeline::StageTimes;
 use crate::pose::{track_pose, AbsolutePose, TrackFrame, TrackScale, TrackerError};
 
 /// Frames a track may hold.

@@ -13,14 +13,14 @@ use nalgebra::{Isometry3, Point3};
 use opencv::core::Mat;
 use opencv::prelude::*;
 use scone::camera::Camera;
-use scone::decode::{decode_depth_png, decode_grey, ImageLimitSettings};
-use scone::embedding::{Embedder, EmbedderSettings};
-use scone::features::{self, ExtractorSettings};
+use scone::describe::decode::{decode_depth_png, decode_grey, ImageLimitSettings};
+use scone::describe::embedding::{Embedder, EmbedderSettings};
+use scone::describe::features::{self, ExtractorSettings};
+use scone::describe::pipeline::Describer;
 use scone::map::builder::{ExternalObservation, KeyframeInput};
 use scone::map::store::{MapStore, ModelInfo, StoreSettings};
 use scone::offline::colmap::{self, ColmapModel};
 use scone::offline::scene::Scene;
-use scone::pipeline::Describer;
 use scone::pose::rotation_error_deg;
 
 use crate::common::{fixture, temp_dir};

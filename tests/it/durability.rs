@@ -6,11 +6,11 @@ use std::io::{BufRead, BufReader};
 use std::process::{Command, Stdio};
 use std::sync::Arc;
 
-use scone::decode::ImageLimitSettings;
-use scone::embedding::{Embedder, EmbedderSettings};
+use scone::describe::decode::ImageLimitSettings;
+use scone::describe::embedding::{Embedder, EmbedderSettings};
+use scone::describe::pipeline::Describer;
 use scone::map::store::{MapStore, ModelInfo, StoreSettings};
 use scone::offline::scene::Scene;
-use scone::pipeline::Describer;
 use scone::pose::rotation_error_deg;
 
 use crate::common::{fixture, temp_dir};
@@ -145,7 +145,7 @@ fn reads_of_one_map_go_on_while_another_is_written() {
         .frames
         .iter()
         .map(|f| {
-            scone::decode::decode_depth_png(
+            scone::describe::decode::decode_depth_png(
                 &std::fs::read(f.depth.as_ref().unwrap()).unwrap(),
                 &ImageLimitSettings::default(),
             )
@@ -202,7 +202,7 @@ fn reads_of_one_map_go_on_while_another_is_written() {
 fn a_map_from_another_model_is_refused_until_re_embedded() {
     // Re-embedding reads the keyframes' keypoints and descriptors, which is all the constellation model reads;
     // the embedded ring model also reads the image around each keypoint, which keyframes do not store.
-    let model = scone::embedding::constellation_model_path();
+    let model = scone::describe::embedding::constellation_model_path();
     let open = |dir: &std::path::Path| open_with(dir, model.clone());
     let dir = temp_dir("reembed");
     let (_, describer) = open(&dir);
@@ -215,7 +215,7 @@ fn a_map_from_another_model_is_refused_until_re_embedded() {
         store.create("m").unwrap();
         for i in (0..scene.frames.len()).step_by(2) {
             let d = describer.describe_image(&std::fs::read(&scene.frames[i].rgb).unwrap()).unwrap();
-            let depth = scone::decode::decode_depth_png(
+            let depth = scone::describe::decode::decode_depth_png(
                 &std::fs::read(scene.frames[i].depth.as_ref().unwrap()).unwrap(),
                 &ImageLimitSettings::default(),
             )
@@ -253,7 +253,7 @@ fn a_map_from_another_model_is_refused_until_re_embedded() {
             .unwrap()
     };
     let reembed = |map: &str| reembed_with(map, &model);
-    let out = reembed_with("m", &scone::embedding::default_model_path());
+    let out = reembed_with("m", &scone::describe::embedding::default_model_path());
     let stderr = String::from_utf8_lossy(&out.stderr);
     assert!(!out.status.success() && stderr.contains("ring context") && stderr.contains("scone-freak-k20"), "{stderr}");
     let out = reembed("nowhere");

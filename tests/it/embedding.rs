@@ -8,10 +8,10 @@ use std::path::PathBuf;
 use ndarray::{Array1, Array2, Array3};
 use ndarray_npy::{NpzReader, ReadNpyExt};
 
-use scone::constellation;
-use scone::decode::{decode_grey, ImageLimitSettings};
-use scone::embedding::{constellation_model_path, Embedder, EmbedderSettings};
-use scone::features::{extract, ExtractorSettings};
+use scone::describe::constellation;
+use scone::describe::decode::{decode_grey, ImageLimitSettings};
+use scone::describe::embedding::{constellation_model_path, Embedder, EmbedderSettings};
+use scone::describe::features::{extract, ExtractorSettings};
 
 use crate::common::fixture;
 
@@ -29,7 +29,7 @@ fn golden_model() -> PathBuf {
 }
 
 /// The model's embeddings of `features` are the golden ones (Python onnxruntime) within 1e-4.
-fn embeddings_match(embedder: &Embedder, features: &scone::features::Features, golden: &Array2<f32>) {
+fn embeddings_match(embedder: &Embedder, features: &scone::describe::features::Features, golden: &Array2<f32>) {
     let ours = embedder.embed(features).unwrap();
     assert_eq!(golden.shape(), &[features.len(), embedder.dim()]);
     let max_diff = ours.iter().zip(golden.iter()).map(|(a, b)| (a - b).abs()).fold(0.0f32, f32::max);
@@ -122,7 +122,7 @@ fn a_declaration_that_cannot_be_served_is_refused_naming_it() {
 
     let cfg = EmbedderSettings { model: fixture("bad-matcher.onnx"), ..EmbedderSettings::default() };
     let embedder = std::sync::Arc::new(Embedder::load(&cfg).unwrap());
-    let describer = scone::pipeline::Describer {
+    let describer = scone::describe::pipeline::Describer {
         extractor: embedder.extraction(),
         limits: ImageLimitSettings::default(),
         embedder,
@@ -155,7 +155,7 @@ fn a_model_with_the_wrong_contract_is_refused_naming_the_mismatch() {
 /// the pipeline starts at, the stages run in turn (the stage times tell which ran) with the same result.
 #[test]
 fn the_pipelined_describe_and_the_split_embedding_are_the_one_session_path_bit_for_bit() {
-    use scone::pipeline::{describe_decoded, extract_for, StageTimes, PIPELINE_FROM};
+    use scone::describe::pipeline::{describe_decoded, extract_for, StageTimes, PIPELINE_FROM};
     let one =
         Embedder::load(&EmbedderSettings { sessions: 1, intra_threads: 1, ..EmbedderSettings::default() }).unwrap();
     let two =

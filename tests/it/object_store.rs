@@ -14,8 +14,9 @@ use futures_util::TryStreamExt;
 use object_store::aws::AmazonS3Builder;
 use object_store::path::Path as ObjectPath;
 use object_store::{ObjectStore, ObjectStoreExt};
-use scone::decode::{decode_depth_png, ImageLimitSettings};
-use scone::embedding::{Embedder, EmbedderSettings};
+use scone::describe::decode::{decode_depth_png, ImageLimitSettings};
+use scone::describe::embedding::{Embedder, EmbedderSettings};
+use scone::describe::pipeline::{Described, Describer};
 use scone::map::builder::{Depth, KeyframeInput};
 use scone::map::model::{MapData, Record};
 use scone::map::storage::backend::MapBackend;
@@ -24,7 +25,6 @@ use scone::map::storage::s3::{ObjectStorageBackend, S3Credentials};
 use scone::map::storage::BackendSettings;
 use scone::map::store::{CacheSettings, MapStore, ModelInfo, StoreSettings};
 use scone::offline::scene::Scene;
-use scone::pipeline::{Described, Describer};
 use scone::pose::rotation_error_deg;
 use scone::MapError;
 
@@ -101,7 +101,7 @@ impl Moto {
         let backend = ObjectStorageBackend::s3(&s3, cache, compact_every, creds).unwrap();
         // Every map loaded at open, and no freshness checks: these tests are about the storage protocol (what
         // a replica that does not re-check sees, what its conditional writes do). The cache is in
-        // `src/map/cache_tests.rs` and `replicas.rs`.
+        // `src/map/tests/cache_tests.rs` and `replicas.rs`.
         let config = StoreSettings {
             data_dir: cache.to_path_buf(),
             compact_every,

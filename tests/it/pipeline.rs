@@ -5,9 +5,9 @@ use opencv::core::{Mat, Point2f, Size, Vector, BORDER_CONSTANT};
 use opencv::prelude::*;
 use opencv::{calib3d, imgproc};
 
-use scone::constellation::{self, wrap_angle};
-use scone::decode::{decode_grey, GreyImage, ImageLimitSettings};
-use scone::features::{extract, ExtractorSettings, Features};
+use scone::describe::constellation::{self, wrap_angle};
+use scone::describe::decode::{decode_grey, GreyImage, ImageLimitSettings};
+use scone::describe::features::{extract, ExtractorSettings, Features};
 use scone::matching::{match_hamming, RatioTest};
 
 use crate::common::{fixture, shared_data};
@@ -215,7 +215,7 @@ fn homography_evaluation_recovers_an_exact_warp() {
     let row = |i: i32| (0..3).map(|j| format!("{}", *r.at_2d::<f64>(i, j).unwrap())).collect::<Vec<_>>().join(" ");
     std::fs::write(dir.join("H_1_2"), format!("{}\n{}\n0 0 1\n", row(0), row(1))).unwrap();
 
-    let embedder = scone::embedding::Embedder::load(&Default::default()).unwrap();
+    let embedder = scone::describe::embedding::Embedder::load(&Default::default()).unwrap();
     let cfg = HomographyConfig { methods: vec![Method::Scone, Method::Freak, Method::Sift], ..Default::default() };
     let dirs = homography::find_sequences(&[dir.to_path_buf()]).unwrap();
     let report = homography::evaluate(&dirs, &cfg, Some(&embedder)).unwrap();

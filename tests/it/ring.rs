@@ -33,7 +33,7 @@ async fn match_3_and_5(matching: &mut Matching, scene: &Scene) -> proto::MatchPa
 async fn the_ring_model_describes_maps_localises_and_matches() {
     let data = temp_dir("ring");
     let s = settings(&data);
-    assert_eq!(s.model.model, scone::embedding::default_model_path());
+    assert_eq!(s.model.model, scone::describe::embedding::default_model_path());
     assert_eq!(s.extractor, scone::settings::ExtractorOverrides::default());
     let server = serve(s).await;
     let (mut maps, mut matching) = clients(&server).await;
@@ -96,7 +96,7 @@ async fn the_ring_model_describes_maps_localises_and_matches() {
 async fn the_constellation_model_is_served_at_revision_2_with_scale_aware() {
     let data = temp_dir("constellation-model");
     let mut s = settings(&data);
-    s.model.model = scone::embedding::constellation_model_path();
+    s.model.model = scone::describe::embedding::constellation_model_path();
     let server = serve(s).await;
     let (_, mut matching) = clients(&server).await;
     let scene = Scene::load(&fixture("rendered")).unwrap();

@@ -5,9 +5,9 @@ use std::path::PathBuf;
 use anyhow::Context;
 use clap::Args;
 
-use scone::constellation::DEFAULT_K;
-use scone::embedding::{Embedder, EmbedderSettings};
-use scone::features::{self, ExtractorSettings};
+use scone::describe::constellation::DEFAULT_K;
+use scone::describe::embedding::{Embedder, EmbedderSettings};
+use scone::describe::features::{self, ExtractorSettings};
 use scone::settings::ExtractorOverrides;
 
 /// Model and output of an evaluation.

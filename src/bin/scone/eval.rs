@@ -4,7 +4,7 @@ use std::path::PathBuf;
 
 use clap::Subcommand;
 
-use scone::features::ExtractorSettings;
+use scone::describe::features::ExtractorSettings;
 use scone::offline::eval::homography;
 use scone::offline::eval::methods::Method;
 use scone::offline::eval::pairs::{self, PairsConfig};
@@ -207,7 +207,7 @@ pub enum EvalCommand {
         correct_px: f64,
         /// Also measure the neighbour share of these constellation rules (the candidates for zoom).
         #[arg(long, value_delimiter = ',', value_enum)]
-        neighbour_rules: Vec<scone::constellation::NeighbourRule>,
+        neighbour_rules: Vec<scone::describe::constellation::NeighbourRule>,
         #[command(flatten)]
         report: ReportArgs,
         #[command(flatten)]
@@ -483,7 +483,7 @@ fn check_same_corner(px: f32) -> anyhow::Result<()> {
 /// `--scone-matcher`, or the model's declared matcher.
 fn matcher_for(
     flag: Option<scone::matching::SconeMatcher>,
-    embedder: Option<&scone::embedding::Embedder>,
+    embedder: Option<&scone::describe::embedding::Embedder>,
 ) -> anyhow::Result<scone::matching::SconeMatcher> {
     match flag {
         Some(m) => Ok(m),

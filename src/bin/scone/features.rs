@@ -5,9 +5,9 @@ use std::path::PathBuf;
 use anyhow::Context;
 use clap::Args;
 
-use scone::constellation;
-use scone::decode::{decode_grey, ImageLimitSettings};
-use scone::features;
+use scone::describe::constellation;
+use scone::describe::decode::{decode_grey, ImageLimitSettings};
+use scone::describe::features;
 use scone::offline::scene::Scene;
 
 use crate::args::ExtractorArgs;

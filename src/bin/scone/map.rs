@@ -5,12 +5,12 @@ use std::path::PathBuf;
 
 use clap::Subcommand;
 
-use scone::decode::ImageLimitSettings;
+use scone::describe::decode::ImageLimitSettings;
+use scone::describe::pipeline::{embed, Describer};
 use scone::map::builder::{BuildSettings, Depth, KeyframeInput};
 use scone::map::store::{MapStore, ModelInfo, StoreSettings};
+use scone::offline::progress::Progress;
 use scone::offline::scene::Scene;
-use scone::pipeline::{embed, Describer};
-use scone::progress::Progress;
 
 use crate::args::{load_embedder, ReportArgs};
 
@@ -121,7 +121,7 @@ pub fn run(cmd: MapCommand) -> anyhow::Result<()> {
                     progress.step();
                     let d = describer.describe_image(&std::fs::read(&frame.rgb)?)?;
                     let depth = match &frame.depth {
-                        Some(p) => Some(scone::decode::decode_depth_png(&std::fs::read(p)?, &limits)?),
+                        Some(p) => Some(scone::describe::decode::decode_depth_png(&std::fs::read(p)?, &limits)?),
                         None => None,
                     };
                     let input = KeyframeInput {
@@ -130,7 +130,9 @@ pub fn run(cmd: MapCommand) -> anyhow::Result<()> {
                         camera: s.camera,
                         features: &d.features,
                         embeddings: &d.embeddings,
-                        depth: depth.as_ref().map(|m| Depth { image: m, scale: scone::decode::TUM_DEPTH_SCALE }),
+                        depth: depth
+                            .as_ref()
+                            .map(|m| Depth { image: m, scale: scone::describe::decode::TUM_DEPTH_SCALE }),
                         external: None,
                     };
                     let added = store.add_keyframe(&held, &input)?;

@@ -8,8 +8,8 @@ use opencv::core::{Mat, NORM_HAMMING, NORM_L2};
 use opencv::prelude::*;
 use rayon::prelude::*;
 
+use crate::describe::features::{bits_mat, DESCRIPTOR_BYTES};
 use crate::error::MapError;
-use crate::features::{bits_mat, DESCRIPTOR_BYTES};
 use crate::map::builder::geometry::viewing_direction;
 use crate::map::builder::input::KeyframeInput;
 use crate::map::builder::settings::BuildSettings;

@@ -6,7 +6,7 @@ use opencv::core::Mat;
 use serde::{Deserialize, Serialize};
 
 use crate::camera::Camera;
-use crate::features::Features;
+use crate::describe::features::Features;
 
 /// An observation of a landmark given by an external SfM: where this keyframe sees it and where it is.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
@@ -23,7 +23,7 @@ pub struct ExternalObservation {
 /// Depth for a keyframe: 16-bit image and the factor that turns raw values into metres.
 pub struct Depth<'a> {
     pub image: &'a Mat,
-    /// Metres per raw unit (TUM: [`crate::decode::TUM_DEPTH_SCALE`]).
+    /// Metres per raw unit (TUM: [`crate::describe::decode::TUM_DEPTH_SCALE`]).
     pub scale: f64,
 }
 

@@ -9,7 +9,7 @@ use opencv::prelude::*;
 use super::candidates::{candidates, epipolar_mask};
 use super::*;
 use crate::camera::Camera;
-use crate::features::{Features, Keypoint, DESCRIPTOR_BYTES};
+use crate::describe::features::{Features, Keypoint, DESCRIPTOR_BYTES};
 use crate::map::model::{MapData, NewObservation};
 use crate::map::tests::{meta, vectors};
 

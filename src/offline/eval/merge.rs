@@ -16,17 +16,17 @@ use serde::{Deserialize, Serialize};
 use nalgebra::{Isometry3, Point3, Similarity3, Translation3, UnitQuaternion, Vector3};
 use rand::{Rng, SeedableRng};
 
-use crate::decode::{decode_grey, ImageLimitSettings};
-use crate::embedding::Embedder;
-use crate::features::Features;
+use crate::describe::decode::{decode_grey, ImageLimitSettings};
+use crate::describe::embedding::Embedder;
+use crate::describe::features::Features;
 use crate::map::builder::{plan_keyframe, BuildSettings, KeyframeInput};
 use crate::map::index::{EmbeddingIndex, IndexSettings};
 use crate::map::localize::{localize, LocalizeSettings};
 use crate::map::merge::plan_merge;
 use crate::map::model::{MapData, MapMeta};
 use crate::offline::eval::stats::{markdown_table, median};
+use crate::offline::progress::Progress;
 use crate::offline::scene::Scene;
-use crate::progress::Progress;
 
 type BoxError = Box<dyn std::error::Error + Send + Sync>;
 
@@ -104,8 +104,8 @@ pub fn evaluate(scene: &Scene, split: Split, seed: u64, embedder: &Embedder) -> 
     for &i in &posed {
         progress.borrow_mut().step();
         let bytes = std::fs::read(&scene.frames[i].rgb)?;
-        let f = crate::pipeline::extract_for(&decode_grey(&bytes, &limits)?, &extractor, embedder)?;
-        let e = crate::pipeline::embed(embedder, &f)?;
+        let f = crate::describe::pipeline::extract_for(&decode_grey(&bytes, &limits)?, &extractor, embedder)?;
+        let e = crate::describe::pipeline::embed(embedder, &f)?;
         described.insert(i, (f, e));
     }
     let meta = |id: &str| MapMeta {

@@ -8,10 +8,10 @@ use opencv::features2d::{ORB_ScoreType, ORB, SIFT};
 use opencv::prelude::*;
 use serde::{Deserialize, Serialize};
 
-use crate::decode::GreyImage;
-use crate::embedding::Embedder;
+use crate::describe::decode::GreyImage;
+use crate::describe::embedding::Embedder;
+use crate::describe::features::{self, ExtractorSettings, Keypoint};
 use crate::error::FeatureError;
-use crate::features::{self, ExtractorSettings, Keypoint};
 use crate::matching::{embedding_mat, match_descriptors, match_scone_with, Match, RatioTest, SconeFrame, SconeMatcher};
 
 /// The rows of a continuous f32 matrix as one slice (empty for an empty matrix).
@@ -93,8 +93,8 @@ pub fn describe(
         }
         Method::Scone | Method::SconePlain => {
             let embedder = embedder.ok_or("SConE needs a model (--model)")?;
-            let f = crate::pipeline::extract_for(image, extractor, embedder)?;
-            let e = crate::pipeline::embed(embedder, &f)?;
+            let f = crate::describe::pipeline::extract_for(image, extractor, embedder)?;
+            let e = crate::describe::pipeline::embed(embedder, &f)?;
             freak = Some(f.descriptor_mat()?);
             (f.keypoints, embedding_mat(&e, embedder.dim())?, NORM_L2)
         }

@@ -21,17 +21,17 @@ use rand::SeedableRng;
 use serde::{Deserialize, Serialize};
 
 use crate::camera::Camera;
-use crate::decode::{decode_depth_png, decode_grey, ImageLimitSettings};
-use crate::embedding::Embedder;
-use crate::features::ExtractorSettings;
+use crate::describe::decode::{decode_depth_png, decode_grey, ImageLimitSettings};
+use crate::describe::embedding::Embedder;
+use crate::describe::features::ExtractorSettings;
 use crate::matching::{RatioTest, SconeMatcher};
 use crate::offline::eval::methods::{describe, putative_matches, Described, Method};
 use crate::offline::eval::stats::{accuracy, auc, markdown_table, median};
+use crate::offline::progress::Progress;
 use crate::offline::scene::Scene;
 use crate::pose::{
     ransac_iterations_needed, relative_motion, relative_pose, rotation_error_deg, translation_angle_deg, RansacSettings,
 };
-use crate::progress::Progress;
 
 type BoxError = Box<dyn std::error::Error + Send + Sync>;
 
@@ -189,7 +189,7 @@ impl Truth<'_> {
             if x >= 0 && y >= 0 && x < depth.cols() && y < depth.rows() {
                 let raw = *depth.at_2d::<u16>(y, x).ok()?;
                 if raw > 0 {
-                    let z = raw as f64 / crate::decode::TUM_DEPTH_PER_METRE;
+                    let z = raw as f64 / crate::describe::decode::TUM_DEPTH_PER_METRE;
                     let p1 = Vector3::new(
                         (a.0 as f64 - self.cam.cx) / self.cam.fx * z,
                         (a.1 as f64 - self.cam.cy) / self.cam.fy * z,

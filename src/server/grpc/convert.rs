@@ -4,7 +4,7 @@
 use tonic::{Code, Status};
 
 use crate::camera::Camera;
-use crate::features::Keypoint;
+use crate::describe::features::Keypoint;
 use crate::server::proto::{self, frame::Source};
 use crate::service::{
     Distortion, DistortionModel, ErrorKind, ExternalObservation, FrameInput, FrameSource, KeypointsInput, MapSummary,

@@ -193,7 +193,7 @@ impl proto::matching_server::Matching for GrpcApi {
 }
 
 /// The extraction a server runs, on the wire.
-fn extraction_out(e: &crate::features::ExtractorSettings) -> proto::Extraction {
+fn extraction_out(e: &crate::describe::features::ExtractorSettings) -> proto::Extraction {
     proto::Extraction {
         fast_threshold: e.fast_threshold,
         max_keypoints: e.max_keypoints as u32,

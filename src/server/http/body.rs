@@ -12,7 +12,7 @@ use serde::Serialize;
 use super::error::{invalid, ApiError, ApiResult};
 use super::wire::{Frame, Intrinsics};
 use crate::camera::Camera;
-use crate::decode::read_header;
+use crate::describe::decode::read_header;
 use crate::service::{Distortion, FrameInput, FrameSource, KeypointsInput, ServiceError};
 
 /// What a request body carried.
@@ -510,7 +510,7 @@ pub fn wants_picture(pairs: &[(String, String)], accept: Option<&str>) -> Result
 mod tests {
     use super::super::wire::{DescribeRequest, Keypoint, KeypointSet, LocalizeRequest, MatchRequest};
     use super::*;
-    use crate::features::{from_precomputed, KeypointLimitSettings};
+    use crate::describe::features::{from_precomputed, KeypointLimitSettings};
     use crate::service::ErrorKind;
     use proptest::prelude::*;
 

@@ -45,8 +45,8 @@ class FrameFeatures:
 
 
 def grey_image(path: Path) -> np.ndarray:
-    """An image file as the service's decoder makes it grey (`src/decode.rs`: decoded unchanged, 16-bit scaled
-    by 1/257, BGR(A) to grey with OpenCV's weights)."""
+    """An image file as the service's decoder makes it grey (`src/describe/decode.rs`: decoded unchanged, 16-bit
+    scaled by 1/257, BGR(A) to grey with OpenCV's weights)."""
     import cv2
 
     img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
@@ -79,7 +79,7 @@ def _attach_gradients(npz_path: Path, scene_dir: Path, meta: dict, frames: list[
 def load_features(npz_path: Path, scene_dir: Path | None = None, gradients: bool = False) -> tuple[dict, list[FrameFeatures]]:
     """The frames of an export; with `scene_dir` and `gradients`, their ring gradients too (`ring_context.gradients`,
     for a model that reads them: the Rust export does not write them, so they are computed here from the frames'
-    images as `src/decode.rs` decodes them, and cached beside the features)."""
+    images as `src/describe/decode.rs` decodes them, and cached beside the features)."""
     z = np.load(npz_path)
     meta = json.loads(bytes(z["meta_json"]))
     frames = []
@@ -97,7 +97,14 @@ def load_features(npz_path: Path, scene_dir: Path | None = None, gradients: bool
 
 
 # The Rust sources whose behaviour decides the exported features: a change to any of them re-exports.
-EXTRACTION_SOURCES = ["src/decode.rs", "src/features.rs", "src/constellation.rs", "src/context.rs", "src/offline/training_features.rs", "Cargo.lock"]
+EXTRACTION_SOURCES = [
+    "src/describe/decode.rs",
+    "src/describe/features.rs",
+    "src/describe/constellation.rs",
+    "src/describe/ring_context.rs",
+    "src/offline/training_features.rs",
+    "Cargo.lock",
+]
 
 
 def extraction_key(extra_args: list[str] | None = None) -> str:
@@ -132,7 +139,7 @@ def export_features(scene_dir: Path, out: Path, extra_args: list[str] | None = N
 # contract's revision 2 (the Rust extractor's defaults until issue 39). A model that declares nothing is served
 # at it.
 REVISION_2_EXTRACTION = {"fast_threshold": 20, "max_keypoints": 1500, "levels": 6, "scale_factor": 1.2, "grid_cell": 32}
-# The Rust extractor's defaults: the client contract's revision 3 (E1 of issue 39, src/features.rs).
+# The Rust extractor's defaults: the client contract's revision 3 (E1 of issue 39, src/describe/features.rs).
 REVISION_3_EXTRACTION = {**REVISION_2_EXTRACTION, "levels": 8, "max_keypoints": 2000}
 
 

@@ -1,7 +1,7 @@
 """The ring context: a keypoint described with the image around it at fixed places in its own frame.
 
-Reference implementation in numpy of what `src/context.rs` computes (the service's and the export's one path;
-`tests/` check the two agree). For a keypoint at (x, y) with size s (pixels) and FREAK orientation theta:
+Reference implementation in numpy of what `src/describe/ring_context.rs` computes (the service's and the export's
+one path; `tests/` check the two agree). For a keypoint at (x, y) with size s (pixels) and FREAK orientation theta:
 
 - the sample positions are the centre and `RINGS` rings of `ANGLES` points, ring i at radius `RADII[i] * s`,
   point j at angle theta + 2 pi j / ANGLES (image axes, y down, as OpenCV's keypoint angle);

@@ -49,7 +49,7 @@ def export_onnx(model: torch.nn.Module, path: Path, opset: int = 18) -> Path:
     return path
 
 
-# The metadata keys the service reads (src/embedding.rs, "What a model declares").
+# The metadata keys the service reads (src/describe/embedding.rs, "What a model declares").
 EXTRACTION_KEY = "scone.extraction"
 MATCHER_KEY = "scone.matcher"
 

@@ -4,7 +4,7 @@ Two readings of the constellation: the paper's Table 1 (a 2-layer BiLSTM over th
 `encoder="lstm"`) and a permutation-invariant set encoder (`encoder="set"`, the committed model; see
 `SetEncoder` and the experiments in BENCHMARKS.md). Both take the same inputs and give the same output.
 
-Inputs are those of a whole image, as the Rust service builds them (`src/constellation.rs`):
+Inputs are those of a whole image, as the Rust service builds them (`src/describe/constellation.rs`):
 
 | name | dtype | shape | meaning |
 |---|---|---|---|

@@ -22,7 +22,7 @@
 //! `correct_px`), per slot of the constellation (k). It measures how much of a constellation survives the
 //! change, before any network sees it; with `neighbour_rules` it is measured for each candidate rule of
 //! `constellation::NeighbourRule` as well. **Ring share**: the same for the ring context
-//! ([`crate::context`]): of a keypoint's 112 ring samples, those whose image under the true H lies within
+//! ([`crate::describe::ring_context`]): of a keypoint's 112 ring samples, those whose image under the true H lies within
 //! `correct_px` of the same sample of its corresponding keypoint. Both come with their **chance level**, the
 //! same count with the warped members or samples turned 90 degrees about the keypoint; the summaries give the
 //! share above chance.
@@ -33,11 +33,11 @@
 
 use std::path::PathBuf;
 
-use crate::decode::GreyImage;
-use crate::embedding::Embedder;
+use crate::describe::decode::GreyImage;
+use crate::describe::embedding::Embedder;
 use crate::matching::{RatioTest, SconeMatcher};
 use crate::offline::eval::methods::{describe, putative_matches, Described, Method};
-use crate::progress::Progress;
+use crate::offline::progress::Progress;
 
 mod geometry;
 mod neighbours;

@@ -3,10 +3,10 @@
 
 use nalgebra::Matrix3;
 
-use crate::constellation::{self, Constellations, NeighbourRule};
-use crate::context::{sample_positions, KeypointFrame, SAMPLES};
-use crate::decode::GreyImage;
-use crate::features::Keypoint;
+use crate::describe::constellation::{self, Constellations, NeighbourRule};
+use crate::describe::decode::GreyImage;
+use crate::describe::features::Keypoint;
+use crate::describe::ring_context::{sample_positions, KeypointFrame, SAMPLES};
 use crate::offline::eval::homography::geometry::{apply, LocalGeometry};
 use crate::offline::eval::homography::protocol::HomographyConfig;
 use crate::offline::eval::homography::report::RuleShare;
@@ -100,7 +100,7 @@ pub fn neighbour_share(
     (n > 0).then(|| Share { share: sum / n as f64, chance: chance / n as f64, keypoints: n })
 }
 
-/// Mean share of ring samples ([`crate::context`], the centre left out) that survive `h`: sample n of a
+/// Mean share of ring samples ([`crate::describe::ring_context`], the centre left out) that survive `h`: sample n of a
 /// keypoint of `a`, sent through `h`, within `px` of sample n of its corresponding keypoint of `b` (its own
 /// size and FREAK angle), with its chance level; None when no keypoint corresponds.
 pub fn ring_share(a: &[Keypoint], b: &[Keypoint], h: &Matrix3<f64>, px: f64) -> Option<Share> {
@@ -137,7 +137,7 @@ pub(super) fn sequence_shares(
 ) -> Result<(Vec<PairShares>, Vec<RuleShare>), BoxError> {
     let kps: Vec<Vec<Keypoint>> = images
         .iter()
-        .map(|im| crate::features::extract(im, &cfg.extractor).map(|f| f.keypoints))
+        .map(|im| crate::describe::features::extract(im, &cfg.extractor).map(|f| f.keypoints))
         .collect::<Result<_, _>>()?;
     // Each pair's share under `rule`.
     let shares_of = |rule: NeighbourRule| -> Vec<Option<Share>> {

@@ -3,8 +3,8 @@
 
 use serde::{Deserialize, Serialize};
 
-use crate::constellation::{self, NeighbourRule};
-use crate::features::ExtractorSettings;
+use crate::describe::constellation::{self, NeighbourRule};
+use crate::describe::features::ExtractorSettings;
 use crate::matching::SconeMatcher;
 use crate::offline::eval::methods::Method;
 

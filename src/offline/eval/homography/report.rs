@@ -3,7 +3,7 @@
 
 use serde::{Deserialize, Serialize};
 
-use crate::constellation::NeighbourRule;
+use crate::describe::constellation::NeighbourRule;
 use crate::offline::eval::homography::protocol::HomographyConfig;
 use crate::offline::eval::methods::Method;
 use crate::offline::eval::stats::median;

@@ -5,7 +5,7 @@ use std::path::{Path, PathBuf};
 
 use nalgebra::Matrix3;
 
-use crate::decode::{decode_grey, GreyImage, ImageLimitSettings};
+use crate::describe::decode::{decode_grey, GreyImage, ImageLimitSettings};
 
 type BoxError = Box<dyn std::error::Error + Send + Sync>;
 

@@ -7,8 +7,8 @@ use super::geometry::{apply, corner_error, fit_homography, local_geometry};
 use super::neighbours::{neighbour_share, ring_share};
 use super::report::{rotation_bin, tilt_bin, zoom_bin};
 use super::sequence::Sequence;
-use crate::constellation;
-use crate::features::Keypoint;
+use crate::describe::constellation;
+use crate::describe::features::Keypoint;
 
 fn similarity(zoom: f64, deg: f64, tx: f64, ty: f64) -> Matrix3<f64> {
     let (s, c) = deg.to_radians().sin_cos();

@@ -23,7 +23,7 @@ use nalgebra::{Isometry3, Point3};
 use serde::{Deserialize, Serialize};
 
 use crate::camera::Camera;
-use crate::features::Keypoint;
+use crate::describe::features::Keypoint;
 use crate::map::localize::{Localization, LocalizeSettings};
 use crate::map::model::MapData;
 use crate::pose::{absolute_pose, rotation_error_deg, RANSAC_HEAD};

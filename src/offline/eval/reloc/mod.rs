@@ -39,12 +39,12 @@
 //! foreign frames), `tracks.rs` (the same for tracks), `report.rs` (records and summaries), `tables.rs` (the markdown); here, the run over the
 //! methods.
 
-use crate::decode::{decode_grey, ImageLimitSettings};
-use crate::embedding::Embedder;
+use crate::describe::decode::{decode_grey, ImageLimitSettings};
+use crate::describe::embedding::Embedder;
 use crate::map::localize::LocalizeSettings;
+use crate::offline::progress::Progress;
 use crate::offline::scene::Scene;
 use crate::pose::RansacSettings;
-use crate::progress::Progress;
 
 mod diagnose;
 mod protocol;

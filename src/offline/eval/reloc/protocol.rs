@@ -4,7 +4,7 @@
 
 use serde::{Deserialize, Serialize};
 
-use crate::features::ExtractorSettings;
+use crate::describe::features::ExtractorSettings;
 use crate::map::builder::BuildSettings;
 use crate::map::index::{IndexPoints, IndexSettings};
 use crate::map::localize::LocalizeSettings;

@@ -7,9 +7,9 @@ use std::time::Instant;
 use opencv::prelude::*;
 
 use crate::camera::{Camera, PoseConvention};
-use crate::decode::{decode_depth_png, decode_grey, GreyImage, ImageLimitSettings};
-use crate::embedding::Embedder;
-use crate::features::Features;
+use crate::describe::decode::{decode_depth_png, decode_grey, GreyImage, ImageLimitSettings};
+use crate::describe::embedding::Embedder;
+use crate::describe::features::Features;
 use crate::map::builder::{plan_keyframe, BuildSettings, Depth, KeyframeInput};
 use crate::map::index::{EmbeddingIndex, IndexSettings};
 use crate::map::localize::Localization;
@@ -19,9 +19,9 @@ use crate::offline::eval::methods::{describe, Described, Method};
 use crate::offline::eval::reloc::diagnose::{diagnose, Diagnosis, QueryTruth};
 use crate::offline::eval::reloc::protocol::RelocConfig;
 use crate::offline::eval::reloc::report::{MapFigures, QueryRecord};
+use crate::offline::progress::Progress;
 use crate::offline::scene::Scene;
 use crate::pose::{pose_covariance, pose_difference, rotation_error_deg};
-use crate::progress::Progress;
 
 type BoxError = Box<dyn std::error::Error + Send + Sync>;
 
@@ -154,7 +154,7 @@ impl<'a> MethodView<'a> {
                 camera: scene.camera,
                 features: &features,
                 embeddings: &self.vectors[i].0,
-                depth: depth_mat.as_ref().map(|m| Depth { image: m, scale: crate::decode::TUM_DEPTH_SCALE }),
+                depth: depth_mat.as_ref().map(|m| Depth { image: m, scale: crate::describe::decode::TUM_DEPTH_SCALE }),
                 external: None,
             };
             let record = plan_keyframe(&data, &input, build)?;
@@ -395,7 +395,7 @@ fn add_distractors(
             camera: other.camera,
             features: &features,
             embeddings: &v,
-            depth: depth.as_ref().map(|m| Depth { image: m, scale: crate::decode::TUM_DEPTH_SCALE }),
+            depth: depth.as_ref().map(|m| Depth { image: m, scale: crate::describe::decode::TUM_DEPTH_SCALE }),
             external: None,
         };
         let record = plan_keyframe(data, &input, build)?;

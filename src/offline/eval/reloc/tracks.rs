@@ -9,18 +9,18 @@ use nalgebra::{Isometry3, Point3, Translation3, Unit, UnitQuaternion, Vector3};
 use rand::{Rng, SeedableRng};
 
 use crate::camera::PoseConvention;
-use crate::decode::{decode_grey, ImageLimitSettings};
-use crate::embedding::Embedder;
+use crate::describe::decode::{decode_grey, ImageLimitSettings};
+use crate::describe::embedding::Embedder;
 use crate::map::localize::{localize, within_confidence_tolerance, LocalizeSettings};
 use crate::offline::eval::methods::describe;
 use crate::offline::eval::reloc::protocol::{RelocConfig, TrackNoise};
 use crate::offline::eval::reloc::report::QueryRecord;
 use crate::offline::eval::reloc::stages::{distance_to_map, features_of, vectors, BuiltMap, MethodView};
+use crate::offline::progress::Progress;
 use crate::offline::scene::Scene;
 use crate::pose::{
     pose_covariance, pose_difference, rotation_error_deg, track_pose, AbsolutePose, TrackFrame, TrackPose, TrackScale,
 };
-use crate::progress::Progress;
 
 type BoxError = Box<dyn std::error::Error + Send + Sync>;
 

@@ -85,13 +85,13 @@ pub struct Keypoint {
     pub octave: i32,
 }
 
-impl From<&crate::features::Keypoint> for Keypoint {
-    fn from(k: &crate::features::Keypoint) -> Self {
+impl From<&crate::describe::features::Keypoint> for Keypoint {
+    fn from(k: &crate::describe::features::Keypoint) -> Self {
         Self { x: k.x, y: k.y, size: k.size, angle: k.angle, response: k.response, octave: k.octave }
     }
 }
 
-impl From<&Keypoint> for crate::features::Keypoint {
+impl From<&Keypoint> for crate::describe::features::Keypoint {
     fn from(k: &Keypoint) -> Self {
         Self { x: k.x, y: k.y, size: k.size, angle: k.angle, response: k.response, octave: k.octave }
     }

@@ -138,8 +138,8 @@ pub struct Extraction {
     pub grid_cell: u32,
 }
 
-impl From<&crate::features::ExtractorSettings> for Extraction {
-    fn from(e: &crate::features::ExtractorSettings) -> Self {
+impl From<&crate::describe::features::ExtractorSettings> for Extraction {
+    fn from(e: &crate::describe::features::ExtractorSettings) -> Self {
         Self {
             fast_threshold: e.fast_threshold,
             max_keypoints: e.max_keypoints,

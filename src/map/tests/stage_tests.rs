@@ -4,7 +4,7 @@
 use nalgebra::{Isometry3, Point3, Translation3, UnitQuaternion};
 
 use crate::camera::{Camera, Pose};
-use crate::features::{Features, Keypoint, DESCRIPTOR_BYTES};
+use crate::describe::features::{Features, Keypoint, DESCRIPTOR_BYTES};
 use crate::map::builder::{plan_keyframe, BuildSettings, KeyframeInput};
 use crate::map::index::{EmbeddingIndex, IndexSettings};
 use crate::map::localize::{localize, Localization, LocalizeSettings, Prior};

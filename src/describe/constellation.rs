@@ -20,7 +20,7 @@
 //! central keypoint's own index, zero geometry and mask 0, so the network can ignore it and tensors keep
 //! their fixed `[N, k]` shape.
 
-use crate::features::Keypoint;
+use crate::describe::features::Keypoint;
 
 /// Number of values of relative geometry per neighbour: u, v, dθ, ln scale ratio.
 pub const GEOMETRY_DIM: usize = 4;

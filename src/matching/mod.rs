@@ -7,14 +7,19 @@
 //! match to either is correct, so with `same_corner_px > 0` candidates whose keypoint lies within that radius of
 //! the nearest one's are skipped and the ratio is taken against the nearest candidate beyond it. SConE is
 //! trained on the same rule: keypoints within 2 px of the positive are not negatives (`exclude_px`).
+//!
+//! The neighbours themselves come from [`nearest`]: brute force in both directions from one distance matrix
+//! (the mutual check), OpenCV's answer to the bit.
 
 use opencv::core::{DMatch, Mat, Vector, NORM_HAMMING, NORM_L2};
 use opencv::features2d::BFMatcher;
 use opencv::prelude::*;
 
+use crate::describe::features::{Features, DESCRIPTOR_BYTES};
 use crate::error::FeatureError;
-use crate::features::{Features, DESCRIPTOR_BYTES};
-use crate::nearest::nearest_both_ways;
+use crate::matching::nearest::nearest_both_ways;
+
+pub mod nearest;
 
 /// A putative correspondence: keypoint `query` of the first image, keypoint `train` of the second.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -207,7 +212,7 @@ pub enum SconeMatcher {
 }
 
 impl SconeMatcher {
-    /// The matcher a model declares (`scone.matcher` in its metadata, `crate::embedding`); a model that
+    /// The matcher a model declares (`scone.matcher` in its metadata, `crate::describe::embedding`); a model that
     /// declares none ships with `scale-aware`, the default of the models made before they declared one.
     pub fn declared(name: Option<&str>) -> Result<Self, String> {
         match name {

@@ -10,8 +10,8 @@ use object_store::memory::InMemory;
 use object_store::{ObjectStore, ObjectStoreExt};
 
 use crate::camera::Camera;
+use crate::describe::features::{Features, Keypoint, DESCRIPTOR_BYTES};
 use crate::error::MapError;
-use crate::features::{Features, Keypoint, DESCRIPTOR_BYTES};
 use crate::map::builder::{ExternalObservation, KeyframeInput};
 use crate::map::storage::backend::MapBackend;
 use crate::map::storage::s3::ObjectStorageBackend;

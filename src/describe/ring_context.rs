@@ -20,7 +20,7 @@ use opencv::core::{Mat, CV_32S, CV_64F};
 use opencv::imgproc;
 use opencv::prelude::*;
 
-use crate::decode::GreyImage;
+use crate::describe::decode::GreyImage;
 use crate::error::FeatureError;
 
 /// Ring radii in units of the keypoint's size.
@@ -109,7 +109,7 @@ pub fn sample(image: &GreyImage, keypoints: &[KeypointFrame]) -> Result<Vec<Cont
 
 /// An image's integral, made once, from which the ring contexts of any of its keypoints are sampled: what
 /// [`sample`] does in one call, for a caller that samples an image's keypoints in parts (the pipelined
-/// describe, `crate::pipeline`).
+/// describe, `crate::describe::pipeline`).
 pub struct RingSampler<'a> {
     image: &'a GreyImage,
     integral: Mat,

@@ -7,10 +7,10 @@ use std::sync::Arc;
 
 use fail::FailScenario;
 
-use super::tests::{keyframe_record, meta, write};
+use super::{keyframe_record, meta, write};
 use crate::camera::Camera;
+use crate::describe::features::Features;
 use crate::error::MapError;
-use crate::features::Features;
 use crate::map::index::{EmbeddingIndex, IndexSettings};
 use crate::map::localize::{localize, LocalizeSettings};
 use crate::map::model::{MapData, NewObservation, Record};

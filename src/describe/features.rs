@@ -29,8 +29,8 @@ use opencv::prelude::*;
 use opencv::{imgproc, xfeatures2d};
 use serde::{Deserialize, Serialize};
 
-use crate::context::{self, Context, KeypointFrame, RingSampler, SAMPLES};
-use crate::decode::GreyImage;
+use crate::describe::decode::GreyImage;
+use crate::describe::ring_context::{self, Context, KeypointFrame, RingSampler, SAMPLES};
 use crate::error::FeatureError;
 
 /// Bytes in one FREAK descriptor (512 bits).
@@ -133,7 +133,7 @@ impl Keypoint {
 }
 
 /// Keypoints of one image with their FREAK descriptors (row `i` describes keypoint `i`), and their ring
-/// contexts when the model reads them ([`crate::context`]; empty otherwise).
+/// contexts when the model reads them ([`crate::describe::ring_context`]; empty otherwise).
 #[derive(Debug, Clone, Default, PartialEq)]
 pub struct Features {
     pub width: u32,
@@ -157,9 +157,9 @@ impl Features {
         self.keypoints.iter().map(|k| (k.x, k.y)).collect()
     }
 
-    /// Samples each keypoint's ring context ([`crate::context`]) on `image`, the image they were detected on.
+    /// Samples each keypoint's ring context ([`crate::describe::ring_context`]) on `image`, the image they were detected on.
     pub fn sample_context(&mut self, image: &GreyImage) -> Result<(), FeatureError> {
-        self.context = context::sample(image, &self.frames())?;
+        self.context = ring_context::sample(image, &self.frames())?;
         Ok(())
     }
 
@@ -423,7 +423,7 @@ pub fn from_precomputed(
     Ok(Features { width, height, keypoints: out, descriptors, context: Vec::new() })
 }
 
-/// Attaches the ring contexts a client computed ([`crate::context`], `SAMPLES` bytes per keypoint in
+/// Attaches the ring contexts a client computed ([`crate::describe::ring_context`], `SAMPLES` bytes per keypoint in
 /// keypoint order) to its validated keypoints.
 pub fn with_context(mut features: Features, context: &[u8]) -> Result<Features, FeatureError> {
     if context.len() != features.len() * SAMPLES {

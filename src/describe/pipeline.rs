@@ -8,12 +8,12 @@ use std::time::Instant;
 use opencv::core::{KeyPoint, Vector};
 use parking_lot::Mutex;
 
-use crate::context::RingSampler;
 use crate::cpu_pool;
-use crate::decode::{decode_grey, GreyImage, ImageLimitSettings};
-use crate::embedding::{Embedder, Lease, ROW_GROUP};
+use crate::describe::decode::{decode_grey, GreyImage, ImageLimitSettings};
+use crate::describe::embedding::{Embedder, Lease, ROW_GROUP};
+use crate::describe::features::{self, ExtractorSettings, Features};
+use crate::describe::ring_context::RingSampler;
 use crate::error::{EmbeddingError, FeatureError};
-use crate::features::{self, ExtractorSettings, Features};
 
 /// Wall time of each stage of a request, seconds, in order.
 #[derive(Debug, Clone, Default, PartialEq)]

@@ -7,7 +7,7 @@ use std::path::{Path, PathBuf};
 
 use fail::FailScenario;
 
-use super::tests::{hnsw_map, keyframe_record, meta, write};
+use super::{hnsw_map, keyframe_record, meta, write};
 use crate::error::MapError;
 use crate::map::index::EmbeddingIndex;
 use crate::map::model::MapData;

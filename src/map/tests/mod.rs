@@ -1,16 +1,22 @@
-//! Unit tests of the map data, storage and index.
+//! Unit tests of the map data, storage and index; the cache, the storage faults, the keyframe payloads and
+//! the relocalisation stages have a file each beside this one.
 
 use std::path::PathBuf;
 
 use crate::camera::Camera;
 use crate::camera::Pose;
-use crate::features::{Keypoint, DESCRIPTOR_BYTES};
+use crate::describe::features::{Keypoint, DESCRIPTOR_BYTES};
 use crate::map::index::{exact_search, EmbeddingIndex, IndexSettings};
 use crate::map::model::{Keyframe, MapData, MapMeta, NewObservation, Record};
 use crate::map::storage::local::LocalJournal;
 use crate::map::storage::snapshot::{decode_snapshot, encode_snapshot};
 
 use crate::test_dir::{temp_dir, TestDir};
+
+mod cache_tests;
+mod fault_tests;
+mod payload_tests;
+mod stage_tests;
 
 pub(crate) fn meta(dim: usize) -> MapMeta {
     MapMeta { id: "m".into(), model_id: "sha256:test".into(), k: 20, dim, created_unix_ms: 1 }
@@ -359,7 +365,7 @@ fn a_dump_from_another_model_or_damaged_is_rebuilt() {
     assert!(reloaded.is_approximate() && !reloaded.loaded_from_dump(), "another model's dump was used");
     // A dump of the right model with a damaged graph file is rebuilt too.
     index.dump(&dir, &data).unwrap();
-    let graph = crate::map::fault_tests::dump_file(&dir, ".hnsw.graph");
+    let graph = crate::map::tests::fault_tests::dump_file(&dir, ".hnsw.graph");
     let mut bytes = std::fs::read(&graph).unwrap();
     let mid = bytes.len() / 2;
     bytes[mid] ^= 0x55;
@@ -469,7 +475,7 @@ mod external {
     use opencv::core::{Mat, Scalar, CV_16U};
 
     use super::*;
-    use crate::features::Features;
+    use crate::describe::features::Features;
     use crate::map::builder::{plan, BuildSettings, Depth, ExternalObservation, KeyframeInput};
     use crate::map::storage::format::{encode_record, FORMAT_VERSION};
     use crate::map::storage::snapshot::{frame_snapshot, MapDataV1};
@@ -652,7 +658,7 @@ mod external {
 
 #[test]
 fn a_query_keypoint_cap_searches_the_strongest_keypoints_and_still_localises() {
-    use crate::features::Features;
+    use crate::describe::features::Features;
     use crate::map::localize::{localize, LocalizeSettings};
     let (n, dim) = (200usize, 48usize);
     let cam = Camera { fx: 500.0, fy: 500.0, cx: 320.0, cy: 240.0, width: 640, height: 480 };

@@ -10,7 +10,7 @@
 //! | | `neighbours` | int64 | [N, k] |
 //! | | `mask` | float32 | [N, k] |
 //! | | `relative` | float32 | [N, k, 4] |
-//! | ring ([`crate::context`]) | `context` | uint8 | [N, 113] |
+//! | ring ([`crate::describe::ring_context`]) | `context` | uint8 | [N, 113] |
 //!
 //! Output `embeddings`, float32 [N, D] (D = 48 for the shipped models), L2-normalised. All normalisation of
 //! the raw values happens inside the graph.
@@ -40,10 +40,10 @@ use parking_lot::Mutex;
 use serde::{Deserialize, Serialize};
 use sha2::{Digest, Sha256};
 
-use crate::constellation::{self, Constellations, GEOMETRY_DIM};
-use crate::context::SAMPLES;
+use crate::describe::constellation::{self, Constellations, GEOMETRY_DIM};
+use crate::describe::features::{ExtractorSettings, Features, DESCRIPTOR_BYTES};
+use crate::describe::ring_context::SAMPLES;
 use crate::error::EmbeddingError;
-use crate::features::{ExtractorSettings, Features, DESCRIPTOR_BYTES};
 
 /// Settings of the embedding runtime.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -128,7 +128,7 @@ fn environment(lib: &Path) -> Result<&'static ort::environment::Environment, Emb
 pub enum ModelInputs {
     /// The paper's constellation: each keypoint's `k` nearest keypoints with their relative geometry.
     Constellation { k: usize },
-    /// The ring context: the image around each keypoint at fixed places in its frame ([`crate::context`]).
+    /// The ring context: the image around each keypoint at fixed places in its frame ([`crate::describe::ring_context`]).
     RingContext,
 }
 
@@ -303,7 +303,7 @@ impl Embedder {
             width: 640,
             height: 480,
             keypoints: (0..n)
-                .map(|i| crate::features::Keypoint {
+                .map(|i| crate::describe::features::Keypoint {
                     x: 10.0 + (i % 8) as f32 * 20.0,
                     y: 10.0 + (i / 8) as f32 * 20.0,
                     size: 7.0,
@@ -343,7 +343,7 @@ impl Embedder {
         self.matcher.as_deref()
     }
 
-    /// Whether the model reads the ring context ([`crate::context`]), which then must come with the features.
+    /// Whether the model reads the ring context ([`crate::describe::ring_context`]), which then must come with the features.
     pub fn needs_context(&self) -> bool {
         self.inputs == ModelInputs::RingContext
     }
@@ -440,7 +440,7 @@ pub const SPLIT_FROM: usize = 256;
 pub const ROW_GROUP: usize = 64;
 
 /// One session of an [`Embedder`]'s pool, held until dropped: a caller that runs several inferences at once
-/// (the pipelined describe, `crate::pipeline`) holds one per thread.
+/// (the pipelined describe, `crate::describe::pipeline`) holds one per thread.
 pub struct Lease<'a> {
     embedder: &'a Embedder,
     session: parking_lot::MutexGuard<'a, Session>,

@@ -359,7 +359,7 @@ fn nearest_both_ways_in_bands(
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::features::DESCRIPTOR_BYTES;
+    use crate::describe::features::DESCRIPTOR_BYTES;
     use crate::matching::{embedding_mat, train_and_distance};
     use opencv::core::{DMatch, Vector};
     use opencv::features2d::BFMatcher;
@@ -396,8 +396,8 @@ mod tests {
         let (qm, tm) = (embedding_mat(&q, dim).unwrap(), embedding_mat(&t, dim).unwrap());
         let bytes: Vec<u8> = (0..(nq + nt) * DESCRIPTOR_BYTES).map(|_| rng.random::<u8>() & 0x11).collect();
         let (qb, tb) = (
-            crate::features::bits_mat(&bytes[..nq * DESCRIPTOR_BYTES]).unwrap(),
-            crate::features::bits_mat(&bytes[nq * DESCRIPTOR_BYTES..]).unwrap(),
+            crate::describe::features::bits_mat(&bytes[..nq * DESCRIPTOR_BYTES]).unwrap(),
+            crate::describe::features::bits_mat(&bytes[nq * DESCRIPTOR_BYTES..]).unwrap(),
         );
         // A mask admitting a third of the pairs, with query row 3 and train row 5 admitting none.
         let mut admitted: Vec<u8> = (0..nq * nt).map(|_| u8::from(rng.random_range(0..3) == 0)).collect();

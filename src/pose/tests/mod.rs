@@ -1,5 +1,6 @@
 //! Pose estimation on synthetic cameras and points: known motions recovered, duplicates, too few points, bad
-//! intrinsics, the stopping rule, and covariances that cover the truth.
+//! intrinsics, the stopping rule, and covariances that cover the truth; the track estimator's scenes are in
+//! `track_tests.rs` beside this one.
 
 use nalgebra::{Isometry3, Vector3};
 
@@ -7,6 +8,8 @@ use super::relative::representatives;
 use super::*;
 use crate::camera::{Camera, PoseConvention};
 use crate::error::PoseError;
+
+mod track_tests;
 
 fn cam() -> Camera {
     Camera { fx: 500.0, fy: 500.0, cx: 320.0, cy: 240.0, width: 640, height: 480 }
@@ -126,7 +129,7 @@ fn minimal_sample_estimators_recover_a_known_camera_among_four_outliers_per_inli
         );
         let Some(uv) = project(&c, &t_wc.inverse(), &x) else { continue };
         p3.push([x.x, x.y, x.z]);
-        let outlier = ((((i * 7919) % 613) as f32, ((i * 104_729) % 479) as f32));
+        let outlier = (((i * 7919) % 613) as f32, ((i * 104_729) % 479) as f32);
         p2.push(if i % 5 == 0 { uv } else { outlier });
     }
     // EPnP's 5-point samples are clean once in 3,000 draws here, and it is not asked to (the estimators

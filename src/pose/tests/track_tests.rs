@@ -7,7 +7,7 @@ use rand::{Rng, SeedableRng};
 use crate::camera::Camera;
 use crate::pose::{absolute_pose, rotation_error_deg, RansacSettings, TrackFrame, TrackScale, TrackerError};
 
-use super::track::track_pose;
+use crate::pose::track::track_pose;
 
 fn camera() -> Camera {
     Camera { fx: 500.0, fy: 500.0, cx: 320.0, cy: 240.0, width: 640, height: 480 }
