@@ -3,7 +3,7 @@
 green when the landmark projects within the precision radius under the true pose, red otherwise; the
 estimator's inliers ringed. From the match dumps of run.sh (`eval reloc --dump-matches`).
 
-    python figure.py --dumps OUT/matches/llff-goldcape --frame 040 --methods SConE,FREAK,SIFT --out fig.png
+    python figure.py --dumps OUT/matches/llff-goldcape --frame 040 --methods SConE,FREAK,SIFT --out fig.jpg
 (run with the training environment's Python, which has matplotlib.)
 """
 
@@ -53,7 +53,7 @@ def main():
     fig.suptitle(f"{d['scene']}, query {d['frame']}: 2D-3D matches against the far map", fontsize=12)
     fig.tight_layout(rect=(0, 0, 1, 0.94))
     args.out.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(args.out, dpi=90)
+    fig.savefig(args.out, dpi=80, **({"pil_kwargs": {"quality": 85}} if args.out.suffix == ".jpg" else {}))
 
 
 if __name__ == "__main__":
