@@ -88,17 +88,22 @@ fn duplicates_are_left_out_of_the_estimate_and_share_their_representative_flag()
     assert!(RansacSettings { duplicate_px: f64::NAN, ..Default::default() }.validate().is_err());
 }
 
+/// The `i`-th point of a fixed scatter 3-6.3 units in front of `cam()` at the origin.
+fn scattered(i: usize) -> Vector3<f64> {
+    Vector3::new(
+        ((i * 37) % 100) as f64 / 25.0 - 2.0,
+        ((i * 53) % 100) as f64 / 33.0 - 1.5,
+        3.0 + ((i * 71) % 100) as f64 / 30.0,
+    )
+}
+
 #[test]
 fn absolute_pose_recovers_a_known_camera() {
     let c = cam();
     let t_wc = Isometry3::new(Vector3::new(0.3, -0.2, -1.0), Vector3::new(0.1, 0.2, -0.05));
     let (mut p3, mut p2) = (Vec::new(), Vec::new());
     for i in 0..150 {
-        let x = Vector3::new(
-            ((i * 37) % 100) as f64 / 25.0 - 2.0,
-            ((i * 53) % 100) as f64 / 33.0 - 1.5,
-            3.0 + ((i * 71) % 100) as f64 / 30.0,
-        );
+        let x = scattered(i);
         if let Some(uv) = project(&c, &t_wc.inverse(), &x) {
             p3.push([x.x, x.y, x.z]);
             p2.push(if i % 5 == 0 { (uv.0 + 50.0, uv.1 + 30.0) } else { uv });
@@ -119,14 +124,10 @@ fn minimal_sample_estimators_recover_a_known_camera_among_four_outliers_per_inli
     let c = cam();
     let t_wc = Isometry3::new(Vector3::new(0.3, -0.2, -1.0), Vector3::new(0.1, 0.2, -0.05));
     let (mut p3, mut p2) = (Vec::new(), Vec::new());
-    // 60 inliers among 300 correspondences (20 %), the outliers' image points spread over the frame; the
-    // inliers first, as a ranked list would hold them, then interleaved so the head is not all inliers.
+    // Every fifth of 300 correspondences is an inlier (20 %); the outliers' image points are spread over the
+    // frame.
     for i in 0..300usize {
-        let x = Vector3::new(
-            ((i * 37) % 100) as f64 / 25.0 - 2.0,
-            ((i * 53) % 100) as f64 / 33.0 - 1.5,
-            3.0 + ((i * 71) % 100) as f64 / 30.0,
-        );
+        let x = scattered(i);
         let Some(uv) = project(&c, &t_wc.inverse(), &x) else { continue };
         p3.push([x.x, x.y, x.z]);
         let outlier = (((i * 7919) % 613) as f32, ((i * 104_729) % 479) as f32);
