@@ -58,6 +58,7 @@ use crate::pose::{absolute_pose, absolute_pose_unknown_focal, AbsolutePose, Rans
 pub struct LocalizeSettings {
     pub ratio: f32,
     pub knn: usize,
+    /// PnP's settings ([`RansacSettings::relocalisation`]).
     pub ransac: RansacSettings,
     pub min_inliers: usize,
     /// Only this many of the query's keypoints, the strongest by detector response, are searched in the
@@ -109,7 +110,7 @@ impl Default for LocalizeSettings {
         Self {
             ratio: crate::matching::DEFAULT_RATIO,
             knn: 4,
-            ransac: RansacSettings { threshold_px: 4.0, confidence: 0.999, max_iters: 2000, ..Default::default() },
+            ransac: RansacSettings::relocalisation(),
             min_inliers: 15,
             max_query_keypoints: 100,
             full_search_below_inliers: 100,
@@ -193,8 +194,7 @@ pub struct Localization {
     pub confidence: f64,
     /// The matched landmarks' positions, in the order of `matches`.
     pub points: Vec<[f64; 3]>,
-    /// Stage 1's matches (one per keypoint and per landmark) of the search the answer came from: what the
-    /// covisibility vote of stage 2 read. An evaluation reads them to tell where a query was lost.
+    /// Stage 1's matches of the search the answer came from, which stage 2's covisibility vote read.
     pub stage1: Vec<LandmarkMatch>,
     /// Wall time of the index search (with the ratio test), of PnP (every estimate), and of stages 2 and 3's
     /// own matching, seconds.
