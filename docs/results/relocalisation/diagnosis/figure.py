@@ -1,7 +1,7 @@
 #!/usr/bin/env python3
 """One far query as each method matched it: the query image with every 2D-3D match drawn at its keypoint,
 green when the landmark projects within the precision radius under the true pose, red otherwise; the
-estimator's inliers ringed. From the match dumps of run.sh (`eval reloc --dump-matches`).
+estimator's inliers ringed. From the match dumps of ../validation/run.sh (`eval reloc --dump-matches`).
 
     python figure.py --dumps OUT/matches/llff-goldcape --frame 040 --methods SConE,FREAK,SIFT --out fig.jpg
 (run with the training environment's Python, which has matplotlib.)

@@ -1,5 +1,5 @@
 #!/usr/bin/env python3
-"""Where each far query is lost, from `scone eval reloc` reports with diagnoses (run.sh).
+"""Where each far query is lost, from `scone eval reloc` reports with diagnoses (../validation/run.sh).
 
 Prints, per scene, every query that SIFT places within (0.25, 2 deg) and SConE does not, with the counts down
 the pipeline for both (reachable in the map / among the candidates, stage 1's correct matches, correct / all

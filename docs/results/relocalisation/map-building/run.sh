@@ -1,23 +1,10 @@
 #!/usr/bin/env bash
-# Map building with the known poses (RULE.md beside this file): far-map protocol, 100k distractor observations,
-# every method, every candidate estimator on the same map, on five training scenes. Then ../estimator/score.py reads both runs.
-#   docs/results/relocalisation/map-building/run.sh     (reports to $OUT, default $SCONE_PREFIX/work/reloc-map-building)
+# Map building with the known poses (RULE.md beside this file): the estimator selection's runs
+# (../estimator/run.sh) with the maps built from the keyframes' poses. Then score.py beside this file.
+#   docs/results/relocalisation/map-building/run.sh  (reports to $OUT, default $SCONE_PREFIX/work/reloc-map-building)
 set -euo pipefail
 here="$(cd "$(dirname "${BASH_SOURCE[0]}")/../../../.." && pwd)"
 # shellcheck source=scripts/env.sh
 . "$here/scripts/env.sh"
-B="$CARGO_TARGET_DIR/release/scone"
-D=${SCONE_DATA:-$here/../shared/data}/scenes
-out="${OUT:-$SCONE_PREFIX/work/reloc-map-building}"
-mkdir -p "$out"
-candidates=${CANDIDATES:-p3p:2000,usac:2000,usac-prosac:2000,usac-magsac:2000,usac-prosac-magsac:2000}
-for sc in ${SCENES:-llff-ethiopianhead llff-blowtorch llff-lemontea-office turntable-squirrel strecha-castle-P30}; do
-  foreign=$D/strecha-castle-P30
-  [ "$sc" = strecha-castle-P30 ] && foreign=$D/llff-lemontea-office
-  f="$out/far--$sc.json"
-  [ -s "$f" ] || "$B" eval reloc --scene "$D/$sc" --map-block 0:0.5 --methods scone,freak,sift \
-    --distractors "$D/7scenes-redkitchen,$D/sun3d-studyroom" --distractor-observations 100000 --distractor-stride 5 \
-    --foreign "$foreign" --foreign-stride 3 --opencv-threads 1 --embed-threads 1 --stages candidates,build --also-pnp "$candidates" \
-    --json "$f" > "$out/far--$sc.md" 2> "$out/far--$sc.log" || echo "FAILED far $sc"
-done
-echo "$out"
+OUT="${OUT:-$SCONE_PREFIX/work/reloc-map-building}" STAGES="candidates,build" \
+  exec bash "$here/docs/results/relocalisation/estimator/run.sh"
