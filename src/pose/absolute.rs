@@ -30,8 +30,8 @@ pub struct AbsolutePose {
 /// Correspondences the RANSAC hypotheses are drawn from (the best ones; see [`absolute_pose`]).
 pub const RANSAC_HEAD: usize = 300;
 
-/// solvePnPRansac (the estimator of `params.pnp`) on the best [`RANSAC_HEAD`] correspondences (pass them best first),
-/// then the inliers among all correspondences by reprojection error, refined with Levenberg-Marquardt.
+/// solvePnPRansac (the estimator of `params.pnp`) on the best [`RANSAC_HEAD`] correspondences (pass them best
+/// first), then the inliers among all correspondences by reprojection error, refined with Levenberg-Marquardt.
 /// `None` when fewer than `min_inliers` inliers support the pose.
 pub fn absolute_pose(
     points3d: &[[f64; 3]],

@@ -24,7 +24,7 @@ use serde::{Deserialize, Serialize};
 
 use crate::camera::Camera;
 use crate::describe::features::Keypoint;
-use crate::map::localize::{Localization, LocalizeSettings};
+use crate::map::localize::{LandmarkMatch, Localization, LocalizeSettings};
 use crate::map::model::MapData;
 use crate::pose::{absolute_pose, rotation_error_deg, RANSAC_HEAD};
 
@@ -93,6 +93,17 @@ pub(super) struct QueryTruth<'a> {
     pub within: (f64, f64),
 }
 
+impl QueryTruth<'_> {
+    /// Pixels between the match's keypoint and where the truth projects its landmark (infinite behind the
+    /// camera).
+    pub fn error_px(&self, data: &MapData, m: &LandmarkMatch) -> f64 {
+        let p = Point3::from(data.landmarks[&m.landmark].point);
+        let k = &self.keypoints[m.keypoint];
+        let seen = self.camera.project(&(self.truth.inverse() * p));
+        seen.map_or(f64::INFINITY, |(u, v)| (u - f64::from(k.x)).hypot(v - f64::from(k.y)))
+    }
+}
+
 /// The counts and the stage `out` was lost at.
 pub(super) fn diagnose(
     data: &MapData,
@@ -101,24 +112,17 @@ pub(super) fn diagnose(
     correct_matches: usize,
     params: &LocalizeSettings,
 ) -> Result<Diagnosis, Box<dyn std::error::Error + Send + Sync>> {
-    let w2c = q.truth.inverse();
-    let error_px = |landmark: u64, keypoint: usize| -> f64 {
-        let p = Point3::from(data.landmarks[&landmark].point);
-        let k = &q.keypoints[keypoint];
-        q.camera.project(&(w2c * p)).map_or(f64::INFINITY, |(u, v)| (u - f64::from(k.x)).hypot(v - f64::from(k.y)))
-    };
     let scene_keyframes: Vec<u64> = data.keyframes.keys().copied().filter(|&k| k < FIRST_DISTRACTOR_ID).collect();
     let reachable_map = reachable(data, &scene_keyframes, q);
     // The keyframes stage 2 reads (the covisibility vote on stage 1's matches); a distractor's adds nothing.
     let voted = data.covisible_keyframes(out.stage1.iter().map(|m| m.landmark), |_| true, params.candidate_keyframes);
     let voted: Vec<u64> = voted.into_iter().filter(|&k| k < FIRST_DISTRACTOR_ID).collect();
     let reachable_candidates = reachable(data, &voted, q);
-    let stage1_correct = out.stage1.iter().filter(|m| error_px(m.landmark, m.keypoint) <= q.precision_px).count();
+    let stage1_correct = out.stage1.iter().filter(|m| q.error_px(data, m) <= q.precision_px).count();
     let head = out.matches.len().min(RANSAC_HEAD);
-    let head_correct =
-        out.matches[..head].iter().filter(|m| error_px(m.landmark, m.keypoint) <= q.precision_px).count();
+    let head_correct = out.matches[..head].iter().filter(|m| q.error_px(data, m) <= q.precision_px).count();
     let threshold = params.ransac.threshold_px;
-    let true_inliers = out.matches.iter().filter(|m| error_px(m.landmark, m.keypoint) <= threshold).count();
+    let true_inliers = out.matches.iter().filter(|m| q.error_px(data, m) <= threshold).count();
     let within = |p: &Isometry3<f64>| {
         (p.translation.vector - q.truth.translation.vector).norm() <= q.within.0
             && rotation_error_deg(&p.rotation.to_rotation_matrix(), &q.truth.rotation.to_rotation_matrix())

@@ -103,9 +103,9 @@ pub fn evaluate(scene: &Scene, cfg: &RelocConfig, embedder: Option<&Embedder>) -
                 localize.ransac = RansacSettings { pnp: p.method, max_iters: p.max_iters, ..localize.ransac };
             }
             // Pictures are of the configuration's own answers.
-            let own = cap.is_none() && pnp.is_none();
-            let variant_cfg = RelocConfig { dump_matches: None, ..cfg.clone() };
-            let cfg = if own { cfg } else { &variant_cfg };
+            let variant_cfg =
+                (cap.is_some() || pnp.is_some()).then(|| RelocConfig { dump_matches: None, ..cfg.clone() });
+            let cfg = variant_cfg.as_ref().unwrap_or(cfg);
             let (mut records, foreign) = if cfg.track >= 2 {
                 let records = view.localise_tracks(&query_frames, &map_frames, &map, cfg, &localize, &mut progress)?;
                 (records, foreign_tracks(&map, method, cfg, &localize, embedder)?)

@@ -207,20 +207,16 @@ impl<'a> MethodView<'a> {
             let out = localize(data, &map.index, &features, &self.vectors[i].0, &query_camera, None, loc)?;
             let seconds = t.elapsed().as_secs_f64() + d.seconds;
             let gt = scene.frames[i].pose.unwrap();
-            let gt_cw = gt.inverse();
             let (baseline_to_map, angle_to_map_deg) = distance_to_map(scene, map_frames, &gt);
-            let correct = out
-                .matches
-                .iter()
-                .filter(|m| {
-                    let p = nalgebra::Point3::from(data.landmarks[&m.landmark].point);
-                    let k = &features.keypoints[m.keypoint];
-                    scene
-                        .camera
-                        .project(&(gt_cw * p))
-                        .is_some_and(|(u, v)| (u - k.x as f64).hypot(v - k.y as f64) <= cfg.precision_px)
-                })
-                .count();
+            // Matches are judged with the scene's camera (a query localised without its focal length too).
+            let truth = QueryTruth {
+                truth: &gt,
+                camera: &scene.camera,
+                keypoints: &features.keypoints,
+                precision_px: cfg.precision_px,
+                within: (0.25 * cfg.unit_scale, 2.0),
+            };
+            let correct = out.matches.iter().filter(|m| truth.error_px(data, m) <= cfg.precision_px).count();
             let (localised, te, re, inliers) = match &out.pose {
                 Some(p) => (
                     true,
@@ -237,13 +233,6 @@ impl<'a> MethodView<'a> {
                 out.pose.as_ref().map(|p| within_confidence_tolerance(p, &out.points, &gt));
             let diagnosis = match cfg.track < 2 && !query_camera.focal_unknown() {
                 true => {
-                    let truth = QueryTruth {
-                        truth: &gt,
-                        camera: &query_camera,
-                        keypoints: &features.keypoints,
-                        precision_px: cfg.precision_px,
-                        within: (0.25 * cfg.unit_scale, 2.0),
-                    };
                     let d = diagnose(data, &truth, &out, correct, loc)?;
                     if let Some(dir) = &cfg.dump_matches {
                         dump_matches(dir, self, i, &out, &truth, data, &d)?;
@@ -282,8 +271,7 @@ impl<'a> MethodView<'a> {
 }
 
 /// Writes one query's matches for a picture (`dump_matches`): `DIR/<method>--<frame>.json` with the image, the
-/// matches in the estimator's order (keypoint, where the truth projects the landmark, correct or not) and the
-/// diagnosis.
+/// matches in the estimator's order (keypoint, correct or not) and the diagnosis.
 fn dump_matches(
     dir: &std::path::Path,
     view: &MethodView,
@@ -293,18 +281,12 @@ fn dump_matches(
     data: &MapData,
     diagnosis: &Diagnosis,
 ) -> Result<(), BoxError> {
-    let w2c = q.truth.inverse();
     let matches: Vec<serde_json::Value> = out
         .matches
         .iter()
         .map(|m| {
             let k = &q.keypoints[m.keypoint];
-            let p = nalgebra::Point3::from(data.landmarks[&m.landmark].point);
-            let projected = q.camera.project(&(w2c * p));
-            let error = projected.map_or(f64::INFINITY, |(u, v)| (u - f64::from(k.x)).hypot(v - f64::from(k.y)));
-            serde_json::json!({
-                "x": k.x, "y": k.y, "projected": projected, "correct": error <= q.precision_px,
-            })
+            serde_json::json!({"x": k.x, "y": k.y, "correct": q.error_px(data, m) <= q.precision_px})
         })
         .collect();
     let inliers: Vec<usize> = out.pose.as_ref().map(|p| p.inliers.clone()).unwrap_or_default();
