@@ -25,6 +25,8 @@ import time
 import urllib.error
 import urllib.request
 
+import psutil
+
 HERE = os.path.dirname(os.path.abspath(__file__))
 LOAD = os.path.dirname(HERE)
 ROOT = os.path.dirname(LOAD)
@@ -34,7 +36,6 @@ import report  # noqa: E402
 SCENARIOS = ["describe", "localize", "match", "burst", "storm", "mixed", "soak", "settings"]
 SERVER_CORE = os.environ.get("SCONE_LOAD_SERVER_CPU", "0")
 GEN_CORE = os.environ.get("SCONE_LOAD_GEN_CPU", "1")
-CLK_TCK = os.sysconf("SC_CLK_TCK")
 
 
 def log(msg):
@@ -92,29 +93,27 @@ class Config:
 
 
 def proc_cpu_s(pid):
-    """utime + stime of a process (all its threads), seconds; None once it is gone."""
+    """User + system CPU time of a process (all its threads, not its children), seconds; None once it is gone."""
     try:
-        fields = open(f"/proc/{pid}/stat").read().rsplit(")", 1)[1].split()
-        return (int(fields[11]) + int(fields[12])) / CLK_TCK
-    except (OSError, IndexError, ValueError):
+        t = psutil.Process(pid).cpu_times()
+        return t.user + t.system
+    except psutil.Error:
         return None
 
 
 def proc_rss_kib(pid):
+    """Resident memory of a process, KiB; None once it is gone."""
     try:
-        for line in open(f"/proc/{pid}/status"):
-            if line.startswith("VmRSS:"):
-                return int(line.split()[1])
-    except OSError:
-        pass
-    return None
+        return psutil.Process(pid).memory_info().rss // 1024
+    except psutil.Error:
+        return None
 
 
 def machine_busy_s():
-    """CPU time spent by the whole machine (every core, every process), seconds."""
-    f = [int(x) for x in open("/proc/stat").readline().split()[1:]]
-    # user nice system idle iowait irq softirq steal
-    return (f[0] + f[1] + f[2] + f[5] + f[6] + f[7]) / CLK_TCK
+    """CPU time spent by the whole machine (every core, every process), seconds: everything but idle and
+    iowait."""
+    t = psutil.cpu_times()
+    return t.user + t.nice + t.system + t.irq + t.softirq + t.steal
 
 
 def wait_for_quiet_machine(cfg, pids=()):
@@ -636,7 +635,6 @@ def settings(cfg):
 def machine(cfg):
     lscpu = subprocess.run(["lscpu"], capture_output=True, text=True).stdout
     model = next((line.split(":", 1)[1].strip() for line in lscpu.splitlines() if line.startswith("Model name")), "?")
-    mem = next((line.split()[1] for line in open("/proc/meminfo") if line.startswith("MemTotal")), "0")
     try:
         rev = subprocess.run(["git", "-C", ROOT, "rev-parse", "--short", "HEAD"], capture_output=True, text=True).stdout.strip()
         dirty = subprocess.run(["git", "-C", ROOT, "status", "--porcelain", "--", "src", "Cargo.toml"],
@@ -647,7 +645,7 @@ def machine(cfg):
     return {
         "nproc": os.cpu_count(),
         "cpu": model,
-        "mem_gib": round(int(mem) / 1024 / 1024, 1),
+        "mem_gib": round(psutil.virtual_memory().total / 2**30, 1),
         "kernel": platform.release(),
         "os": next((line.split("=", 1)[1].strip().strip('"') for line in open("/etc/os-release") if line.startswith("PRETTY_NAME")), "?"),
         "git": rev + ("+dirty" if dirty else ""),
