@@ -25,7 +25,7 @@ use scone::describe::embedding::{default_model_path, Embedder, EmbedderSettings}
 use scone::describe::features::{self, ExtractorSettings};
 use scone::describe::pipeline;
 use scone::matching::{match_hamming, match_l2, match_scone, RatioTest, SconeFrame, SconeMatcher};
-use scone::pose::{relative_pose, EssentialMethod, RansacSettings};
+use scone::pose::{absolute_pose, relative_pose, EssentialMethod, PnpMethod, RansacSettings};
 
 fn bench(c: &mut Criterion) {
     features::set_opencv_threads(1).unwrap();
@@ -154,6 +154,38 @@ fn bench(c: &mut Criterion) {
         g.bench_function(name, |b| b.iter(|| relative_pose(black_box(&p1), &p2, &cam, &cam, &params).unwrap()));
     }
     g.finish();
+    // Relocalisation's PnP (pose::absolute_pose) on 300 2D-3D matches: a near query (80 % inliers) and far ones
+    // (30 % and 10 %, where EPnP's 5-point samples run into the cap), the default (USAC) against EPnP.
+    let mut g = c.benchmark_group("absolute_pose_300_matches");
+    let usac = RansacSettings::relocalisation();
+    let epnp = RansacSettings { pnp: PnpMethod::Epnp, ..usac };
+    for inliers in [0.8, 0.3, 0.1] {
+        let (p3, p2) = synthetic_query(300, inliers);
+        for (name, params) in [("usac", usac), ("epnp", epnp)] {
+            g.bench_function(format!("{name}_{:.0}pct_inliers", inliers * 100.0), |b| {
+                b.iter(|| absolute_pose(black_box(&p3), &p2, &cam, &params, 15).unwrap())
+            });
+        }
+    }
+    g.finish();
+}
+
+/// `n` 2D-3D matches of a camera at the origin looking along +z at points 3-8 m ahead, 0.5 px noise, a share
+/// `inliers` of them right and the rest with random pixels, in random order.
+fn synthetic_query(n: usize, inliers: f64) -> (Vec<[f64; 3]>, Points) {
+    use rand::{Rng, SeedableRng};
+    let mut rng = rand::rngs::StdRng::seed_from_u64(11);
+    let (mut p3, mut p2) = (Vec::new(), Vec::new());
+    for _ in 0..n {
+        let (u, v, z) = (rng.random_range(0.0..640.0), rng.random_range(0.0..480.0), rng.random_range(3.0..8.0));
+        p3.push([(u - 320.0) / 500.0 * z, (v - 240.0) / 500.0 * z, z]);
+        p2.push(if rng.random_bool(inliers) {
+            ((u + rng.random_range(-0.5..0.5)) as f32, (v + rng.random_range(-0.5..0.5)) as f32)
+        } else {
+            (rng.random_range(0.0..640.0) as f32, rng.random_range(0.0..480.0) as f32)
+        });
+    }
+    (p3, p2)
 }
 
 /// `n` correspondences between two views of random points 4-8 m ahead (0.5 m baseline, 5° yaw), 0.3 px
