@@ -193,12 +193,8 @@ fn the_covariance_covers_the_truth_in_every_convention_and_the_focal_length_is_e
         })
         .map(|p| p.coords)
         .collect();
-    let conventions =
-        [PoseConvention::OpencvCameraToWorld, PoseConvention::OpencvWorldToCamera, PoseConvention::OpenglCameraToWorld];
-    let trials = 400;
-    let mut inside = [0usize; 3];
-    let params = RansacSettings { threshold_px: 4.0, confidence: 0.999, max_iters: 2000, ..Default::default() };
-    for _ in 0..trials {
+    // The points as the camera sees them, with fresh pixel noise on each call.
+    let mut noisy_view = || {
         let (mut p3, mut p2) = (Vec::new(), Vec::new());
         for p in &points {
             if let Some((u, v)) = project(&c, &truth.inverse(), p) {
@@ -206,6 +202,15 @@ fn the_covariance_covers_the_truth_in_every_convention_and_the_focal_length_is_e
                 p2.push((u + gauss() as f32, v + gauss() as f32));
             }
         }
+        (p3, p2)
+    };
+    let conventions =
+        [PoseConvention::OpencvCameraToWorld, PoseConvention::OpencvWorldToCamera, PoseConvention::OpenglCameraToWorld];
+    let trials = 400;
+    let mut inside = [0usize; 3];
+    let params = RansacSettings { threshold_px: 4.0, confidence: 0.999, max_iters: 2000, ..Default::default() };
+    for _ in 0..trials {
+        let (p3, p2) = noisy_view();
         let pose = absolute_pose(&p3, &p2, &c, &params, 15).unwrap().unwrap();
         let cov = pose.covariance_w2c.unwrap();
         for (n, conv) in conventions.iter().enumerate() {
@@ -228,13 +233,7 @@ fn the_covariance_covers_the_truth_in_every_convention_and_the_focal_length_is_e
     let unknown = Camera { fx: 0.0, fy: 0.0, ..c };
     let (mut covered, trials) = (0, 120);
     for _ in 0..trials {
-        let (mut p3, mut p2) = (Vec::new(), Vec::new());
-        for p in &points {
-            if let Some((u, v)) = project(&c, &truth.inverse(), p) {
-                p3.push([p.x, p.y, p.z]);
-                p2.push((u + gauss() as f32, v + gauss() as f32));
-            }
-        }
+        let (p3, p2) = noisy_view();
         let pose = absolute_pose_unknown_focal(&p3, &p2, &unknown, &params, 15).unwrap().unwrap();
         assert!((pose.focal - c.fx).abs() < 0.05 * c.fx, "focal {}", pose.focal);
         let sigma = pose_covariance(PoseConvention::default(), &pose.camera_to_world, &pose.covariance_w2c.unwrap());
