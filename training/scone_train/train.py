@@ -65,10 +65,11 @@ def load_units(cfg: dict, rendered_root: Path | None = None) -> tuple[list[Unit]
         for s in tqdm(wide, desc="wide features + landmarks", leave=False):
             train.append(build_unit(s, cache / wide_root.name, name=f"wide-{s.name}", extractor_args=args, gradients=grads))
     if d.get("real_split"):
-        # The real training scenes, split by scone_train.data.splits (written down before training on them).
-        from .data.splits import SPLIT, part, scene_dir
+        # The real training scenes, split by scone_train.data.splits (written down before training on them):
+        # `real_split: true` the five of the shipped recipe, `real_split: nine` those and the four orbits.
+        from .data.splits import part, scene_dir, scene_set
 
-        for name, spec in SPLIT.items():
+        for name, spec in scene_set(d["real_split"]).items():
             if not scene_dir(name).is_dir():
                 continue
             geo = C.GeometryParams(**spec.get("geometry", {}))

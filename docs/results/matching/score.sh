@@ -3,7 +3,7 @@
 # the pair protocol on each part (3 seeds) and the exact warps, for SConE with the given matchers and for FREAK
 # on the same keypoints. Reports go to $OUT (default $SCONE_PREFIX/work/i39/<name>).
 #   docs/results/matching/score.sh NAME MODEL.onnx "plain union" [extractor flags...]
-# Selection parts: python -m scone_train.data.splits --out $SCONE_PREFIX/work/sel (written once).
+# Selection parts: python -m scone_train.data.splits [--scenes nine] --out $SCONE_PREFIX/work/sel (written once).
 # Warps: python -m scone_train.data.warps --role selection --per-scene 4 --out $SCONE_PREFIX/work/warps/selection-g2
 #        (validation: --role validation --out .../validation-g2, generated once before any candidate was scored).
 set -euo pipefail
@@ -22,6 +22,10 @@ if [ "${SPLIT:-selection}" = validation ]; then
 else
   S=$SCONE_PREFIX/work/sel
   parts="$S/strecha-castle-P30-sel:10 $S/7scenes-redkitchen-sel:20 $S/sun3d-studyroom-sel:20 $S/middlebury-templeRing-sel:10 $S/liberty-internet-sel:27"
+  # ORBITS=1: the four orbits' selection arcs too (python -m scone_train.data.splits --scenes nine --out $S).
+  if [ "${ORBITS:-0}" = 1 ]; then
+    parts="$parts $S/llff-ethiopianhead-sel:13 $S/llff-blowtorch-sel:16 $S/llff-lemontea-office-sel:13 $S/turntable-squirrel-sel:8"
+  fi
   warps="$SCONE_PREFIX/work/warps/selection-g2"
 fi
 for m in $matchers; do

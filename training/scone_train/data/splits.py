@@ -1,6 +1,6 @@
 """The real-data split: which frames of each training scene train, and which form the selection split.
 
-Written down before any model was trained on these scenes (docs/model-experiments.md, session 7). The selection
+Each part was written down before any model was trained on its scene (docs/model-experiments.md). The selection
 parts are contiguous blocks (7-Scenes, SUN3D, templeRing) or the last images in file order (liberty, castle);
 nothing of the validation scenes appears here. `python -m scone_train.data.splits --out DIR` writes each selection
 part as a scene directory (a subset `rgb.txt`, the source's poses, camera and images by symlink), so
@@ -48,8 +48,43 @@ SPLIT = {
 }
 
 
+# The four object and room orbits added to the training scenes (SfM or turntable poses, no depth), each split into
+# a training part and a selection arc of about a quarter of the orbit, with unused frames between them so that
+# no selection view lies within about 18 degrees of a training view (azimuths of the camera centres in the plane
+# they span). llff-blowtorch's file order is not the orbit's, so its parts are listed by stamp: the selection arc
+# is the views at 95-150 degrees of azimuth, the unused buffer 75-95 and 150-170. Labelling tolerances by the
+# rule above, from `python -m scone_train.data.residuals --gaps 1,2,3,5` (p75 of the epipolar error): the LLFF
+# scenes 0.31-0.50 px at gaps up to 5 -> 1 px, linked 5 frames apart along the orbit (about 21 degrees for
+# ethiopianhead, 14 for lemontea-office) or, for blowtorch, to the 8 views with the nearest optical axes;
+# turntable-squirrel 0.83 / 1.61 / 2.69 px at gaps 1 / 2 / 3 -> 1.6 px, linked 2 frames (20 degrees) apart.
+ORBITS = {
+    "llff-ethiopianhead": {"source": "shared", "train": "0-46", "select": "50-62", "window": 13,
+                           "geometry": {"window": 5}},
+    "llff-blowtorch": {"source": "shared",
+                       "train": "0-3,9-21,25-28,31-46,48,57-66",
+                       "select": "4-6,22-24,30,47,49-56", "window": 16,
+                       "geometry": {"neighbours": 8}},
+    "llff-lemontea-office": {"source": "shared", "train": "0-40", "select": "44-56", "window": 13,
+                             "geometry": {"window": 5}},
+    "turntable-squirrel": {"source": "shared", "train": "0-23", "select": "26-33", "window": 8,
+                           "geometry": {"window": 2, "epi_px": 1.6, "third_px": 2.4}},
+}
+
+# Which real training scenes a config trains on (`data.real_split`): `true` or "five" for the five above (the
+# shipped model's recipe), "nine" for those and the four orbits.
+SCENE_SETS = {"five": SPLIT, "nine": {**SPLIT, **ORBITS}}
+
+
+def scene_set(which: bool | str = "five") -> dict:
+    """The split of the real training scenes a config names (`data.real_split`)."""
+    key = "five" if which is True else which
+    if key not in SCENE_SETS:
+        raise ValueError(f"real_split: {which!r}; known: true, {', '.join(SCENE_SETS)}")
+    return SCENE_SETS[key]
+
+
 def scene_dir(name: str) -> Path:
-    if SPLIT[name]["source"] == "refined":
+    if SCENE_SETS["nine"][name]["source"] == "refined":
         refined = prefix_dir() / "data" / "refined" / name
         if not (refined / "groundtruth.txt").exists():
             raise FileNotFoundError(f"{refined}: run python -m scone_train.data.refine_camera --scene {name} first")
@@ -74,15 +109,16 @@ def part(name: str, which: str) -> tuple[Path, list[int]]:
     """A scene's source directory and the `rgb.txt` indices of its "train" or "select" part."""
     src = scene_dir(name)
     stamps = [r.split()[0] for r in (src / "rgb.txt").read_text().splitlines() if r.strip() and r[0] != "#"]
-    return src, frames(SPLIT[name][which], stamps)
+    return src, frames(SCENE_SETS["nine"][name][which], stamps)
 
 
-def exported_frames(cache: Path, which: str, per_scene: int, skip: int = 0, spread: int = 1) -> dict[str, list]:
+def exported_frames(cache: Path, which: str, per_scene: int, skip: int = 0, spread: int = 1,
+                    scenes: dict = SPLIT) -> dict[str, list]:
     """Each real training scene's Rust-exported frames (`<cache>/<scene>.features.npz`) of its `which` part
     ("train" or "select"): at most `per_scene`, evenly spaced with a step of len(part) // (per_scene * spread),
     starting at `skip`. Scenes without exported features are left out; none at all is an error."""
     out = {}
-    for name in SPLIT:
+    for name in scenes:
         npz = cache / f"{name}.features.npz"
         if not npz.exists():
             continue
@@ -95,10 +131,12 @@ def exported_frames(cache: Path, which: str, per_scene: int, skip: int = 0, spre
     return out
 
 
-def write_selection_scenes(out: Path) -> dict[str, tuple[Path, int]]:
+def write_selection_scenes(out: Path, scenes: dict = SPLIT) -> dict[str, tuple[Path, int]]:
     """Each scene's selection part as a scene directory under `out`: name -> (directory, eval window)."""
     made = {}
-    for name, spec in SPLIT.items():
+    for name, spec in scenes.items():
+        if not scene_dir(name).is_dir():
+            continue
         src = scene_dir(name)
         scene = load_scene(src)
         keep = frames(spec["select"], scene.stamps)
@@ -118,8 +156,9 @@ def write_selection_scenes(out: Path) -> dict[str, tuple[Path, int]]:
 def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("--out", required=True)
+    ap.add_argument("--scenes", default="five", choices=sorted(SCENE_SETS), help="which real training scenes")
     args = ap.parse_args()
-    for name, (d, window) in write_selection_scenes(Path(args.out)).items():
+    for name, (d, window) in write_selection_scenes(Path(args.out), SCENE_SETS[args.scenes]).items():
         print(f"{name}\t{d}\t{window}")
 
 

@@ -1,6 +1,6 @@
 """Scores a candidate on the real selection split with the pair protocol (`scone eval pairs`).
 
-`python -m scone_train.evaluation.selection_pairs --name NAME [--model M.onnx] [--scone-matcher plain|union|rerank] [--seeds 3]`
+`python -m scone_train.evaluation.selection_pairs --name NAME [--model M.onnx] [--scone-matcher plain|union|rerank] [--seeds 3] [--scenes five|nine]`
 
 Writes the selection parts as scene directories (scone_train.data.splits), runs `scone eval pairs --methods
 scone,freak` on each with its window, and prints one markdown row per part plus the mean; the reports go to
@@ -16,14 +16,15 @@ from pathlib import Path
 
 import numpy as np
 
-from ..data.splits import write_selection_scenes
+from ..data.splits import SCENE_SETS, write_selection_scenes
 from ..paths import prefix_dir, scone_binary
 
 
-def reports(out: Path, model: str | None, matcher: str, seeds: int, methods: str = "scone,freak") -> dict[str, dict]:
+def reports(out: Path, model: str | None, matcher: str, seeds: int, methods: str = "scone,freak",
+            scene_set: str = "five") -> dict[str, dict]:
     """`scone eval pairs` on every selection part with its window: part -> report, cached as `out/<part>.json`."""
     out.mkdir(parents=True, exist_ok=True)
-    scenes = write_selection_scenes(prefix_dir() / "data" / "selection")
+    scenes = write_selection_scenes(prefix_dir() / "data" / "selection", SCENE_SETS[scene_set])
     result = {}
     for part, (d, window) in scenes.items():
         report = out / f"{part}.json"
@@ -38,10 +39,11 @@ def reports(out: Path, model: str | None, matcher: str, seeds: int, methods: str
     return result
 
 
-def score(name: str, model: str | None, matcher: str, seeds: int, methods: str = "scone,freak") -> dict:
+def score(name: str, model: str | None, matcher: str, seeds: int, methods: str = "scone,freak",
+          scene_set: str = "five") -> dict:
     out = prefix_dir() / "runs" / "selection" / name
     rows = {}
-    for part, r in reports(out, model, matcher, seeds, methods).items():
+    for part, r in reports(out, model, matcher, seeds, methods, scene_set).items():
         rows[part] = {s["method"]: {"auc10": s["auc10"], "precision": s["match_precision"], "matches": s["mean_matches"],
                                     "pairs": s["pairs"]} for s in r["summaries"]}
     methods_seen = list(next(iter(rows.values())).keys())
@@ -95,12 +97,13 @@ def main() -> None:
     ap.add_argument("--scone-matcher", default="plain")
     ap.add_argument("--seeds", type=int, default=3)
     ap.add_argument("--methods", default="scone,freak")
+    ap.add_argument("--scenes", default="five", choices=sorted(SCENE_SETS), help="which real training scenes' selection parts")
     ap.add_argument("--by-angle", nargs="+", default=None, help="only print the angle-bin table of these runs")
     args = ap.parse_args()
     if args.by_angle:
         print(by_angle(args.by_angle))
         return
-    r = score(args.name, args.model, args.scone_matcher, args.seeds, args.methods)
+    r = score(args.name, args.model, args.scone_matcher, args.seeds, args.methods, args.scenes)
     print(f"{args.name} (matcher {args.scone_matcher}, model {args.model or 'shipped'})")
     print(markdown(r))
 

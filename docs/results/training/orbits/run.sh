@@ -1,0 +1,24 @@
+#!/usr/bin/env bash
+# Relocalisation on the four orbits' selection arcs (RULE.md beside this file): far-map protocol inside each arc,
+# 100k distractor observations, castle's every 3rd frame as foreign frames, the service's estimator; SConE with
+# the model given beside FREAK and SIFT. Reports to $OUT (default $SCONE_PREFIX/work/orbits-reloc/NAME).
+#   docs/results/training/orbits/run.sh NAME MODEL.onnx
+# The arcs: python -m scone_train.data.splits --scenes nine --out $SCONE_PREFIX/work/sel (from training/).
+set -euo pipefail
+here="$(cd "$(dirname "${BASH_SOURCE[0]}")/../../../.." && pwd)"
+# shellcheck source=scripts/env.sh
+. "$here/scripts/env.sh"
+name=$1; model=$2
+B="$CARGO_TARGET_DIR/release/scone"
+D=${SCONE_DATA:-$here/../shared/data}/scenes
+S=$SCONE_PREFIX/work/sel
+out="${OUT:-$SCONE_PREFIX/work/orbits-reloc/$name}"
+mkdir -p "$out"
+for arc in llff-ethiopianhead-sel llff-blowtorch-sel llff-lemontea-office-sel turntable-squirrel-sel; do
+  f="$out/far--$arc.json"
+  [ -s "$f" ] || "$B" eval reloc --scene "$S/$arc" --map-block 0:0.5 --methods "${METHODS:-scone,freak,sift}" \
+    --model "$model" --distractors "$D/7scenes-redkitchen,$D/sun3d-studyroom" --distractor-observations 100000 \
+    --distractor-stride 5 --foreign "$D/strecha-castle-P30" --foreign-stride 3 --opencv-threads 1 --embed-threads 1 \
+    --json "$f" > "$out/far--$arc.md" 2> "$out/far--$arc.log" || echo "FAILED $arc"
+done
+echo "$out"
