@@ -92,7 +92,7 @@ def parse_metrics(text):
         except ValueError:
             continue
         lab = dict(re.findall(r'(\w+)="([^"]*)"', labels))
-        if name.startswith("scone_pool_rejected"):
+        if name == "scone_pool_rejected_total":
             out["pool_rejected"] += v
         elif name.startswith("scone_stage_duration_seconds_sum"):
             stages.setdefault(lab.get("stage", "?"), [0.0, 0.0])[0] += v

@@ -7,11 +7,11 @@ use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 
-use crate::cpu_pool::{CpuPool, PoolError};
+use crate::cpu_pool::{CpuPool, PoolError, PoolStats};
 use crate::server::auth::{self, Authorized};
 use crate::server::metrics;
 use crate::server::operation::Operation;
-use crate::service::{Map, Service, ServiceError};
+use crate::service::{Holdings, Map, Service, ServiceError};
 use crate::settings::Settings;
 
 /// Everything a request handler needs.
@@ -25,6 +25,16 @@ pub struct App {
     /// Maps loaded at once (lazy mode): a burst of requests for cold maps loads them two at a time instead of
     /// all together past the cache's budget.
     pub(crate) map_loads: tokio::sync::Semaphore,
+}
+
+impl metrics::Source for App {
+    fn holdings(&self) -> Holdings {
+        self.service.holdings()
+    }
+
+    fn pool(&self) -> &PoolStats {
+        self.pool.stats()
+    }
 }
 
 /// What a request works on, found before its work is queued: nothing in particular ([`NoMap`]), or one map

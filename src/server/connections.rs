@@ -23,6 +23,9 @@
 //! A connection the server closes lingers ([`LINGER`], as nginx's `lingering_close`): after its FIN it reads
 //! and discards until the client closes too, so the last response reaches a client that was still sending.
 //!
+//! They are written here, on the socket, because hyper's server has no idle-connection timeout and no timeout
+//! on a write that makes no progress, and its header-read timeout is HTTP/1.1's only (tonic's server has none).
+//!
 //! How: the accepted socket is wrapped in a [`Conn`] that enforces the times on its own reads and writes;
 //! the transport tells it when requests begin and end ([`Activity::begin`], a guard that lives until the
 //! response body is done), which is what "in flight" means here. The rules are evaluated only while a

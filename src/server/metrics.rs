@@ -1,20 +1,25 @@
-//! Prometheus metrics: requests and latency per transport, route and status; time per pipeline stage;
-//! maps, keyframes and observations held; the CPU pool's queue; request body bytes read. Counts of maps are
-//! read at scrape time.
+//! Prometheus metrics. Counted as they happen: requests and latency per transport, route and status; time per
+//! pipeline stage; request body bytes read. Read at each scrape from where they are kept ([`Source`], encoded
+//! by a prometheus-client [`Collector`]): maps, keyframes and observations held, the map cache's and object
+//! storage's counts, the CPU pool's queue and its refusals.
 
+use std::fmt;
 use std::pin::Pin;
-use std::sync::atomic::{AtomicU64, Ordering};
+use std::sync::atomic::Ordering;
+use std::sync::Weak;
 use std::task::{Context, Poll};
 
 use axum::body::Bytes;
 
 use parking_lot::Mutex;
+use prometheus_client::collector::Collector;
 use prometheus_client::encoding::text::encode;
-use prometheus_client::encoding::EncodeLabelSet;
-use prometheus_client::metrics::counter::Counter;
+use prometheus_client::encoding::{DescriptorEncoder, EncodeCounterValue, EncodeLabelSet, EncodeMetric};
+use prometheus_client::metrics::counter::{ConstCounter, Counter};
 use prometheus_client::metrics::family::Family;
-use prometheus_client::metrics::gauge::Gauge;
+use prometheus_client::metrics::gauge::ConstGauge;
 use prometheus_client::metrics::histogram::{exponential_buckets, Histogram};
+use prometheus_client::metrics::MetricType;
 use prometheus_client::registry::Registry;
 
 use crate::cpu_pool::PoolStats;
@@ -44,36 +49,98 @@ struct StageLabels {
     stage: String,
 }
 
-#[derive(Clone, Debug, Hash, PartialEq, Eq, EncodeLabelSet)]
-struct EventLabels {
-    event: String,
-}
-
-#[derive(Clone, Debug, Hash, PartialEq, Eq, EncodeLabelSet)]
-struct OperationLabels {
-    operation: String,
-}
-
-type Seconds = Counter<f64, AtomicU64>;
-
-/// Brings a counter up to a count kept elsewhere (the store's atomics, read at scrape time).
-fn catch_up(counter: &Counter, total: u64) {
-    let behind = total.saturating_sub(counter.get());
-    if behind > 0 {
-        counter.inc_by(behind);
-    }
-}
-
-fn catch_up_seconds(counter: &Seconds, total: f64) {
-    let behind = total - counter.get();
-    if behind > 0.0 {
-        counter.inc_by(behind);
-    }
-}
-
 fn latency_histogram() -> Histogram {
     // 1 ms .. ~33 s
     Histogram::new(exponential_buckets(0.001, 2.0, 16))
+}
+
+/// Where the values read at scrape time are kept (the server's `App`).
+pub trait Source: Send + Sync + 'static {
+    /// What the service holds, with the map cache's and object storage's counts since start.
+    fn holdings(&self) -> Holdings;
+    /// The CPU pool's queue, and its refusals since start.
+    fn pool(&self) -> &PoolStats;
+}
+
+/// Encodes, at each scrape, what its [`Source`] holds then (nothing once the source is gone: the source owns
+/// the metrics, so it is held weakly).
+struct ReadAtScrape(Weak<dyn Source>);
+
+impl fmt::Debug for ReadAtScrape {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        f.write_str("ReadAtScrape")
+    }
+}
+
+fn gauge(encoder: &mut DescriptorEncoder, name: &str, help: &str, value: impl TryInto<i64>) -> fmt::Result {
+    let value = value.try_into().unwrap_or(i64::MAX);
+    ConstGauge::new(value).encode(encoder.encode_descriptor(name, help, None, MetricType::Gauge)?)
+}
+
+fn counter(encoder: &mut DescriptorEncoder, name: &str, help: &str, value: impl EncodeCounterValue) -> fmt::Result {
+    ConstCounter::new(value).encode(encoder.encode_descriptor(name, help, None, MetricType::Counter)?)
+}
+
+/// A counter with one series per `label` value; left out, as an empty family is, when there is none.
+fn counters<N: EncodeCounterValue + Copy>(
+    encoder: &mut DescriptorEncoder,
+    name: &str,
+    help: &str,
+    label: &str,
+    series: &[(&str, N)],
+) -> fmt::Result {
+    if series.is_empty() {
+        return Ok(());
+    }
+    let mut family = encoder.encode_descriptor(name, help, None, MetricType::Counter)?;
+    for (value, n) in series {
+        ConstCounter::new(*n).encode(family.encode_family(&[(label, *value)])?)?;
+    }
+    Ok(())
+}
+
+impl Collector for ReadAtScrape {
+    fn encode(&self, mut encoder: DescriptorEncoder) -> fmt::Result {
+        let Some(source) = self.0.upgrade() else { return Ok(()) };
+        let h = source.holdings();
+        let pool = source.pool();
+        let e = &mut encoder;
+        gauge(e, "maps", "Maps loaded", h.maps)?;
+        gauge(e, "maps_held_back", "Maps that failed to load", h.held_back)?;
+        gauge(e, "keyframes", "Keyframes in all maps", h.keyframes)?;
+        gauge(e, "landmarks", "Landmarks in all maps", h.landmarks)?;
+        gauge(e, "observations", "Live observations in all maps", h.observations)?;
+        gauge(e, "pool_queued", "Requests waiting for a CPU worker", pool.queued.load(Ordering::Relaxed))?;
+        gauge(e, "pool_running", "Requests running on CPU workers", pool.running.load(Ordering::Relaxed))?;
+        counter(
+            e,
+            "pool_rejected",
+            "Requests refused because the queue was full",
+            pool.rejected.load(Ordering::Relaxed) as u64,
+        )?;
+        gauge(e, "map_cache_bytes", "Estimated memory of the loaded maps", h.loaded_bytes)?;
+        counters(
+            e,
+            "map_cache_events",
+            "Map cache: hit, miss, load, eviction, check (freshness), change (found changed), check_error, log_cut \
+             (a load cut bytes off the end of a map's log: see GetMap's load_note)",
+            "event",
+            &h.cache_events,
+        )?;
+        counter(e, "map_cache_load_seconds", "Time spent loading maps", h.cache_load_seconds)?;
+        let calls: Vec<_> = h.storage.iter().map(|op| (op.operation, op.calls)).collect();
+        counters(e, "object_storage_requests", "Object storage calls by operation", "operation", &calls)?;
+        let errors: Vec<_> = h.storage.iter().map(|op| (op.operation, op.errors)).collect();
+        counters(
+            e,
+            "object_storage_errors",
+            "Object storage calls that failed (not found, not modified and failed conditions are answers, not failures)",
+            "operation",
+            &errors,
+        )?;
+        let seconds: Vec<_> = h.storage.iter().map(|op| (op.operation, op.seconds)).collect();
+        counters(e, "object_storage_seconds", "Time in object storage calls", "operation", &seconds)
+    }
 }
 
 /// The service's metrics.
@@ -83,30 +150,11 @@ pub struct Metrics {
     latency: Family<RouteLabels, Histogram, fn() -> Histogram>,
     stages: Family<StageLabels, Histogram, fn() -> Histogram>,
     body_bytes: Family<TransportLabels, Counter>,
-    maps: Gauge,
-    held_back: Gauge,
-    keyframes: Gauge,
-    landmarks: Gauge,
-    observations: Gauge,
-    queued: Gauge,
-    running: Gauge,
-    rejected: Gauge,
-    loaded_bytes: Gauge,
-    cache_events: Family<EventLabels, Counter>,
-    cache_load_seconds: Seconds,
-    storage_requests: Family<OperationLabels, Counter>,
-    storage_errors: Family<OperationLabels, Counter>,
-    storage_seconds: Family<OperationLabels, Seconds>,
-}
-
-impl Default for Metrics {
-    fn default() -> Self {
-        Self::new()
-    }
 }
 
 impl Metrics {
-    pub fn new() -> Self {
+    /// The metrics counted here, and those read from `source` at each scrape.
+    pub fn new(source: Weak<dyn Source>) -> Self {
         let mut registry = Registry::with_prefix("scone");
         let requests = Family::<RequestLabels, Counter>::default();
         registry.register("requests", "Requests by transport, route and status", requests.clone());
@@ -120,61 +168,8 @@ impl Metrics {
             "Request body bytes read, by transport (refused requests' bodies are not read)",
             body_bytes.clone(),
         );
-        let gauge = |registry: &mut Registry, name: &str, help: &str| {
-            let g = Gauge::default();
-            registry.register(name, help, g.clone());
-            g
-        };
-        let maps = gauge(&mut registry, "maps", "Maps loaded");
-        let held_back = gauge(&mut registry, "maps_held_back", "Maps that failed to load");
-        let keyframes = gauge(&mut registry, "keyframes", "Keyframes in all maps");
-        let landmarks = gauge(&mut registry, "landmarks", "Landmarks in all maps");
-        let observations = gauge(&mut registry, "observations", "Live observations in all maps");
-        let queued = gauge(&mut registry, "pool_queued", "Requests waiting for a CPU worker");
-        let running = gauge(&mut registry, "pool_running", "Requests running on CPU workers");
-        let rejected =
-            gauge(&mut registry, "pool_rejected", "Requests refused because the queue was full (since start)");
-        let loaded_bytes = gauge(&mut registry, "map_cache_bytes", "Estimated memory of the loaded maps");
-        let cache_events = Family::<EventLabels, Counter>::default();
-        registry.register(
-            "map_cache_events",
-            "Map cache: hit, miss, load, eviction, check (freshness), change (found changed), check_error, log_cut \
-             (a load cut bytes off the end of a map's log: see GetMap's load_note)",
-            cache_events.clone(),
-        );
-        let cache_load_seconds = Seconds::default();
-        registry.register("map_cache_load_seconds", "Time spent loading maps", cache_load_seconds.clone());
-        let storage_requests = Family::<OperationLabels, Counter>::default();
-        registry.register("object_storage_requests", "Object storage calls by operation", storage_requests.clone());
-        let storage_errors = Family::<OperationLabels, Counter>::default();
-        registry.register(
-            "object_storage_errors",
-            "Object storage calls that failed (not found, not modified and failed conditions are answers, not failures)",
-            storage_errors.clone(),
-        );
-        let storage_seconds = Family::<OperationLabels, Seconds>::default();
-        registry.register("object_storage_seconds", "Time in object storage calls", storage_seconds.clone());
-        Self {
-            registry: Mutex::new(registry),
-            requests,
-            latency,
-            stages,
-            body_bytes,
-            maps,
-            held_back,
-            keyframes,
-            landmarks,
-            observations,
-            queued,
-            running,
-            rejected,
-            loaded_bytes,
-            cache_events,
-            cache_load_seconds,
-            storage_requests,
-            storage_errors,
-            storage_seconds,
-        }
+        registry.register_collector(Box::new(ReadAtScrape(source)));
+        Self { registry: Mutex::new(registry), requests, latency, stages, body_bytes }
     }
 
     /// One finished request.
@@ -203,27 +198,8 @@ impl Metrics {
         }
     }
 
-    /// The text exposition, with the gauges read now.
-    pub fn render(&self, holdings: Holdings, pool: &PoolStats) -> String {
-        self.maps.set(holdings.maps as i64);
-        self.held_back.set(holdings.held_back as i64);
-        self.keyframes.set(holdings.keyframes as i64);
-        self.landmarks.set(holdings.landmarks as i64);
-        self.observations.set(holdings.observations as i64);
-        self.queued.set(pool.queued.load(Ordering::Relaxed) as i64);
-        self.running.set(pool.running.load(Ordering::Relaxed) as i64);
-        self.rejected.set(pool.rejected.load(Ordering::Relaxed) as i64);
-        self.loaded_bytes.set(holdings.loaded_bytes as i64);
-        for (event, n) in &holdings.cache_events {
-            catch_up(&self.cache_events.get_or_create(&EventLabels { event: event.to_string() }), *n);
-        }
-        catch_up_seconds(&self.cache_load_seconds, holdings.cache_load_seconds);
-        for op in &holdings.storage {
-            let labels = OperationLabels { operation: op.operation.to_string() };
-            catch_up(&self.storage_requests.get_or_create(&labels), op.calls);
-            catch_up(&self.storage_errors.get_or_create(&labels), op.errors);
-            catch_up_seconds(&self.storage_seconds.get_or_create(&labels), op.seconds);
-        }
+    /// The text exposition.
+    pub fn render(&self) -> String {
         let mut out = String::new();
         if encode(&mut out, &self.registry.lock()).is_err() {
             out.clear();
@@ -267,5 +243,59 @@ impl<B: http_body::Body<Data = Bytes> + Unpin> http_body::Body for CountedBody<B
 
     fn size_hint(&self) -> http_body::SizeHint {
         self.inner.size_hint()
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use std::sync::Arc;
+
+    use super::*;
+
+    struct Fixed(PoolStats);
+
+    impl Source for Fixed {
+        fn holdings(&self) -> Holdings {
+            Holdings {
+                maps: 2,
+                keyframes: 7,
+                loaded_bytes: 1 << 20,
+                cache_events: vec![("hit", 3), ("log_cut", 1)],
+                cache_load_seconds: 0.5,
+                ..Holdings::default()
+            }
+        }
+
+        fn pool(&self) -> &PoolStats {
+            &self.0
+        }
+    }
+
+    #[test]
+    fn values_kept_elsewhere_are_read_at_each_scrape() {
+        let source = Arc::new(Fixed(PoolStats::default()));
+        let weak: Weak<dyn Source> = Arc::downgrade(&source) as Weak<Fixed>;
+        let metrics = Metrics::new(weak);
+        source.0.rejected.store(4, Ordering::Relaxed);
+        let text = metrics.render();
+        for line in [
+            "# TYPE scone_pool_rejected counter",
+            "scone_pool_rejected_total 4",
+            "# TYPE scone_maps gauge",
+            "scone_maps 2",
+            "scone_keyframes 7",
+            "scone_pool_queued 0",
+            "scone_map_cache_bytes 1048576",
+            "scone_map_cache_events_total{event=\"hit\"} 3",
+            "scone_map_cache_events_total{event=\"log_cut\"} 1",
+            "scone_map_cache_load_seconds_total 0.5",
+        ] {
+            assert!(text.lines().any(|l| l == line), "'{line}' is not in\n{text}");
+        }
+        assert!(!text.contains("object_storage"), "no storage calls, no storage series:\n{text}");
+        source.0.rejected.store(5, Ordering::Relaxed);
+        assert!(metrics.render().lines().any(|l| l == "scone_pool_rejected_total 5"));
+        drop(source);
+        assert!(!metrics.render().contains("scone_maps"));
     }
 }

@@ -123,11 +123,12 @@ pub async fn start(settings: Settings) -> anyhow::Result<Running> {
     let limits = connections::ConnectionLimits::from_settings(&settings.server);
     let grpc_listener = connections::Listener::new(grpc_listener, limits, connections::Protocol::Http2, "grpc");
     let http_listener = connections::Listener::new(http_listener, limits, connections::Protocol::Http1OrHttp2, "http");
-    let app = Arc::new(App {
+    // The metrics read the maps held and the pool's counts from the app at each scrape.
+    let app = Arc::new_cyclic(|app: &std::sync::Weak<App>| App {
         service,
         pool: CpuPool::new(settings.workers.threads, settings.workers.queue),
         keys,
-        metrics: metrics::Metrics::new(),
+        metrics: metrics::Metrics::new(app.clone()),
         settings: settings.clone(),
         shutting_down: AtomicBool::new(false),
         map_loads: tokio::sync::Semaphore::new(2),

@@ -1,13 +1,18 @@
-//! Which browser pages may write ([`OriginPolicy`], `server.allowed_origins`), and the middleware that
-//! answers CORS preflights and refuses writes from other origins ([`origin_policy`]).
+//! Which browser pages may write ([`OriginPolicy`], `server.allowed_origins`). The CORS answers (preflights,
+//! `Access-Control-*` headers) are tower-http's [`CorsLayer`], configured from the policy ([`OriginPolicy::cors`]);
+//! [`refuse_foreign_writes`] is written here because `CorsLayer` never refuses a request (it only withholds its
+//! headers, while a form or a simple `fetch` writes without a preflight), and a refusal must carry the API's JSON
+//! error.
 
 use std::net::{IpAddr, SocketAddr};
 use std::sync::Arc;
+use std::time::Duration;
 
 use axum::extract::{Request, State};
-use axum::http::{header, HeaderValue, Method, StatusCode};
+use axum::http::{header, HeaderMap, HeaderName, Method, Uri};
 use axum::middleware::Next;
 use axum::response::{IntoResponse, Response};
+use tower_http::cors::{AllowOrigin, CorsLayer};
 
 use crate::server::http::error::ApiError;
 
@@ -68,55 +73,46 @@ impl OriginPolicy {
     }
 }
 
-const CORS_METHODS: &str = "GET, HEAD, POST, DELETE";
-const CORS_HEADERS: &str = "content-type, x-api-key, authorization";
+/// The request's Host (HTTP/1.1) or authority (HTTP/2).
+fn host_of<'a>(headers: &'a HeaderMap, uri: &'a Uri) -> Option<&'a str> {
+    headers.get(header::HOST).and_then(|v| v.to_str().ok()).or(uri.authority().map(|a| a.as_str()))
+}
+
+impl OriginPolicy {
+    /// Whether a page of `origin` may write to (and read the answers of) the host `host`.
+    fn admits(&self, origin: &str, host: Option<&str>) -> bool {
+        self.allows(origin) || self.is_same_host(origin, host)
+    }
+
+    /// The policy's CORS answers: preflights (OPTIONS) are answered here, and answers to allowed origins carry
+    /// `Access-Control-Allow-Origin` (the origin itself, `"*"` included) and expose the match counts.
+    pub fn cors(self: &Arc<Self>) -> CorsLayer {
+        let policy = Arc::clone(self);
+        CorsLayer::new()
+            .allow_origin(AllowOrigin::predicate(move |origin, parts| {
+                origin.to_str().is_ok_and(|o| policy.admits(o, host_of(&parts.headers, &parts.uri)))
+            }))
+            .allow_methods([Method::GET, Method::HEAD, Method::POST, Method::DELETE])
+            .allow_headers([header::CONTENT_TYPE, HeaderName::from_static("x-api-key"), header::AUTHORIZATION])
+            .expose_headers([HeaderName::from_static("x-scone-matches"), HeaderName::from_static("x-scone-inliers")])
+            .max_age(Duration::from_secs(600))
+    }
+}
 
 /// Browser pages of other origins must not write (a form or a simple `fetch` needs no preflight, so without
 /// this any page could create maps on a loopback server without keys): a request with an `Origin` that is
-/// not allowed is refused unless it is a GET or HEAD. CORS preflights (OPTIONS) are answered by the same
-/// policy, and responses to allowed origins carry `Access-Control-Allow-Origin`.
-pub async fn origin_policy(State(policy): State<Arc<OriginPolicy>>, req: Request, next: Next) -> Response {
-    let origin = req.headers().get(header::ORIGIN).map(|v| v.to_str().unwrap_or("(not text)").to_string());
-    let host =
-        req.headers().get(header::HOST).and_then(|v| v.to_str().ok()).or(req.uri().authority().map(|a| a.as_str()));
-    let allowed = origin.as_deref().is_some_and(|o| policy.allows(o) || policy.is_same_host(o, host));
-    let cors = |resp: &mut Response, origin: &str| {
-        let h = resp.headers_mut();
-        if let Ok(v) = HeaderValue::from_str(origin) {
-            h.insert(header::ACCESS_CONTROL_ALLOW_ORIGIN, v);
-        }
-        h.insert(header::ACCESS_CONTROL_EXPOSE_HEADERS, HeaderValue::from_static("x-scone-matches, x-scone-inliers"));
-        h.append(header::VARY, HeaderValue::from_static("origin"));
-    };
-    if req.method() == Method::OPTIONS {
-        return match origin {
-            Some(o) if allowed => {
-                let mut resp = StatusCode::NO_CONTENT.into_response();
-                cors(&mut resp, &o);
-                let h = resp.headers_mut();
-                h.insert(header::ACCESS_CONTROL_ALLOW_METHODS, HeaderValue::from_static(CORS_METHODS));
-                h.insert(header::ACCESS_CONTROL_ALLOW_HEADERS, HeaderValue::from_static(CORS_HEADERS));
-                h.insert(header::ACCESS_CONTROL_MAX_AGE, HeaderValue::from_static("600"));
-                resp
-            }
-            Some(o) => ApiError::ForeignOrigin { origin: o }.into_response(),
-            None => {
-                let mut resp = StatusCode::NO_CONTENT.into_response();
-                resp.headers_mut().insert(header::ALLOW, HeaderValue::from_static("GET, HEAD, POST, DELETE, OPTIONS"));
-                resp
-            }
-        };
+/// not allowed is refused (403) unless it is a GET or HEAD, a preflight (OPTIONS) included. It runs before
+/// [`OriginPolicy::cors`], so a refusal carries no CORS headers.
+pub async fn refuse_foreign_writes(State(policy): State<Arc<OriginPolicy>>, req: Request, next: Next) -> Response {
+    if matches!(*req.method(), Method::GET | Method::HEAD) {
+        return next.run(req).await;
     }
-    let write = !matches!(*req.method(), Method::GET | Method::HEAD);
-    match origin {
-        Some(o) if write && !allowed => ApiError::ForeignOrigin { origin: o }.into_response(),
-        Some(o) if allowed => {
-            let mut resp = next.run(req).await;
-            cors(&mut resp, &o);
-            resp
-        }
-        _ => next.run(req).await,
+    let Some(origin) = req.headers().get(header::ORIGIN) else { return next.run(req).await };
+    let origin = origin.to_str().unwrap_or("(not text)");
+    if policy.admits(origin, host_of(req.headers(), req.uri())) {
+        return next.run(req).await;
     }
+    ApiError::ForeignOrigin { origin: origin.to_string() }.into_response()
 }
 
 #[cfg(test)]

@@ -135,6 +135,7 @@ async fn method_not_allowed(method: Method, uri: Uri) -> ApiError {
 pub fn router(app: Arc<App>, origins: OriginPolicy) -> Router {
     let limit = app.settings.server.max_request_bytes;
     let map_limit = app.settings.server.max_map_bytes;
+    let origins = Arc::new(origins);
     // Layers run outermost last-added: the pool's admission, then the key, then the handler.
     let (router, _) = openapi::pool_routes(map_limit)
         .route_layer(middleware::from_fn_with_state(Arc::clone(&app), authorize))
@@ -146,7 +147,8 @@ pub fn router(app: Arc<App>, origins: OriginPolicy) -> Router {
         .fallback(no_route)
         .method_not_allowed_fallback(method_not_allowed)
         .layer(DefaultBodyLimit::max(limit))
-        .layer(middleware::from_fn_with_state(Arc::new(origins), cors::origin_policy))
+        .layer(origins.cors())
+        .layer(middleware::from_fn_with_state(origins, cors::refuse_foreign_writes))
         .with_state(app)
 }
 

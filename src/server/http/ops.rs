@@ -34,6 +34,6 @@ pub async fn readyz(State(app): State<Arc<App>>) -> (StatusCode, &'static str) {
     responses((status = 200, description = "Metrics (OpenMetrics 1.0.0 text)", body = String,
         content_type = "application/openmetrics-text")))]
 pub async fn metrics(State(app): State<Arc<App>>) -> impl IntoResponse {
-    let text = app.metrics.render(app.service.holdings(), app.pool.stats());
+    let text = app.metrics.render();
     ([(header::CONTENT_TYPE, "application/openmetrics-text; version=1.0.0; charset=utf-8")], text)
 }
