@@ -95,8 +95,8 @@ pub enum Record {
     /// (external id, landmark id) links of the landmarks it creates. Observations of external ids the map
     /// already links are in `observations` and name the linked landmark.
     ///
-    /// Appended as the last variant so that records of format 1 (which bincode tags by variant index) decode
-    /// unchanged.
+    /// Appended as the last variant so that records of format 1 (which bincode 1 tags by variant index, as
+    /// postcard does from format 4) decode unchanged.
     AddExternalKeyframe {
         keyframe: Keyframe,
         new_landmarks: Vec<(u64, [f64; 3])>,

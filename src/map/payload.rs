@@ -21,6 +21,7 @@ use serde::{Deserialize, Serialize};
 use crate::camera::{Camera, Pose};
 use crate::describe::features::{from_precomputed, Features, Keypoint, KeypointLimitSettings, DESCRIPTOR_BYTES};
 use crate::error::{FeatureError, MapError};
+use crate::map::encoding::{encode, Encoding};
 
 /// A keyframe with its payload, as records carry it and map building makes it.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -29,9 +30,8 @@ pub struct Keyframe {
     pub pose: Pose,
     pub camera: Camera,
     pub keypoints: Vec<Keypoint>,
-    /// FREAK descriptors, `keypoints.len() x 64` bytes. Read and written as bytes in one piece: bincode encodes
-    /// bytes exactly as it encodes a `Vec<u8>` (a u64 length, then the bytes), so stored maps are unchanged
-    /// (`map::tests::descriptors_as_bytes_encode_as_before`); only the decode no longer goes a byte at a time.
+    /// FREAK descriptors, `keypoints.len() x 64` bytes. Read and written as bytes in one piece (in formats 1 to
+    /// 3, bincode 1 encoded bytes exactly as a `Vec<u8>`: `map::tests::descriptors_as_bytes_encode_as_before`).
     #[serde(with = "serde_bytes")]
     pub descriptors: Vec<u8>,
     /// SConE embeddings of every keypoint, `keypoints.len() x dim` (matching new keyframes against this one).
@@ -56,7 +56,8 @@ impl Keyframe {
     }
 }
 
-/// The part of a [`Keyframe`] a snapshot's payload section holds, in the same order and encoding (bincode).
+/// The part of a [`Keyframe`] a snapshot's payload section holds, in the same order, in the encoding of the
+/// snapshot's format ([`crate::map::encoding`]).
 #[derive(Serialize)]
 struct PayloadRef<'a> {
     keypoints: &'a [Keypoint],
@@ -90,6 +91,8 @@ pub struct PayloadFile {
     /// Byte offset of the section in the file, and its length.
     base: u64,
     len: u64,
+    /// The encoding of the payloads in the section (the snapshot's format).
+    encoding: Encoding,
     /// The section when it is still to arrive (object storage's copy, whose map is ready before it).
     pending: Option<Pending>,
 }
@@ -145,12 +148,12 @@ impl Drop for FetchGuard<'_> {
 
 impl PayloadFile {
     /// Opens `path`, whose payload section is `len` bytes from byte `base` (the file must hold them; the
-    /// snapshot's core follows them).
-    pub fn open(path: &Path, base: u64, len: u64) -> Result<Arc<Self>, MapError> {
-        Self::open_at(path, base, len).map(Arc::new)
+    /// snapshot's core follows them), its payloads in `encoding`.
+    pub fn open(path: &Path, base: u64, len: u64, encoding: Encoding) -> Result<Arc<Self>, MapError> {
+        Self::open_at(path, base, len, encoding).map(Arc::new)
     }
 
-    fn open_at(path: &Path, base: u64, len: u64) -> Result<Self, MapError> {
+    fn open_at(path: &Path, base: u64, len: u64, encoding: Encoding) -> Result<Self, MapError> {
         let file = std::fs::File::open(path).map_err(|source| MapError::Io { path: path.to_path_buf(), source })?;
         let size = file.metadata().map_err(|source| MapError::Io { path: path.to_path_buf(), source })?.len();
         if base.checked_add(len).is_none_or(|end| end > size) {
@@ -159,14 +162,20 @@ impl PayloadFile {
                 reason: format!("payload section of {len} bytes at byte {base}, but the file is {size} bytes"),
             });
         }
-        Ok(Self { path: path.to_path_buf(), file, base, len, pending: None })
+        Ok(Self { path: path.to_path_buf(), file, base, len, encoding, pending: None })
     }
 
     /// [`PayloadFile::open`] of a file whose section is still to arrive: `fetch` writes it there and checks
     /// it, run by the first caller of [`PayloadFile::arrive`] (a read, or the backend's thread).
-    pub fn arriving(path: &Path, base: u64, len: u64, fetch: FetchSection) -> Result<Arc<Self>, MapError> {
+    pub fn arriving(
+        path: &Path,
+        base: u64,
+        len: u64,
+        encoding: Encoding,
+        fetch: FetchSection,
+    ) -> Result<Arc<Self>, MapError> {
         let pending = Pending { state: Mutex::new(Arrival::Waiting), arrived: Condvar::new(), fetch };
-        Ok(Arc::new(Self { pending: Some(pending), ..Self::open_at(path, base, len)? }))
+        Ok(Arc::new(Self { pending: Some(pending), ..Self::open_at(path, base, len, encoding)? }))
     }
 
     /// Returns once the section is in the file (at once for one that was always there), fetching it when no
@@ -301,7 +310,7 @@ impl MapKeyframe {
             Payload::Inline(k) => Ok(Arc::clone(k)),
             Payload::Stored { file, span } => {
                 let bytes = file.read_raw(*span)?;
-                let k = decode_payload(self.id, self.pose, self.camera, &bytes)
+                let k = decode_payload(self.id, self.pose, self.camera, &bytes, file.encoding)
                     .map_err(|e| file.corrupt(format!("payload of keyframe {}: {e}", self.id)))?;
                 if k.keypoints.len() != self.keypoints {
                     return Err(file.corrupt(format!(
@@ -316,12 +325,14 @@ impl MapKeyframe {
         }
     }
 
-    /// The payload as a payload section holds it: read as it is (its CRC checked) when stored, encoded when
+    /// The payload as a payload section of the current format holds it: read as it is (its CRC checked) when
+    /// stored in that format, decoded and encoded again when stored in an older one (an upgrade), encoded when
     /// in memory.
     pub fn payload_bytes(&self) -> Result<Vec<u8>, MapError> {
         match &self.payload {
             Payload::Inline(k) => Ok(encode_payload(k)),
-            Payload::Stored { file, span } => file.read_raw(*span),
+            Payload::Stored { file, span } if file.encoding == Encoding::CURRENT => file.read_raw(*span),
+            Payload::Stored { .. } => Ok(encode_payload(&*self.load()?)),
         }
     }
 
@@ -358,9 +369,15 @@ impl PartialEq for MapKeyframe {
     }
 }
 
-/// A keyframe from its head and the bytes of its payload ([`encode_payload`]).
-pub fn decode_payload(id: u64, pose: Pose, camera: Camera, bytes: &[u8]) -> Result<Keyframe, bincode::Error> {
-    let p: PayloadOwned = bincode::deserialize(bytes)?;
+/// A keyframe from its head and the bytes of its payload in `encoding` ([`encode_payload`]).
+pub fn decode_payload(
+    id: u64,
+    pose: Pose,
+    camera: Camera,
+    bytes: &[u8],
+    encoding: Encoding,
+) -> Result<Keyframe, String> {
+    let p: PayloadOwned = encoding.decode(bytes)?;
     Ok(Keyframe { id, pose, camera, keypoints: p.keypoints, descriptors: p.descriptors, embeddings: p.embeddings })
 }
 
@@ -373,8 +390,9 @@ pub struct StoredPayloads {
     pub version: u64,
 }
 
-/// The bytes of a keyframe's payload in a payload section (bincode of keypoints, descriptors, embeddings).
+/// The bytes of a keyframe's payload in a payload section of the current format (keypoints, descriptors,
+/// embeddings).
 pub fn encode_payload(k: &Keyframe) -> Vec<u8> {
     let p = PayloadRef { keypoints: &k.keypoints, descriptors: &k.descriptors, embeddings: &k.embeddings };
-    bincode::serialize(&p).expect("vectors of plain values encode")
+    encode(&p).expect("vectors of plain values encode")
 }

@@ -25,3 +25,4 @@ mod storage_faults;
 #[path = "../../src/test_dir.rs"]
 mod test_dir;
 mod track;
+mod upgrade;

@@ -9,7 +9,7 @@
 //! * index dumps: `index.json` and hnsw_rs's two files ([`read_dump`], [`install_dump`]).
 //!
 //! Format versions. Every file (snapshot, log, segment; the object-storage manifest too) carries the version
-//! it was written in. This build writes [`FORMAT_VERSION`] 3 and reads 1 to 3:
+//! it was written in. This build writes [`FORMAT_VERSION`] 4 and reads 1 to 4:
 //!
 //! * 1: the first format.
 //! * 2: [`crate::map::model::MapData`] gained `external_ids` (landmarks given by an external SfM, see
@@ -20,12 +20,19 @@
 //!   segments and the log are unchanged (a record still carries its keyframe whole); their header says 3 so
 //!   that a build that reads only format 2 refuses a map whose snapshot it could not read. A format-1/2
 //!   snapshot decodes through its own layout, its payloads in memory until the map's next snapshot.
+//! * 4: the bodies (records, the snapshot's core, payloads) are postcard instead of bincode 1
+//!   ([`crate::map::encoding`]); headers, framing, lengths, checksums and the snapshot's sections are as in
+//!   format 3. Each file's header says which encoding its bodies are in, so a log is in one encoding from
+//!   its header to its end, and a segment's own header names its record's.
 //!
 //! An older map is upgraded as soon as it is opened: on a local disk its log is folded into a current
-//! snapshot with a fresh log (the same crash-safe steps as compaction), so a record of a new kind never
-//! lands in a file whose header promises an older format. A build that reads only older formats refuses the
-//! upgraded files with a version message instead of misreading them. In object storage the writer's next
-//! compaction rewrites the snapshot; until then a replica keeps a current-format copy of it in its cache.
+//! snapshot with a fresh log (the same crash-safe steps as compaction: the new snapshot is renamed over the
+//! old one, then the fresh log over the old log; a crash between the two leaves a new snapshot and an old
+//! log whose records it covers, read in the log's own encoding and skipped), so a record of a new kind or
+//! encoding never lands in a file whose header promises an older format. A build that reads only older
+//! formats refuses the upgraded files with a version message instead of misreading them. In object storage
+//! the writer's next compaction rewrites the snapshot; until then a replica reads the older snapshot's
+//! payloads in their own encoding, and a segment is read in the encoding its header names.
 
 use std::fs::File;
 use std::io::{BufReader, Read, Write};
@@ -34,10 +41,11 @@ use std::path::Path;
 use serde::{Deserialize, Serialize};
 
 use crate::error::MapError;
+use crate::map::encoding::{encode, Encoding};
 use crate::map::model::Record;
 
 /// The format this build writes.
-pub const FORMAT_VERSION: u32 = 3;
+pub const FORMAT_VERSION: u32 = 4;
 /// The oldest format this build reads.
 pub const OLDEST_FORMAT_VERSION: u32 = 1;
 pub(crate) const LOG_MAGIC: &[u8; 8] = b"SCONELOG";
@@ -144,7 +152,7 @@ pub fn write_atomic(path: &Path, bytes: &[u8]) -> Result<(), MapError> {
 /// may hold (`MAX_RECORD`, which reading enforces) is refused here, before anything is written: a write that
 /// was acknowledged must load again.
 pub fn encode_record(seq: u64, record: &Record) -> Result<Vec<u8>, MapError> {
-    let payload = bincode::serialize(record)
+    let payload = encode(record)
         .map_err(|e| MapError::InvalidInput { field: "record".into(), reason: format!("cannot encode: {e}") })?;
     if payload.len() > MAX_RECORD as usize {
         return Err(MapError::InvalidInput {
@@ -157,14 +165,24 @@ pub fn encode_record(seq: u64, record: &Record) -> Result<Vec<u8>, MapError> {
             ),
         });
     }
+    Ok(frame(seq, &payload))
+}
+
+/// A record framed in bincode 1's layout, as formats 1 to 3 hold it (for tests that make maps of those formats).
+#[cfg(test)]
+pub fn encode_record_bincode1(seq: u64, record: &Record) -> Vec<u8> {
+    frame(seq, &crate::map::encoding::encode_bincode1(record))
+}
+
+fn frame(seq: u64, payload: &[u8]) -> Vec<u8> {
     let mut body = Vec::with_capacity(payload.len() + 8);
     body.extend_from_slice(&seq.to_le_bytes());
-    body.extend_from_slice(&payload);
+    body.extend_from_slice(payload);
     let mut frame = Vec::with_capacity(body.len() + 8);
     frame.extend_from_slice(&((body.len() - 8) as u32).to_le_bytes());
     frame.extend_from_slice(&crc32fast::hash(&body).to_le_bytes());
     frame.extend_from_slice(&body);
-    Ok(frame)
+    frame
 }
 
 /// What [`read_frame`] found at a position.
@@ -178,9 +196,9 @@ pub enum LogEntry {
     BadChecksum { end: usize },
 }
 
-/// Reads the frame starting at byte `pos` of `buf`. A length beyond the limit or a payload that does not
-/// decode is corruption (named by `path`).
-pub fn read_frame(buf: &[u8], pos: usize, path: &Path) -> Result<LogEntry, MapError> {
+/// Reads the frame starting at byte `pos` of `buf`, a file of format `version` (which says the record's
+/// encoding). A length beyond the limit or a payload that does not decode is corruption (named by `path`).
+pub fn read_frame(buf: &[u8], pos: usize, version: u32, path: &Path) -> Result<LogEntry, MapError> {
     if buf.len().saturating_sub(pos) < 16 {
         return Ok(LogEntry::Torn);
     }
@@ -198,8 +216,9 @@ pub fn read_frame(buf: &[u8], pos: usize, path: &Path) -> Result<LogEntry, MapEr
         return Ok(LogEntry::BadChecksum { end });
     }
     let seq = u64::from_le_bytes(body[..8].try_into().expect("8 bytes"));
-    let record: Box<Record> =
-        bincode::deserialize(&body[8..]).map_err(|e| corrupt(path, format!("record at byte {pos}: {e}")))?;
+    let record: Box<Record> = Encoding::of_format(version)
+        .decode(&body[8..])
+        .map_err(|e| corrupt(path, format!("record at byte {pos}: {e}")))?;
     Ok(LogEntry::Record { seq, record, end })
 }
 
@@ -223,7 +242,7 @@ pub fn decode_segment(bytes: &[u8], path: &Path) -> Result<(u64, Record), MapErr
     if !readable_version(version) {
         return Err(unreadable(path, "segment", version));
     }
-    match read_frame(bytes, 12, path)? {
+    match read_frame(bytes, 12, version, path)? {
         LogEntry::Record { seq, record, end } if end == bytes.len() => Ok((seq, *record)),
         LogEntry::Record { end, .. } => Err(corrupt(path, format!("{} bytes after the record", bytes.len() - end))),
         LogEntry::Torn => Err(corrupt(path, "the record is cut short")),

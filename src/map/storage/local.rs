@@ -126,7 +126,7 @@ impl LocalJournal {
         let mut pos = LOG_HEADER as usize;
         let mut records = 0;
         while pos < buf.len() {
-            let (seq, record, end) = match read_frame(&buf, pos, &log_path)? {
+            let (seq, record, end) = match read_frame(&buf, pos, version, &log_path)? {
                 LogEntry::Torn => break,
                 LogEntry::BadChecksum { end } if end == buf.len() => break, // the last record is torn
                 LogEntry::BadChecksum { .. } => {

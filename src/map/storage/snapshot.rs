@@ -2,13 +2,14 @@
 //! in the format this build writes and the older ones it reads ([`crate::map::storage::format`] lists the
 //! versions).
 //!
-//! Format 3: magic `SCONEMAP`, format version (u32), the payload section's length (u64), the core's length
-//! (u64) and CRC-32, then the payload section (every keyframe's payload, in id order; see
-//! [`crate::map::payload`]), then the core: the map without payloads (bincode), each keyframe with the span
-//! of its payload in the section and that span's CRC-32 ([`encode_snapshot_spans`]). Loading decodes the
-//! core and checks every payload's checksum, and the loaded keyframes point into the file
-//! ([`read_snapshot`]). Formats 1 and 2: magic, version, the payload's length (u64) and CRC-32, then the
-//! whole map (bincode), payloads inline.
+//! Formats 4 and 3: magic `SCONEMAP`, format version (u32), the payload section's length (u64), the core's
+//! length (u64) and CRC-32, then the payload section (every keyframe's payload, in id order; see
+//! [`crate::map::payload`]), then the core: the map without payloads, each keyframe with the span of its
+//! payload in the section and that span's CRC-32 ([`encode_snapshot_spans`]). The two differ only in the
+//! encoding of the core and the payloads ([`crate::map::encoding`]): postcard in format 4, bincode 1 in
+//! format 3. Loading decodes the core and checks every payload's checksum, and the loaded keyframes point
+//! into the file ([`read_snapshot`]), which reads their payloads in its format's encoding. Formats 1 and 2:
+//! magic, version, the payload's length (u64) and CRC-32, then the whole map (bincode 1), payloads inline.
 //!
 //! An export (ExportMap, ImportMap) is a snapshot followed, when the map has an HNSW graph, by an index
 //! section (magic `SCONEIDX`, its own version, lengths and CRC-32) carrying the graph's dump
@@ -25,6 +26,7 @@ use serde::{Deserialize, Serialize};
 
 use crate::camera::{Camera, Pose};
 use crate::error::MapError;
+use crate::map::encoding::{encode, Encoding};
 use crate::map::model::{Keyframe, Landmark, MapData, MapKeyframe, MapMeta, Observation};
 use crate::map::payload::{decode_payload, PayloadFile, Span, StoredPayloads};
 use crate::map::storage::format::{
@@ -32,7 +34,7 @@ use crate::map::storage::format::{
 };
 
 const SNAPSHOT_MAGIC: &[u8; 8] = b"SCONEMAP";
-/// Header of a format-1/2 snapshot (magic, version, payload length, CRC) and of a format-3 one (magic,
+/// Header of a format-1/2 snapshot (magic, version, payload length, CRC) and of a format-3/4 one (magic,
 /// version, section length, core length, core CRC).
 const HEADER_V2: usize = 24;
 const HEADER_V3: usize = 32;
@@ -94,7 +96,7 @@ impl From<MapDataV2> for MapData {
     }
 }
 
-/// A keyframe in a format-3 core: what stays in memory, and where its payload is in the section.
+/// A keyframe in a format-3/4 core: what stays in memory, and where its payload is in the section.
 #[derive(Debug, Serialize, Deserialize)]
 struct KeyframeHead {
     id: u64,
@@ -104,7 +106,7 @@ struct KeyframeHead {
     span: Span,
 }
 
-/// A format-3 core as written: the map without its keyframes' payloads (borrowed, so encoding copies nothing).
+/// A format-3/4 core as written: the map without its keyframes' payloads (borrowed, so encoding copies nothing).
 #[derive(Serialize)]
 struct CoreRef<'a> {
     meta: &'a MapMeta,
@@ -117,7 +119,7 @@ struct CoreRef<'a> {
     external_ids: &'a BTreeMap<u64, u64>,
 }
 
-/// A format-3 core as read.
+/// A format-3/4 core as read.
 #[derive(Deserialize)]
 struct Core {
     meta: MapMeta,
@@ -171,6 +173,7 @@ pub fn frame_snapshot(version: u32, payload: &[u8]) -> Vec<u8> {
 }
 
 /// A map in format 2 (for tests of the upgrade from it).
+#[cfg(test)]
 pub fn encode_snapshot_v2(data: &MapData) -> Result<Vec<u8>, MapError> {
     let keyframes: Result<BTreeMap<u64, Keyframe>, MapError> =
         data.keyframes.iter().map(|(&id, k)| Ok((id, Keyframe::clone(&*k.load()?)))).collect();
@@ -184,7 +187,7 @@ pub fn encode_snapshot_v2(data: &MapData) -> Result<Vec<u8>, MapError> {
         version: data.version,
         external_ids: data.external_ids.clone(),
     };
-    Ok(frame_snapshot(2, &bincode::serialize(&v2).expect("a map encodes")))
+    Ok(frame_snapshot(2, &crate::map::encoding::encode_bincode1(&v2)))
 }
 
 /// A snapshot as bytes, with where each keyframe's payload is in it.
@@ -203,10 +206,11 @@ impl EncodedSnapshot {
     }
 }
 
-/// Encodes a whole map in the snapshot/export format (format 3): magic, version, the payload section's length
+/// Encodes a whole map in the snapshot/export format (format 4): magic, version, the payload section's length
 /// (u64), the core's length (u64) and its CRC-32, then the payload section (each keyframe's payload, in id
-/// order, each with its own CRC-32 in the core), then the core (the map without payloads, bincode). Stored
-/// payloads are copied as they are, their checksums checked.
+/// order, each with its own CRC-32 in the core), then the core (the map without payloads, postcard). Payloads
+/// stored in this format are copied as they are, their checksums checked; those of an older one are encoded
+/// again.
 pub fn encode_snapshot_spans(data: &MapData) -> Result<EncodedSnapshot, MapError> {
     let mut bytes = vec![0u8; HEADER_V3];
     let mut heads = Vec::with_capacity(data.keyframes.len());
@@ -233,7 +237,7 @@ pub fn encode_snapshot_spans(data: &MapData) -> Result<EncodedSnapshot, MapError
         version: data.version,
         external_ids: &data.external_ids,
     };
-    let core = bincode::serialize(&core)
+    let core = encode(&core)
         .map_err(|e| MapError::InvalidInput { field: "map".into(), reason: format!("cannot encode: {e}") })?;
     bytes.extend_from_slice(&core);
     let mut header = SNAPSHOT_MAGIC.to_vec();
@@ -254,8 +258,8 @@ pub fn encode_snapshot(data: &MapData) -> Result<Vec<u8>, MapError> {
 enum Header {
     /// Format 1 or 2: the payload (the whole map) and its CRC follow.
     Whole { version: u32, crc: u32 },
-    /// Format 3: the payload section, then the core.
-    Split { section_len: u64, core_len: u64, core_crc: u32 },
+    /// Format 3 or 4: the payload section, then the core.
+    Split { version: u32, section_len: u64, core_len: u64, core_crc: u32 },
 }
 
 impl Header {
@@ -294,6 +298,7 @@ fn snapshot_header(first: &[u8], size: u64, path: &Path) -> Result<Header, MapEr
         return Err(corrupt(path, format!("the file is {size} bytes, its header says {section_len} + {core_len}")));
     }
     Ok(Header::Split {
+        version,
         section_len,
         core_len,
         core_crc: u32::from_le_bytes(first[28..32].try_into().expect("4 bytes")),
@@ -315,15 +320,16 @@ fn declared_snapshot_len(bytes: &[u8]) -> Option<usize> {
 
 /// Decodes a format-1/2 payload.
 fn decode_whole(version: u32, payload: &[u8], path: &Path) -> Result<MapData, MapError> {
+    let legacy = Encoding::of_format(version);
     let decoded = if version == 1 {
-        bincode::deserialize::<MapDataV1>(payload).map(MapDataV2::from)
+        legacy.decode::<MapDataV1>(payload).map(MapDataV2::from)
     } else {
-        bincode::deserialize::<MapDataV2>(payload)
+        legacy.decode::<MapDataV2>(payload)
     };
     decoded.map(MapData::from).map_err(|e| corrupt(path, format!("cannot decode (format {version}): {e}")))
 }
 
-/// Decodes the snapshot/export format (formats 1 to 3) from bytes, checking magic, version, lengths and
+/// Decodes the snapshot/export format (formats 1 to 4) from bytes, checking magic, version, lengths and
 /// checksums; every payload is decoded into memory (an import: the map's first snapshot then stores them).
 pub fn decode_snapshot(bytes: &[u8], path: &Path) -> Result<MapData, MapError> {
     let header = snapshot_header(bytes, bytes.len() as u64, path)?;
@@ -335,12 +341,13 @@ pub fn decode_snapshot(bytes: &[u8], path: &Path) -> Result<MapData, MapError> {
             }
             decode_whole(version, body, path)
         }
-        Header::Split { section_len, core_len: _, core_crc } => {
+        Header::Split { version, section_len, core_len: _, core_crc } => {
             let (section, core) = body.split_at(section_len as usize);
             if crc32fast::hash(core) != core_crc {
                 return Err(corrupt(path, "checksum mismatch"));
             }
-            let core: Core = bincode::deserialize(core).map_err(|e| corrupt(path, format!("cannot decode: {e}")))?;
+            let encoding = Encoding::of_format(version);
+            let core: Core = encoding.decode(core).map_err(|e| corrupt(path, format!("cannot decode: {e}")))?;
             core.into_map(|h| {
                 let span = h.span;
                 let bytes = span
@@ -350,7 +357,7 @@ pub fn decode_snapshot(bytes: &[u8], path: &Path) -> Result<MapData, MapError> {
                     .map(|end| &section[span.offset as usize..end as usize])
                     .filter(|b| crc32fast::hash(b) == span.crc)
                     .ok_or_else(|| corrupt(path, format!("payload of keyframe {}: bad span or checksum", h.id)))?;
-                let k = decode_payload(h.id, h.pose, h.camera, bytes)
+                let k = decode_payload(h.id, h.pose, h.camera, bytes, encoding)
                     .map_err(|e| corrupt(path, format!("payload of keyframe {}: {e}", h.id)))?;
                 Ok(MapKeyframe::inline(k))
             })
@@ -358,12 +365,11 @@ pub fn decode_snapshot(bytes: &[u8], path: &Path) -> Result<MapData, MapError> {
     }
 }
 
-/// [`decode_snapshot`] of the snapshot file at `path`, read as it is decoded. A format-3 file's core is
+/// [`decode_snapshot`] of the snapshot file at `path`, read as it is decoded. A format-3/4 file's core is
 /// decoded and its payloads stay in the file (the keyframes point into it); every checksum is checked, the
 /// payloads' a payload at a time. An older file is decoded whole, its bytes never all in memory beside
 /// the map they decode to; its payloads stay in memory until the map's next snapshot.
 pub fn read_snapshot(path: &Path) -> Result<MapData, MapError> {
-    use bincode::Options;
     use std::io::{Seek, SeekFrom};
     let mut file = File::open(path).map_err(io_err(path))?;
     let size = file.metadata().map_err(io_err(path))?.len();
@@ -372,33 +378,37 @@ pub fn read_snapshot(path: &Path) -> Result<MapData, MapError> {
     let header = snapshot_header(&first, size, path)?;
     let (start, len, crc) = match header {
         Header::Whole { crc, .. } => (HEADER_V2 as u64, size - HEADER_V2 as u64, crc),
-        Header::Split { section_len, core_len, core_crc } => (HEADER_V3 as u64 + section_len, core_len, core_crc),
+        Header::Split { section_len, core_len, core_crc, .. } => (HEADER_V3 as u64 + section_len, core_len, core_crc),
     };
     file.seek(SeekFrom::Start(start)).map_err(io_err(path))?;
     // The checksum is taken below the buffer, a block at a time; the limit keeps a damaged length inside the file.
     let mut reader =
         BufReader::with_capacity(1 << 20, Crc32Reader { inner: file.take(len), hasher: crc32fast::Hasher::new() });
-    let options = bincode::DefaultOptions::new().with_fixint_encoding().allow_trailing_bytes().with_limit(len);
     let version = match header {
-        Header::Whole { version, .. } => version,
-        Header::Split { .. } => 3,
+        Header::Whole { version, .. } | Header::Split { version, .. } => version,
     };
+    let encoding = Encoding::of_format(version);
     // Decoded into the stored layout; converted only once the checksum matched.
     let decoded = match version {
-        1 => options.deserialize_from::<_, MapDataV1>(&mut reader).map(|v| Stored::Whole(v.into())),
-        2 => options.deserialize_from::<_, MapDataV2>(&mut reader).map(Stored::Whole),
-        _ => options.deserialize_from::<_, Core>(&mut reader).map(Stored::Split),
+        1 => encoding.decode_from::<MapDataV1, _>(&mut reader, len).map(|v| Stored::Whole(v.into())),
+        2 => encoding.decode_from::<MapDataV2, _>(&mut reader, len).map(Stored::Whole),
+        _ => encoding.decode_from::<Core, _>(&mut reader, len).map(Stored::Split),
     };
     // What the decode did not read (all of it after an error) is in the checksum too.
-    std::io::copy(&mut reader, &mut std::io::sink()).map_err(io_err(path))?;
+    let rest = std::io::copy(&mut reader, &mut std::io::sink()).map_err(io_err(path))?;
     if reader.into_inner().hasher.finalize() != crc {
         return Err(corrupt(path, "checksum mismatch"));
     }
+    let decoded = match decoded {
+        // A postcard core fills its span: bytes after it are refused (bincode 1's readers ignored them).
+        Ok(_) if rest > 0 && encoding == Encoding::Postcard => Err(format!("{rest} bytes after the core")),
+        other => other,
+    };
     match decoded.map_err(|e| corrupt(path, format!("cannot decode (format {version}): {e}")))? {
         Stored::Whole(v2) => Ok(MapData::from(v2)),
         Stored::Split(core) => {
-            let Header::Split { section_len, .. } = header else { unreachable!("format 3 is split") };
-            let payloads = PayloadFile::open(path, HEADER_V3 as u64, section_len)?;
+            let Header::Split { section_len, .. } = header else { unreachable!("formats 3 and 4 are split") };
+            let payloads = PayloadFile::open(path, HEADER_V3 as u64, section_len, encoding)?;
             payloads.verify(core.keyframes.iter().map(|h| h.span))?;
             core.into_stored_map(&payloads, path)
         }
@@ -421,13 +431,14 @@ pub fn snapshot_version(path: &Path) -> Result<u32, MapError> {
     Ok(u32::from_le_bytes(first[8..12].try_into().expect("4 bytes")))
 }
 
-/// Where a format-3 snapshot's parts are (object storage fetches them apart: the core first, the payload
+/// Where a format-3/4 snapshot's parts are (object storage fetches them apart: the core first, the payload
 /// section after the map is ready).
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub struct SplitLayout {
     pub section_len: u64,
     pub core_len: u64,
     core_crc: u32,
+    version: u32,
 }
 
 impl SplitLayout {
@@ -437,6 +448,11 @@ impl SplitLayout {
     /// The payload section's bytes in the file.
     pub fn section(&self) -> std::ops::Range<u64> {
         Self::HEADER_LEN..Self::HEADER_LEN + self.section_len
+    }
+
+    /// The encoding of the core and the payloads (the snapshot's format's).
+    pub fn encoding(&self) -> Encoding {
+        Encoding::of_format(self.version)
     }
 
     /// The core's bytes in the file.
@@ -450,11 +466,13 @@ impl SplitLayout {
 pub fn split_layout(first: &[u8], size: u64, path: &Path) -> Result<Option<SplitLayout>, MapError> {
     Ok(match snapshot_header(first, size, path)? {
         Header::Whole { .. } => None,
-        Header::Split { section_len, core_len, core_crc } => Some(SplitLayout { section_len, core_len, core_crc }),
+        Header::Split { version, section_len, core_len, core_crc } => {
+            Some(SplitLayout { section_len, core_len, core_crc, version })
+        }
     })
 }
 
-/// A format-3 map from its core's bytes (`path` names the snapshot in errors). `payloads` gets every
+/// A format-3/4 map from its core's bytes (`path` names the snapshot in errors). `payloads` gets every
 /// keyframe's span in the section and gives the file the keyframes are to read their payloads from; its
 /// section may still be on its way ([`PayloadFile::arriving`]), so nothing of it is read here.
 pub fn map_from_core(
@@ -466,7 +484,7 @@ pub fn map_from_core(
     if core.len() as u64 != layout.core_len || crc32fast::hash(core) != layout.core_crc {
         return Err(corrupt(path, "checksum mismatch"));
     }
-    let core: Core = bincode::deserialize(core).map_err(|e| corrupt(path, format!("cannot decode: {e}")))?;
+    let core: Core = layout.encoding().decode(core).map_err(|e| corrupt(path, format!("cannot decode: {e}")))?;
     let file = payloads(core.keyframes.iter().map(|h| h.span).collect())?;
     core.into_stored_map(&file, path)
 }
@@ -474,7 +492,7 @@ pub fn map_from_core(
 /// The payloads of a snapshot of map version `version` just written to `path` ([`encode_snapshot_spans`]),
 /// for the map it was encoded from to point into ([`MapData::store_payloads`]).
 pub fn stored_payloads(path: &Path, encoded: &EncodedSnapshot, version: u64) -> Result<StoredPayloads, MapError> {
-    let file = PayloadFile::open(path, EncodedSnapshot::SECTION_START, encoded.section_len())?;
+    let file = PayloadFile::open(path, EncodedSnapshot::SECTION_START, encoded.section_len(), Encoding::CURRENT)?;
     Ok(StoredPayloads { file, spans: encoded.spans.clone(), version })
 }
 

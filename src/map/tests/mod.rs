@@ -6,6 +6,7 @@ use std::path::PathBuf;
 use crate::camera::Camera;
 use crate::camera::Pose;
 use crate::describe::features::{Keypoint, DESCRIPTOR_BYTES};
+use crate::map::encoding::{encode_bincode1, Encoding};
 use crate::map::index::{exact_search, EmbeddingIndex, IndexSettings};
 use crate::map::model::{Keyframe, MapData, MapMeta, NewObservation, Record};
 use crate::map::storage::local::LocalJournal;
@@ -17,6 +18,7 @@ mod cache_tests;
 mod fault_tests;
 mod payload_tests;
 mod stage_tests;
+mod upgrade_tests;
 
 pub(crate) fn meta(dim: usize) -> MapMeta {
     MapMeta { id: "m".into(), model_id: "sha256:test".into(), k: 20, dim, created_unix_ms: 1 }
@@ -111,7 +113,7 @@ fn a_snapshot_decoded_as_it_is_read_is_its_bytes_decoded_and_damage_is_refused()
         next_landmark: data.next_landmark,
         version: data.version,
     };
-    let old = frame_snapshot(1, &bincode::serialize(&v1).unwrap());
+    let old = frame_snapshot(1, &encode_bincode1(&v1));
     std::fs::write(&path, &old).unwrap();
     assert_eq!(read_snapshot(&path).unwrap(), decode_snapshot(&old, &path).unwrap());
     let refused = |b: &[u8]| {
@@ -144,7 +146,7 @@ fn a_snapshot_decoded_as_it_is_read_is_its_bytes_decoded_and_damage_is_refused()
 }
 
 /// Keyframe descriptors read and written as bytes (`serde_bytes`) encode to the bytes a plain `Vec<u8>` gave,
-/// so maps, logs and exports written before decode the same; JSON keeps its array of numbers.
+/// so the maps, logs and exports of formats 1 to 3 (bincode 1) decode the same; JSON keeps its array of numbers.
 #[test]
 fn descriptors_as_bytes_encode_as_before() {
     #[derive(serde::Serialize)]
@@ -165,9 +167,9 @@ fn descriptors_as_bytes_encode_as_before() {
         descriptors: &k.descriptors,
         embeddings: &k.embeddings,
     };
-    let old = bincode::serialize(&before).unwrap();
-    assert_eq!(bincode::serialize(&k).unwrap(), old);
-    assert_eq!(bincode::deserialize::<Keyframe>(&old).unwrap(), k);
+    let old = encode_bincode1(&before);
+    assert_eq!(encode_bincode1(&k), old);
+    assert_eq!(Encoding::Bincode1.decode::<Keyframe>(&old).unwrap(), k);
     assert_eq!(serde_json::to_value(&k).unwrap(), serde_json::to_value(&before).unwrap());
     let json = serde_json::to_string(&before).unwrap();
     assert_eq!(serde_json::from_str::<Keyframe>(&json).unwrap(), k);
@@ -477,7 +479,7 @@ mod external {
     use super::*;
     use crate::describe::features::Features;
     use crate::map::builder::{plan, BuildSettings, Depth, ExternalObservation, KeyframeInput};
-    use crate::map::storage::format::{encode_record, FORMAT_VERSION};
+    use crate::map::storage::format::{encode_record_bincode1, FORMAT_VERSION};
     use crate::map::storage::snapshot::{frame_snapshot, MapDataV1};
 
     const DIM: usize = 8;
@@ -623,10 +625,10 @@ mod external {
             next_landmark: 0,
             version: 0,
         };
-        std::fs::write(dir.join("snapshot.bin"), frame_snapshot(1, &bincode::serialize(&v1).unwrap())).unwrap();
+        std::fs::write(dir.join("snapshot.bin"), frame_snapshot(1, &encode_bincode1(&v1))).unwrap();
         let mut log = b"SCONELOG".to_vec();
         log.extend_from_slice(&1u32.to_le_bytes());
-        log.extend_from_slice(&encode_record(1, &keyframe_record(0, 10, 0, DIM, 1)).unwrap());
+        log.extend_from_slice(&encode_record_bincode1(1, &keyframe_record(0, 10, 0, DIM, 1)));
         std::fs::write(dir.join("log.bin"), &log).unwrap();
 
         let (mut data, mut log, report) = LocalJournal::open(&dir, 0).unwrap();
@@ -649,7 +651,7 @@ mod external {
         assert_eq!(again, data);
         assert_eq!(again.external_ids.len(), 1);
         // The format-1 snapshot bytes also import (the export format).
-        let old = decode_snapshot(&frame_snapshot(1, &bincode::serialize(&v1).unwrap()), &PathBuf::from("x")).unwrap();
+        let old = decode_snapshot(&frame_snapshot(1, &encode_bincode1(&v1)), &PathBuf::from("x")).unwrap();
         assert_eq!(old, MapData::new(meta(DIM)));
         // Snapshots round-trip with their links.
         assert_eq!(decode_snapshot(&encode_snapshot(&again).unwrap(), &PathBuf::from("x")).unwrap(), again);

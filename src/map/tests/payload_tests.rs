@@ -11,11 +11,12 @@ use super::{keyframe_record, meta, write};
 use crate::camera::Camera;
 use crate::describe::features::Features;
 use crate::error::MapError;
+use crate::map::encoding::Encoding;
 use crate::map::index::{EmbeddingIndex, IndexSettings};
 use crate::map::localize::{localize, LocalizeSettings};
 use crate::map::model::{MapData, NewObservation, Record};
 use crate::map::storage::backend::{MapBackend, MapJournal};
-use crate::map::storage::format::{encode_record, FORMAT_VERSION};
+use crate::map::storage::format::{encode_record_bincode1, FORMAT_VERSION};
 use crate::map::storage::local::LocalJournal;
 use crate::map::storage::s3::ObjectStorageBackend;
 use crate::map::storage::snapshot::{encode_snapshot_v2, snapshot_version};
@@ -157,7 +158,7 @@ fn format_2_map(dir: &Path, snapshot: &MapData, records: &[Record]) {
     let mut log = b"SCONELOG".to_vec();
     log.extend_from_slice(&2u32.to_le_bytes());
     for (i, r) in records.iter().enumerate() {
-        log.extend_from_slice(&encode_record(snapshot.version + 1 + i as u64, r).unwrap());
+        log.extend_from_slice(&encode_record_bincode1(snapshot.version + 1 + i as u64, r));
     }
     std::fs::write(dir.join("log.bin"), &log).unwrap();
 }
@@ -269,7 +270,7 @@ fn a_section_still_to_arrive_is_waited_for_fetched_again_after_a_failure_and_nev
             written.map_err(|source| MapError::Io { path: path.clone(), source })
         })
     };
-    let file = PayloadFile::arriving(&path, 4, section.len() as u64, fetch).unwrap();
+    let file = PayloadFile::arriving(&path, 4, section.len() as u64, Encoding::CURRENT, fetch).unwrap();
     // Readers at once while the first fetch fails: the one that ran it gets its error, the others that waited
     // for it fail too, and none fetches again.
     let failed: Vec<MapError> = std::thread::scope(|s| {
@@ -315,7 +316,7 @@ fn a_section_still_to_arrive_is_waited_for_fetched_again_after_a_failure_and_nev
             Err(MapError::Corrupt { path: path.clone(), reason: "payload at byte 4: bad span or checksum".into() })
         })
     };
-    let file = PayloadFile::arriving(&path, 4, section.len() as u64, fetch).unwrap();
+    let file = PayloadFile::arriving(&path, 4, section.len() as u64, Encoding::CURRENT, fetch).unwrap();
     for s in spans.iter().chain(&spans) {
         let e = file.read_raw(*s).unwrap_err();
         assert!(matches!(&e, MapError::Corrupt { reason, .. } if reason.contains("bad span")), "{e}");

@@ -198,7 +198,7 @@ impl ObjectStorageBackend {
     }
 
     /// The snapshot object `path` (`object` in the manifest) as a map, its keyframes' payloads read from a
-    /// copy in `cache_dir`. Format 3: the header and the core by ranged GETs, so the map is ready once its
+    /// copy in `cache_dir`. Formats 3 and 4 (the payloads read in the snapshot's own encoding): the header and the core by ranged GETs, so the map is ready once its
     /// core is; the payload section is still to arrive in the file returned with it
     /// ([`PayloadFile::arriving`]: a read of a payload before it is there fetches it or waits for it). Older
     /// formats: the whole object, its copy written in the current format.
@@ -224,7 +224,8 @@ impl ObjectStorageBackend {
         let mut arriving = None;
         let data = map_from_core(&layout, &core, &name, |spans| {
             let fetch = fetch_section(Arc::clone(s), path.clone(), layout, spans, handle, copy.clone());
-            let file = PayloadFile::arriving(&copy, layout.section().start, layout.section_len, fetch)?;
+            let file =
+                PayloadFile::arriving(&copy, layout.section().start, layout.section_len, layout.encoding(), fetch)?;
             arriving = Some(Arc::clone(&file));
             Ok(file)
         })?;

@@ -1,0 +1,149 @@
+//! The upgrade of a map written in format 3 (bincode 1) to format 4 (postcard), on the committed fixture
+//! `tests/fixtures/map-format3` (a snapshot and two log records made by the format-3 writer): it opens with
+//! every keyframe, is rewritten, reopens the same, and a crash at either step of the rewrite loses nothing.
+
+use std::path::{Path, PathBuf};
+use std::sync::Arc;
+
+use fail::FailScenario;
+
+use crate::map::encoding::Encoding;
+use crate::map::model::MapData;
+use crate::map::storage::backend::MapBackend;
+use crate::map::storage::format::{read_frame, LogEntry, FORMAT_VERSION, LOG_HEADER};
+use crate::map::storage::local::LocalJournal;
+use crate::map::storage::s3::ObjectStorageBackend;
+use crate::map::storage::snapshot::{read_snapshot, snapshot_version};
+use crate::test_dir::{temp_dir, TestDir};
+
+fn fixture() -> PathBuf {
+    PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("tests/fixtures/map-format3/maps/format3")
+}
+
+/// A copy of the fixture's map directory.
+fn copy_of_fixture(name: &str) -> TestDir {
+    let dir = temp_dir(name);
+    for f in ["snapshot.bin", "log.bin"] {
+        std::fs::copy(fixture().join(f), dir.join(f)).unwrap();
+    }
+    dir
+}
+
+fn versions(dir: &Path) -> (u32, u32) {
+    let log = std::fs::read(dir.join("log.bin")).unwrap();
+    (snapshot_version(&dir.join("snapshot.bin")).unwrap(), u32::from_le_bytes(log[8..12].try_into().unwrap()))
+}
+
+/// The fixture's records, decoded in format 3's encoding as its log's header says.
+fn fixture_records() -> Vec<(u64, crate::map::model::Record)> {
+    let path = fixture().join("log.bin");
+    let buf = std::fs::read(&path).unwrap();
+    assert_eq!(u32::from_le_bytes(buf[8..12].try_into().unwrap()), 3);
+    let (mut pos, mut out) = (LOG_HEADER as usize, Vec::new());
+    while pos < buf.len() {
+        let LogEntry::Record { seq, record, end } = read_frame(&buf, pos, 3, &path).unwrap() else {
+            panic!("the fixture's log is whole")
+        };
+        out.push((seq, *record));
+        pos = end;
+    }
+    out
+}
+
+/// The fixture's map read without rewriting anything: its format-3 snapshot, then its log's records.
+fn fixture_map() -> MapData {
+    let snapshot = fixture().join("snapshot.bin");
+    assert_eq!(snapshot_version(&snapshot).unwrap(), 3);
+    let mut data = read_snapshot(&snapshot).unwrap();
+    for (seq, record) in fixture_records() {
+        assert_eq!(seq, data.version + 1);
+        data.check(&record).unwrap();
+        data.apply(&record).unwrap();
+    }
+    data
+}
+
+#[test]
+fn the_format_3_fixture_opens_with_every_keyframe_is_rewritten_in_format_4_and_reopens_the_same() {
+    let expected = fixture_map();
+    assert_eq!(expected.keyframes.keys().copied().collect::<Vec<_>>(), [0, 1, 2, 3]);
+    assert_eq!((expected.version, expected.observations.len()), (4, 959));
+    let dir = copy_of_fixture("upgrade-fixture");
+    let before = std::fs::metadata(dir.join("snapshot.bin")).unwrap().len();
+    let (data, _, report) = LocalJournal::open(&dir, 0).unwrap();
+    assert_eq!(report.replayed, 2);
+    assert_eq!(versions(&dir), (FORMAT_VERSION, FORMAT_VERSION));
+    assert_eq!(std::fs::metadata(dir.join("log.bin")).unwrap().len(), LOG_HEADER, "the log is folded in");
+    // Equal keyframes have equal payloads: those of the snapshot were read from the format-3 file in bincode
+    // and written again in postcard, those of the log came from its records.
+    assert_eq!(data, expected);
+    assert!(data.keyframes.values().all(|k| k.inline_keyframe().is_none()), "the payloads left memory");
+    let after = std::fs::metadata(dir.join("snapshot.bin")).unwrap().len();
+    eprintln!("snapshot of the fixture: {before} bytes in format 3 (2 keyframes), {after} in format 4 (4 keyframes)");
+    let (again, _, report) = LocalJournal::open(&dir, 0).unwrap();
+    assert_eq!((report.replayed, &again), (0, &expected));
+    assert_eq!(read_snapshot(&dir.join("snapshot.bin")).unwrap(), expected);
+}
+
+#[test]
+fn a_crash_at_either_step_of_the_fixture_s_rewrite_loses_nothing() {
+    let _scenario = FailScenario::setup();
+    let expected = fixture_map();
+    // A crash while the new snapshot is written (a full volume there): the old files stay whole. A crash after
+    // it, before the fresh log: the new snapshot covers the old log's records, read in bincode and skipped.
+    for (site_part, after_crash) in [("snapshot.bin", (3, 3)), ("log.bin", (FORMAT_VERSION, 3))] {
+        let dir = copy_of_fixture("upgrade-fixture-crash");
+        let name = dir.file_name().unwrap().to_string_lossy().into_owned();
+        fail::cfg("map-write", &format!("return({name},{site_part})")).unwrap();
+        assert!(LocalJournal::open(&dir, 0).is_err(), "the injected fault at {site_part}");
+        fail::remove("map-write");
+        assert_eq!(versions(&dir), after_crash, "after a crash at {site_part}");
+        let (data, _, report) = LocalJournal::open(&dir, 0).unwrap();
+        let replayed = if site_part == "snapshot.bin" { 2 } else { 0 };
+        assert_eq!((versions(&dir), report.replayed, &data), ((FORMAT_VERSION, FORMAT_VERSION), replayed, &expected));
+        let (again, _, _) = LocalJournal::open(&dir, 0).unwrap();
+        assert_eq!(again, expected);
+    }
+}
+
+#[test]
+fn object_storage_reads_the_fixture_s_format_3_snapshot_and_its_next_compaction_writes_format_4() {
+    use object_store::memory::InMemory;
+    use object_store::{ObjectStore, ObjectStoreExt};
+    let mem = Arc::new(InMemory::new());
+    let cache = temp_dir("upgrade-objects");
+    let b = ObjectStorageBackend::new(Arc::clone(&mem) as Arc<dyn ObjectStore>, "memory://", "p", &cache, 0).unwrap();
+    // A bucket of the previous build: the fixture's snapshot as the snapshot object, its records after it.
+    let snapshot = read_snapshot(&fixture().join("snapshot.bin")).unwrap();
+    let mut j = b.create("m", &snapshot).unwrap();
+    let rt = tokio::runtime::Builder::new_current_thread().build().unwrap();
+    let under = object_store::path::Path::from("p/maps/m/snapshots");
+    let objects: Vec<_> =
+        rt.block_on(futures_util::TryStreamExt::try_collect::<Vec<_>>(mem.list(Some(&under)))).unwrap();
+    let format3 = std::fs::read(fixture().join("snapshot.bin")).unwrap();
+    rt.block_on(mem.put(&objects[0].location, format3.into())).unwrap();
+    let mut expected = snapshot;
+    for (seq, record) in fixture_records() {
+        expected.apply(&record).unwrap();
+        j.append(seq, &record, &expected.stats()).unwrap();
+    }
+    drop(j);
+    let (mut loaded, mut j, report) = b.open("m").unwrap();
+    assert_eq!((report.replayed, &loaded), (2, &fixture_map()));
+    // The copy of a format-3 snapshot keeps its payloads in bincode, read as such; the writer's next
+    // compaction (after a write: a replica that only read does not compact) writes them again in postcard.
+    let removal = crate::map::model::Record::RemoveKeyframe { id: 3 };
+    loaded.apply(&removal).unwrap();
+    j.append(loaded.version, &removal, &loaded.stats()).unwrap();
+    j.compact(&loaded).unwrap();
+    drop(j);
+    let objects: Vec<_> =
+        rt.block_on(futures_util::TryStreamExt::try_collect::<Vec<_>>(mem.list(Some(&under)))).unwrap();
+    assert_eq!(objects.len(), 1, "the replaced snapshot is deleted");
+    let (bytes, _) = rt.block_on(async { (mem.get(&objects[0].location).await.unwrap().bytes().await.unwrap(), ()) });
+    assert_eq!(u32::from_le_bytes(bytes[8..12].try_into().unwrap()), FORMAT_VERSION);
+    let (again, _, report) = b.open("m").unwrap();
+    assert_eq!((report.replayed, &again), (0, &loaded));
+    assert_eq!(again.keyframes.keys().copied().collect::<Vec<_>>(), [0, 1, 2]);
+    assert_eq!(Encoding::of_format(FORMAT_VERSION), Encoding::CURRENT);
+}
