@@ -32,6 +32,7 @@
 
 use std::path::{Path, PathBuf};
 use std::sync::OnceLock;
+use std::time::Instant;
 
 use ort::session::builder::GraphOptimizationLevel;
 use ort::session::Session;
@@ -41,7 +42,7 @@ use serde::{Deserialize, Serialize};
 use sha2::{Digest, Sha256};
 
 use crate::describe::constellation::{self, Constellations, GEOMETRY_DIM};
-use crate::describe::features::{ExtractorSettings, Features, DESCRIPTOR_BYTES};
+use crate::describe::features::{ExtractorSettings, Features, StageSink, DESCRIPTOR_BYTES};
 use crate::describe::ring_context::SAMPLES;
 use crate::error::EmbeddingError;
 
@@ -456,6 +457,27 @@ impl Lease<'_> {
         }
         run(&mut self.session, features, &context, e.dim)
     }
+
+    /// [`Lease::embed`] for a ring model, telling `stage` the time of building the input tensors
+    /// (`assembly`), of ONNX Runtime's run (`inference`) and of copying the embeddings out (`output`): the
+    /// per-stage accounting of the `stages` bench.
+    pub fn embed_rings_staged(&mut self, features: &Features, stage: StageSink) -> Result<Vec<f32>, EmbeddingError> {
+        let t = Instant::now();
+        let Context::Rings(rings) = self.embedder.context_of(features)? else {
+            return Err(EmbeddingError::Input { reason: "not a ring-context model".into() });
+        };
+        let (descriptors, context) = ring_inputs(features.descriptors.as_flattened(), rings)?;
+        stage("assembly", t.elapsed());
+        let t = Instant::now();
+        let outputs =
+            self.session.run(ort::inputs!["descriptors" => descriptors, "context" => context]).map_err(inference)?;
+        stage("inference", t.elapsed());
+        let t = Instant::now();
+        let embeddings = embeddings_of(&outputs, features.len(), self.embedder.dim);
+        drop(outputs);
+        stage("output", t.elapsed());
+        embeddings
+    }
 }
 
 /// A model's context input for one frame.
@@ -503,11 +525,19 @@ fn run(session: &mut Session, f: &Features, context: &Context, dim: usize) -> Re
     embeddings_of(&outputs, n, dim)
 }
 
-/// A ring model on `descriptors` (`DESCRIPTOR_BYTES` per keypoint) and `rings` (`SAMPLES` per keypoint).
-fn run_rings(session: &mut Session, descriptors: &[u8], rings: &[u8], dim: usize) -> Result<Vec<f32>, EmbeddingError> {
+/// A ring model's two input tensors, from `descriptors` (`DESCRIPTOR_BYTES` per keypoint) and `rings`
+/// (`SAMPLES` per keypoint).
+fn ring_inputs(descriptors: &[u8], rings: &[u8]) -> Result<(Tensor<u8>, Tensor<u8>), EmbeddingError> {
     let n = descriptors.len() / DESCRIPTOR_BYTES;
     let descriptors = Tensor::from_array(([n, DESCRIPTOR_BYTES], descriptors.to_vec())).map_err(inference)?;
     let context = Tensor::from_array(([n, SAMPLES], rings.to_vec())).map_err(inference)?;
+    Ok((descriptors, context))
+}
+
+/// A ring model on `descriptors` (`DESCRIPTOR_BYTES` per keypoint) and `rings` (`SAMPLES` per keypoint).
+fn run_rings(session: &mut Session, descriptors: &[u8], rings: &[u8], dim: usize) -> Result<Vec<f32>, EmbeddingError> {
+    let n = descriptors.len() / DESCRIPTOR_BYTES;
+    let (descriptors, context) = ring_inputs(descriptors, rings)?;
     let outputs = session.run(ort::inputs!["descriptors" => descriptors, "context" => context]).map_err(inference)?;
     embeddings_of(&outputs, n, dim)
 }

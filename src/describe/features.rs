@@ -23,6 +23,8 @@
 //! `proto/scone/v1/scone.proto` (above `message KeypointSet`); `clients/python` reproduces it bit for bit.
 //! A change here that alters any keypoint or descriptor must change that text and its revision.
 
+use std::time::Instant;
+
 use opencv::core::{KeyPoint, Mat, Size, Vector};
 use opencv::features2d::{FastFeatureDetector, FastFeatureDetector_DetectorType};
 use opencv::prelude::*;
@@ -236,8 +238,22 @@ pub fn extract(image: &GreyImage, config: &ExtractorSettings) -> Result<Features
     describe(image, &mut candidates)
 }
 
+/// A caller's record of where a stage's time went: called with the stage's name (`pyramid`, `fast`, `grid`,
+/// `freak`, `freak_output`) and its wall time, once or more per call (the pyramid's stages once per level).
+pub type StageSink<'a> = &'a mut dyn FnMut(&'static str, std::time::Duration);
+
 /// FAST on every pyramid level, border-filtered and budgeted; keypoints in full-resolution coordinates.
 pub fn detect(image: &GreyImage, config: &ExtractorSettings) -> Result<Vector<KeyPoint>, FeatureError> {
+    detect_staged(image, config, &mut |_, _| {})
+}
+
+/// [`detect`], telling `stage` the time of each level's resize (`pyramid`), FAST (`fast`) and the border
+/// filter with the grid budget (`grid`): the per-stage accounting of the `stages` bench.
+pub fn detect_staged(
+    image: &GreyImage,
+    config: &ExtractorSettings,
+    stage: StageSink,
+) -> Result<Vector<KeyPoint>, FeatureError> {
     let full = image.mat();
     let (w, h) = (full.cols(), full.rows());
     let level_weights: Vec<f64> = (0..config.levels).map(|l| config.scale_factor.powi(-2 * l as i32)).collect();
@@ -256,14 +272,19 @@ pub fn detect(image: &GreyImage, config: &ExtractorSettings) -> Result<Vector<Ke
         if lw < 16 || lh < 16 || 2.0 * border >= w.min(h) as f32 {
             break;
         }
+        let t = Instant::now();
         let img: &Mat = if level == 0 {
             full
         } else {
             imgproc::resize(full, &mut level_img, Size::new(lw, lh), 0.0, 0.0, imgproc::INTER_LINEAR)?;
             &level_img
         };
+        stage("pyramid", t.elapsed());
+        let t = Instant::now();
         let mut raw = Vector::<KeyPoint>::new();
         detector.detect(img, &mut raw, &Mat::default())?;
+        stage("fast", t.elapsed());
+        let t = Instant::now();
         let sx = w as f32 / lw as f32;
         let sy = h as f32 / lh as f32;
         let mut level_kps: Vec<(KeyPoint, f32, f32)> = Vec::with_capacity(raw.len());
@@ -287,6 +308,7 @@ pub fn detect(image: &GreyImage, config: &ExtractorSettings) -> Result<Vector<Ke
         for kp in kept {
             selected.push(kp);
         }
+        stage("grid", t.elapsed());
     }
     Ok(selected)
 }
@@ -326,6 +348,17 @@ thread_local! {
 
 /// Runs FREAK on `keypoints` (it assigns orientation and drops keypoints whose pattern leaves the image).
 pub fn describe(image: &GreyImage, keypoints: &mut Vector<KeyPoint>) -> Result<Features, FeatureError> {
+    describe_staged(image, keypoints, &mut |_, _| {})
+}
+
+/// [`describe`], telling `stage` the time of OpenCV's FREAK (`freak`) and of copying its output into
+/// [`Features`] (`freak_output`).
+pub fn describe_staged(
+    image: &GreyImage,
+    keypoints: &mut Vector<KeyPoint>,
+    stage: StageSink,
+) -> Result<Features, FeatureError> {
+    let t = Instant::now();
     let mut desc = Mat::default();
     FREAK.with(|cell| -> Result<(), FeatureError> {
         let mut slot = cell.borrow_mut();
@@ -338,6 +371,8 @@ pub fn describe(image: &GreyImage, keypoints: &mut Vector<KeyPoint>) -> Result<F
         freak.compute(image.mat(), keypoints, &mut desc)?;
         Ok(())
     })?;
+    stage("freak", t.elapsed());
+    let t = Instant::now();
     let n = keypoints.len();
     if n > 0 && (desc.rows() as usize != n || desc.cols() as usize != DESCRIPTOR_BYTES) {
         return Err(FeatureError::OpenCv(opencv::Error::new(
@@ -353,6 +388,7 @@ pub fn describe(image: &GreyImage, keypoints: &mut Vector<KeyPoint>) -> Result<F
         descriptors.push(d);
     }
     let keypoints = keypoints.iter().map(|k| Keypoint::from_cv(&k)).collect();
+    stage("freak_output", t.elapsed());
     Ok(Features { width: image.width(), height: image.height(), keypoints, descriptors, context: Vec::new() })
 }
 
