@@ -6,9 +6,10 @@
 //! * Format 4 on: [`postcard`], whose wire format is specified and stable since its 1.0: integers and
 //!   lengths as varints, `f32`/`f64` as their little-endian bytes, byte strings in one piece.
 //! * Formats 1 to 3: bincode 1's fixed-width layout (little-endian integers, u64 lengths, u32 enum tags),
-//!   read only, so maps written by earlier builds open and are rewritten in the current format. bincode 1.3
-//!   is unmaintained (RUSTSEC-2025-0141) and no maintained crate reads its layout through serde, so it stays
-//!   a read-only dependency of this module and of no other.
+//!   read so that maps written by earlier builds open and are rewritten in the current format; the service
+//!   never writes it ([`encode_bincode1`] is for tests that make maps of those formats). bincode 1.3 is
+//!   unmaintained (RUSTSEC-2025-0141) and no maintained crate reads its layout through serde, so it stays a
+//!   dependency of this module and of no other.
 //!
 //! Nothing outside this module names either crate.
 
@@ -83,9 +84,9 @@ pub fn encode<T: Serialize + ?Sized>(value: &T) -> Result<Vec<u8>, String> {
     postcard::to_allocvec(value).map_err(|e| e.to_string())
 }
 
-/// The bytes of `value` in bincode 1's layout, as formats 1 to 3 hold it (for tests that make maps of those
-/// formats).
-#[cfg(test)]
+/// The bytes of `value` in bincode 1's layout, as formats 1 to 3 hold it: for tests that make maps of those
+/// formats (the unit tests, and the integration tests through [`crate::map::storage::snapshot::encode_snapshot_v3`]
+/// and [`crate::map::storage::format::encode_record_bincode1`]). The service never writes them.
 pub fn encode_bincode1<T: Serialize + ?Sized>(value: &T) -> Vec<u8> {
     bincode::serialize(value).expect("test values encode")
 }

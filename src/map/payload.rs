@@ -396,3 +396,10 @@ pub fn encode_payload(k: &Keyframe) -> Vec<u8> {
     let p = PayloadRef { keypoints: &k.keypoints, descriptors: &k.descriptors, embeddings: &k.embeddings };
     encode(&p).expect("vectors of plain values encode")
 }
+
+/// [`encode_payload`] in bincode 1's layout, as a format-3 payload section holds it (for tests that make maps
+/// of that format; the service never writes it).
+pub fn encode_payload_bincode1(k: &Keyframe) -> Vec<u8> {
+    let p = PayloadRef { keypoints: &k.keypoints, descriptors: &k.descriptors, embeddings: &k.embeddings };
+    crate::map::encoding::encode_bincode1(&p)
+}

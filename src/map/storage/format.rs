@@ -168,8 +168,8 @@ pub fn encode_record(seq: u64, record: &Record) -> Result<Vec<u8>, MapError> {
     Ok(frame(seq, &payload))
 }
 
-/// A record framed in bincode 1's layout, as formats 1 to 3 hold it (for tests that make maps of those formats).
-#[cfg(test)]
+/// A record framed in bincode 1's layout, as formats 1 to 3 hold it (for tests that make maps of those formats;
+/// the service never writes it).
 pub fn encode_record_bincode1(seq: u64, record: &Record) -> Vec<u8> {
     frame(seq, &crate::map::encoding::encode_bincode1(record))
 }

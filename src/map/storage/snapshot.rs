@@ -26,9 +26,9 @@ use serde::{Deserialize, Serialize};
 
 use crate::camera::{Camera, Pose};
 use crate::error::MapError;
-use crate::map::encoding::{encode, Encoding};
+use crate::map::encoding::{encode, encode_bincode1, Encoding};
 use crate::map::model::{Keyframe, Landmark, MapData, MapKeyframe, MapMeta, Observation};
-use crate::map::payload::{decode_payload, PayloadFile, Span, StoredPayloads};
+use crate::map::payload::{decode_payload, encode_payload_bincode1, PayloadFile, Span, StoredPayloads};
 use crate::map::storage::format::{
     corrupt, io_err, readable_version, unreadable, Crc32Reader, DumpBytes, FORMAT_VERSION,
 };
@@ -212,11 +212,29 @@ impl EncodedSnapshot {
 /// stored in this format are copied as they are, their checksums checked; those of an older one are encoded
 /// again.
 pub fn encode_snapshot_spans(data: &MapData) -> Result<EncodedSnapshot, MapError> {
+    encode_split(data, FORMAT_VERSION, |k| k.payload_bytes(), |core| encode(core))
+}
+
+/// A map in format 3 (bincode 1), as the builds before format 4 wrote it: for tests of the upgrade from that
+/// format (the service writes only [`FORMAT_VERSION`]).
+pub fn encode_snapshot_v3(data: &MapData) -> Result<Vec<u8>, MapError> {
+    let payload = |k: &MapKeyframe| Ok(encode_payload_bincode1(&*k.load()?));
+    Ok(encode_split(data, 3, payload, |core| Ok(encode_bincode1(core)))?.bytes)
+}
+
+/// A format-3/4 snapshot of `data` (`version` in its header), each payload's bytes from `payload` and the
+/// core's from `core`.
+fn encode_split(
+    data: &MapData,
+    version: u32,
+    payload: impl Fn(&MapKeyframe) -> Result<Vec<u8>, MapError>,
+    core: impl FnOnce(&CoreRef) -> Result<Vec<u8>, String>,
+) -> Result<EncodedSnapshot, MapError> {
     let mut bytes = vec![0u8; HEADER_V3];
     let mut heads = Vec::with_capacity(data.keyframes.len());
     let mut spans = Vec::with_capacity(data.keyframes.len());
     for k in data.keyframes.values() {
-        let payload = k.payload_bytes()?;
+        let payload = payload(k)?;
         let span = Span {
             offset: (bytes.len() - HEADER_V3) as u64,
             len: payload.len() as u64,
@@ -227,7 +245,7 @@ pub fn encode_snapshot_spans(data: &MapData) -> Result<EncodedSnapshot, MapError
         spans.push((k.id, span));
     }
     let section_len = (bytes.len() - HEADER_V3) as u64;
-    let core = CoreRef {
+    let core_ref = CoreRef {
         meta: &data.meta,
         keyframes: heads,
         landmarks: &data.landmarks,
@@ -237,11 +255,11 @@ pub fn encode_snapshot_spans(data: &MapData) -> Result<EncodedSnapshot, MapError
         version: data.version,
         external_ids: &data.external_ids,
     };
-    let core = encode(&core)
+    let core = core(&core_ref)
         .map_err(|e| MapError::InvalidInput { field: "map".into(), reason: format!("cannot encode: {e}") })?;
     bytes.extend_from_slice(&core);
     let mut header = SNAPSHOT_MAGIC.to_vec();
-    header.extend_from_slice(&FORMAT_VERSION.to_le_bytes());
+    header.extend_from_slice(&version.to_le_bytes());
     header.extend_from_slice(&section_len.to_le_bytes());
     header.extend_from_slice(&(core.len() as u64).to_le_bytes());
     header.extend_from_slice(&crc32fast::hash(&core).to_le_bytes());
