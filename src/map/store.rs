@@ -474,6 +474,12 @@ impl MapStore {
 
     /// Log (fsync) then apply; compacts and dumps the index when the log is long. Returns the new version.
     fn commit(&self, map: &Map, log: &mut dyn MapJournal, record: Record) -> Result<u64, MapError> {
+        if log.needs_upgrade() {
+            // An older format's files that the open could not rewrite: rewritten now, before the record.
+            let upgraded = log.compact(&map.state.read().data);
+            upgraded?;
+            Self::store_payloads(map, log);
+        }
         let (seq, after) = {
             let s = map.state.read();
             (s.data.version + 1, s.data.stats_after(&record))

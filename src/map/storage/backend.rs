@@ -106,6 +106,13 @@ pub trait MapJournal: Send + std::fmt::Debug {
     /// Whether enough records accumulated to fold them into a snapshot.
     fn wants_compaction(&self) -> bool;
 
+    /// Whether the stored files are of an older format that could not be rewritten when the map was opened (a
+    /// full volume): the caller compacts before the next append, and the write fails with the compaction's
+    /// error if that fails again.
+    fn needs_upgrade(&self) -> bool {
+        false
+    }
+
     /// Replaces the stored snapshot with `data` and drops the records it covers. The caller has just dumped
     /// the index of `data` into [`index_dir`](Self::index_dir): object storage uploads that dump with the
     /// snapshot, so a replica that loads the map downloads the graph instead of rebuilding it.

@@ -17,7 +17,9 @@
 //!
 //! A map of an older format (its snapshot or its log) is folded into a current-format snapshot with a fresh
 //! log as soon as it is opened (the same crash-safe steps as compaction), so a record of a new kind never
-//! lands in a file whose header promises an older format.
+//! lands in a file whose header promises an older format. A rewrite that fails (a full volume) leaves the old
+//! files whole and the map opens from them: it answers reads, and its next write tries the rewrite again
+//! before its record ([`MapJournal::needs_upgrade`]), answering the volume's error if it still fails.
 //!
 //! Keyframe payloads are read from `snapshot.bin` on demand ([`crate::map::payload`]): the keyframes of a
 //! loaded map point into the file that was the snapshot when they were stored, kept open across the
@@ -50,6 +52,9 @@ pub struct LocalJournal {
     compact_every: usize,
     /// Where the last snapshot written keeps each payload, until the store takes it.
     stored: Option<StoredPayloads>,
+    /// The format in the open log's header: an older one until the map's files are rewritten, and no record
+    /// is appended to it before they are.
+    log_format: u32,
 }
 
 impl LocalJournal {
@@ -73,7 +78,8 @@ impl LocalJournal {
     }
 
     fn new(dir: &Path, file: File, len: u64, records: usize, compact_every: usize) -> Self {
-        Self { dir: dir.to_path_buf(), file, len, torn_tail: false, records, compact_every, stored: None }
+        let log_format = FORMAT_VERSION;
+        Self { dir: dir.to_path_buf(), file, len, torn_tail: false, records, compact_every, stored: None, log_format }
     }
 
     /// Writes the snapshot of `data` (atomically); returns where it keeps each payload.
@@ -109,7 +115,7 @@ impl LocalJournal {
             let file = Self::fresh_log(dir)?;
             let mut log = Self::new(dir, file, LOG_HEADER, 0, compact_every);
             if snapshot_version < FORMAT_VERSION {
-                log.upgrade(&mut data, snapshot_version)?;
+                log.upgrade(&mut data, snapshot_version);
             }
             return Ok((data, log, report));
         }
@@ -156,8 +162,9 @@ impl LocalJournal {
         }
         file.seek(SeekFrom::End(0)).map_err(io_err(&log_path))?;
         let mut log = Self::new(dir, file, pos as u64, records, compact_every);
+        log.log_format = version;
         if version.min(snapshot_version) < FORMAT_VERSION {
-            log.upgrade(&mut data, version.min(snapshot_version))?;
+            log.upgrade(&mut data, version.min(snapshot_version));
         }
         Ok((data, log, report))
     }
@@ -166,19 +173,40 @@ impl LocalJournal {
     /// snapshot and log stay whole until the new snapshot is renamed over the old one, and records it covers
     /// are skipped at load; a crash before the fresh log upgrades again at the next open). New kinds of record
     /// must not go into a file whose header promises an older format; the map's payloads then leave memory.
-    fn upgrade(&mut self, data: &mut MapData, from: u32) -> Result<(), MapError> {
-        self.compact(data)?;
-        if let Some(stored) = self.stored.take() {
-            data.store_payloads(&stored);
+    /// A rewrite that fails (a full volume) is logged, not the open's error: the map is read from its files as
+    /// they are, and the next write rewrites them first ([`MapJournal::needs_upgrade`]).
+    fn upgrade(&mut self, data: &mut MapData, from: u32) {
+        match self.compact(data) {
+            Ok(()) => {
+                if let Some(stored) = self.stored.take() {
+                    data.store_payloads(&stored);
+                }
+                tracing::info!(map = %self.dir.display(), from, to = FORMAT_VERSION, "upgraded the map's files");
+            }
+            Err(e) => tracing::warn!(
+                map = %self.dir.display(), from, to = FORMAT_VERSION, error = %e,
+                "cannot rewrite the map's files in the current format; it is read as it is, and its next write tries again"
+            ),
         }
-        tracing::info!(map = %self.dir.display(), from, to = FORMAT_VERSION, "upgraded the map's files");
-        Ok(())
+    }
+
+    /// Whether the open log is of an older format, so the map's files must be rewritten (a compaction) before
+    /// a record is appended.
+    pub fn needs_upgrade(&self) -> bool {
+        self.log_format < FORMAT_VERSION
     }
 
     /// Appends the record that takes `data` to version `seq` and waits until it is on disk. On failure the
     /// log is cut back to the records before it (fail point `map-append`: half the record, then a full volume).
     pub fn append(&mut self, seq: u64, record: &Record) -> Result<(), MapError> {
         let path = Self::log_path(&self.dir);
+        if self.needs_upgrade() {
+            // The caller compacts first (`MapJournal::needs_upgrade`); this record's encoding is not the log's.
+            return Err(MapError::Unavailable {
+                map: self.dir.display().to_string(),
+                reason: format!("its log is of format {} and must be rewritten before a write", self.log_format),
+            });
+        }
         let frame = encode_record(seq, record)?;
         if self.torn_tail {
             self.cut_back()?;
@@ -222,6 +250,7 @@ impl LocalJournal {
         let stored = Self::write_snapshot(&self.dir, data)?;
         self.stored = Some(stored);
         self.file = Self::fresh_log(&self.dir)?;
+        self.log_format = FORMAT_VERSION;
         self.len = LOG_HEADER;
         self.torn_tail = false;
         self.records = 0;
@@ -282,6 +311,10 @@ impl MapJournal for LocalJournal {
 
     fn wants_compaction(&self) -> bool {
         LocalJournal::wants_compaction(self)
+    }
+
+    fn needs_upgrade(&self) -> bool {
+        LocalJournal::needs_upgrade(self)
     }
 
     fn compact(&mut self, data: &MapData) -> Result<(), MapError> {

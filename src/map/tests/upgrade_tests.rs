@@ -109,7 +109,10 @@ fn a_crash_at_either_step_of_the_fixture_s_rewrite_loses_nothing() {
         let dir = copy_of_fixture("upgrade-fixture-crash");
         let name = dir.file_name().unwrap().to_string_lossy().into_owned();
         fail::cfg("map-write", &format!("return({name},{site_part})")).unwrap();
-        assert!(LocalJournal::open(&dir, 0).is_err(), "the injected fault at {site_part}");
+        // A failed rewrite is not the open's error: the map is read from the files as they are.
+        let (data, log, _) = LocalJournal::open(&dir, 0).unwrap();
+        assert_eq!((&data, log.needs_upgrade()), (&expected, true), "the injected fault at {site_part}");
+        drop(log);
         fail::remove("map-write");
         assert_eq!(versions(&dir), after_crash, "after a crash at {site_part}");
         let (data, _, report) = LocalJournal::open(&dir, 0).unwrap();
@@ -118,6 +121,68 @@ fn a_crash_at_either_step_of_the_fixture_s_rewrite_loses_nothing() {
         let (again, _, _) = LocalJournal::open(&dir, 0).unwrap();
         assert_eq!(again, expected);
     }
+}
+
+#[test]
+fn a_map_whose_rewrite_fails_at_open_is_read_as_it_is_and_its_next_write_waits_for_the_rewrite() {
+    let _scenario = FailScenario::setup();
+    let expected = fixture_map();
+    let dir = copy_of_fixture("upgrade-full-volume");
+    let name = dir.file_name().unwrap().to_string_lossy().into_owned();
+    let before = (std::fs::read(dir.join("snapshot.bin")).unwrap(), std::fs::read(dir.join("log.bin")).unwrap());
+    // A full volume when the open rewrites the snapshot: the map opens from its format-3 files, untouched.
+    fail::cfg("map-write", &format!("return({name},snapshot.bin)")).unwrap();
+    let (mut data, mut log, report) = LocalJournal::open(&dir, 0).unwrap();
+    assert_eq!((report.replayed, &data, log.needs_upgrade()), (2, &expected, true));
+    let after = (std::fs::read(dir.join("snapshot.bin")).unwrap(), std::fs::read(dir.join("log.bin")).unwrap());
+    assert!(after == before, "the old files stay as they were");
+    // No record goes into a log whose header promises format 3; the write's compaction fails while the volume
+    // is full, and succeeds once it is not.
+    let removal = crate::map::model::Record::RemoveKeyframe { id: 3 };
+    assert!(log.append(data.version + 1, &removal).is_err());
+    assert!(log.compact(&data).is_err());
+    fail::remove("map-write");
+    log.compact(&data).unwrap();
+    assert_eq!((versions(&dir), log.needs_upgrade()), ((FORMAT_VERSION, FORMAT_VERSION), false));
+    data.apply(&removal).unwrap();
+    log.append(data.version, &removal).unwrap();
+    drop(log);
+    let (again, _, report) = LocalJournal::open(&dir, 0).unwrap();
+    assert_eq!((report.replayed, again.keyframes.len()), (1, expected.keyframes.len() - 1));
+}
+
+#[test]
+fn through_the_store_a_map_whose_rewrite_failed_answers_reads_and_its_next_write_rewrites_it_first() {
+    use crate::map::storage::local::LocalBackend;
+    use crate::map::store::{MapStore, ModelInfo, StoreSettings};
+    let _scenario = FailScenario::setup();
+    let expected = fixture_map();
+    let data_dir = temp_dir("upgrade-store");
+    let dir = data_dir.join("maps/format3");
+    std::fs::create_dir_all(&dir).unwrap();
+    for f in ["snapshot.bin", "log.bin"] {
+        std::fs::copy(fixture().join(f), dir.join(f)).unwrap();
+    }
+    let name = data_dir.file_name().unwrap().to_string_lossy().into_owned();
+    fail::cfg("map-write", &format!("return({name},snapshot.bin)")).unwrap();
+    let config = StoreSettings { data_dir: data_dir.to_path_buf(), compact_every: 0, ..StoreSettings::default() };
+    let model = ModelInfo { model_id: expected.meta.model_id.clone(), k: 0, dim: expected.meta.dim };
+    let backend = Arc::new(LocalBackend::new(&data_dir, 0).unwrap()) as Arc<dyn MapBackend>;
+    let store = MapStore::open_with_backend(config, model, backend).unwrap();
+    // The map is served (not held back) from its format-3 files while the volume refuses the rewrite.
+    let map = store.get("format3").unwrap();
+    assert_eq!(store.summary("format3").unwrap().keyframes, expected.keyframes.len());
+    assert_eq!(versions(&dir), (3, 3));
+    // A write fails with the volume's error and leaves the files as they were; once there is room, the write
+    // rewrites the map in the current format and then logs its record.
+    assert!(store.remove_keyframe(&map, 3).is_err());
+    assert_eq!(versions(&dir), (3, 3));
+    fail::remove("map-write");
+    store.remove_keyframe(&map, 3).unwrap();
+    assert_eq!(versions(&dir), (FORMAT_VERSION, FORMAT_VERSION));
+    drop((map, store));
+    let (again, _, report) = LocalJournal::open(&dir, 0).unwrap();
+    assert_eq!((report.replayed, again.keyframes.len()), (1, expected.keyframes.len() - 1));
 }
 
 #[test]
