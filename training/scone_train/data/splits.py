@@ -51,8 +51,9 @@ SPLIT = {
 # The four object and room orbits added to the training scenes (SfM or turntable poses, no depth), each split into
 # a training part and a selection arc of about a quarter of the orbit, with unused frames between them so that
 # no selection view lies within about 18 degrees of a training view (azimuths of the camera centres in the plane
-# they span). llff-blowtorch's file order is not the orbit's, so its parts are listed by stamp: the selection arc
-# is the views at 95-150 degrees of azimuth, the unused buffer 75-95 and 150-170. Labelling tolerances by the
+# they span; between optical axes the nearest are 13-14 degrees). llff-blowtorch's file order is not the
+# orbit's, so its parts are listed by stamp: the selection arc is the views at 95-150 degrees of azimuth, the
+# unused buffer 75-95 and 150-170. Labelling tolerances by the
 # rule above, from `python -m scone_train.data.residuals --gaps 1,2,3,5` (p75 of the epipolar error): the LLFF
 # scenes 0.31-0.50 px at gaps up to 5 -> 1 px, linked 5 frames apart along the orbit (about 21 degrees for
 # ethiopianhead, 14 for lemontea-office) or, for blowtorch, to the 8 views with the nearest optical axes;
@@ -135,8 +136,8 @@ def write_selection_scenes(out: Path, scenes: dict = SPLIT) -> dict[str, tuple[P
     """Each scene's selection part as a scene directory under `out`: name -> (directory, eval window)."""
     made = {}
     for name, spec in scenes.items():
-        if not scene_dir(name).is_dir():
-            continue
+        if name in ORBITS and not scene_dir(name).is_dir():
+            continue  # a copy of the shared data without the orbits; the five are always there
         src = scene_dir(name)
         scene = load_scene(src)
         keep = frames(spec["select"], scene.stamps)

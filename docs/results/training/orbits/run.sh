@@ -1,7 +1,8 @@
 #!/usr/bin/env bash
 # Relocalisation on the four orbits' selection arcs (RULE.md beside this file): far-map protocol inside each arc,
 # 100k distractor observations, castle's every 3rd frame as foreign frames, the service's estimator; SConE with
-# the model given beside FREAK and SIFT. Reports to $OUT (default $SCONE_PREFIX/work/orbits-reloc/NAME).
+# the model given beside FREAK and SIFT. Reports to $OUT (default $SCONE_PREFIX/work/orbits/reloc-NAME, where
+# score.py reads them; METHODS=scone leaves out FREAK and SIFT, which do not depend on the model).
 #   docs/results/training/orbits/run.sh NAME MODEL.onnx
 # The arcs: python -m scone_train.data.splits --scenes nine --out $SCONE_PREFIX/work/sel (from training/).
 set -euo pipefail
@@ -12,7 +13,7 @@ name=$1; model=$2
 B="$CARGO_TARGET_DIR/release/scone"
 D=${SCONE_DATA:-$here/../shared/data}/scenes
 S=$SCONE_PREFIX/work/sel
-out="${OUT:-$SCONE_PREFIX/work/orbits-reloc/$name}"
+out="${OUT:-$SCONE_PREFIX/work/orbits/reloc-$name}"
 mkdir -p "$out"
 for arc in llff-ethiopianhead-sel llff-blowtorch-sel llff-lemontea-office-sel turntable-squirrel-sel; do
   f="$out/far--$arc.json"
