@@ -226,3 +226,28 @@ fn object_storage_reads_the_fixture_s_format_3_snapshot_and_its_next_compaction_
     assert_eq!(again.keyframes.keys().copied().collect::<Vec<_>>(), [0, 1, 2]);
     assert_eq!(Encoding::of_format(FORMAT_VERSION), Encoding::CURRENT);
 }
+
+#[test]
+fn a_format_4_core_of_garbage_behind_a_valid_checksum_is_an_error_not_a_panic_or_a_huge_allocation() {
+    use crate::map::storage::snapshot::{decode_snapshot, encode_snapshot_spans};
+    use rand::{Rng, SeedableRng};
+    // What an import could carry: a well-formed header and payload section, and a core whose checksum matches
+    // bytes that are not a map (random, or lengths claiming far more elements than the file holds).
+    let good = encode_snapshot_spans(&fixture_map()).unwrap().bytes;
+    let core_at = 32 + u64::from_le_bytes(good[12..20].try_into().unwrap()) as usize;
+    let mut rng = rand::rngs::StdRng::seed_from_u64(7);
+    for trial in 0..200 {
+        let mut bytes = good[..core_at].to_vec();
+        let len = rng.random_range(1..4096);
+        let mut core: Vec<u8> = (0..len).map(|_| rng.random()).collect();
+        if trial % 4 == 0 {
+            core[..10].fill(0xff); // a varint length near 2^64
+        }
+        bytes.extend_from_slice(&core);
+        bytes[20..28].copy_from_slice(&(core.len() as u64).to_le_bytes());
+        bytes[28..32].copy_from_slice(&crc32fast::hash(&core).to_le_bytes());
+        let err = decode_snapshot(&bytes, Path::new("garbage")).unwrap_err().to_string();
+        assert!(!err.contains("checksum") && !err.contains("header"), "trial {trial} stopped before decoding: {err}");
+    }
+    assert_eq!(decode_snapshot(&good, Path::new("good")).unwrap(), fixture_map(), "the same framing decodes a map");
+}
