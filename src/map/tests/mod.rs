@@ -64,6 +64,17 @@ pub(crate) fn keyframe_record(id: u64, n: usize, first_landmark: u64, dim: usize
     }
 }
 
+/// Opens the map in `dir` while every atomic write of its file `file` (`snapshot.bin` or `log.bin`) fails as on a
+/// full volume (fail point `map-write`), as a crash at that step of the upgrade would leave it: the open
+/// succeeds and reads the map; returns it and whether the journal still waits for its rewrite.
+pub(crate) fn open_while_writing_fails(dir: &std::path::Path, file: &str) -> (MapData, bool) {
+    let name = dir.file_name().unwrap().to_string_lossy().into_owned();
+    fail::cfg("map-write", &format!("return({name},{file})")).unwrap();
+    let (data, log, _) = LocalJournal::open(dir, 0).unwrap();
+    fail::remove("map-write");
+    (data, log.needs_upgrade())
+}
+
 pub(crate) fn write(log: &mut LocalJournal, data: &mut MapData, r: Record) {
     data.check(&r).unwrap();
     log.append(data.version + 1, &r).unwrap();

@@ -7,7 +7,7 @@ use std::sync::Arc;
 
 use fail::FailScenario;
 
-use super::{keyframe_record, meta, write};
+use super::{keyframe_record, meta, open_while_writing_fails, write};
 use crate::camera::Camera;
 use crate::describe::features::Features;
 use crate::error::MapError;
@@ -187,13 +187,9 @@ fn a_format_2_map_opens_upgrades_at_any_crash_point_and_localises_the_same() {
     for (site_part, snapshot_after) in [("snapshot.bin", 2), ("log.bin", FORMAT_VERSION)] {
         let dir = temp_dir("payload-upgrade-crash");
         format_2_map(&dir, &old, &later);
-        let name = dir.file_name().unwrap().to_string_lossy().into_owned();
-        fail::cfg("map-write", &format!("return({name},{site_part})")).unwrap();
         // The failed rewrite is not the open's error: the map is read from its files as they are.
-        let (data, log, _) = LocalJournal::open(&dir, 0).unwrap();
-        assert_eq!((&data, log.needs_upgrade()), (&expected, true), "the injected fault at {site_part}");
-        drop(log);
-        fail::remove("map-write");
+        let opened = open_while_writing_fails(&dir, site_part);
+        assert_eq!(opened, (expected.clone(), true), "the injected fault at {site_part}");
         assert_eq!(versions(&dir), (snapshot_after, 2), "after a crash at {site_part}");
         let (data, _, _) = LocalJournal::open(&dir, 0).unwrap();
         assert_eq!((versions(&dir), &data), ((FORMAT_VERSION, FORMAT_VERSION), &expected));

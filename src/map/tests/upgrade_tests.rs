@@ -14,6 +14,7 @@ use crate::map::storage::format::{read_frame, LogEntry, FORMAT_VERSION, LOG_HEAD
 use crate::map::storage::local::LocalJournal;
 use crate::map::storage::s3::ObjectStorageBackend;
 use crate::map::storage::snapshot::{encode_snapshot_v3, read_snapshot, snapshot_version};
+use crate::map::tests::open_while_writing_fails;
 use crate::test_dir::{temp_dir, TestDir};
 
 fn fixture() -> PathBuf {
@@ -107,13 +108,9 @@ fn a_crash_at_either_step_of_the_fixture_s_rewrite_loses_nothing() {
     // it, before the fresh log: the new snapshot covers the old log's records, read in bincode and skipped.
     for (site_part, after_crash) in [("snapshot.bin", (3, 3)), ("log.bin", (FORMAT_VERSION, 3))] {
         let dir = copy_of_fixture("upgrade-fixture-crash");
-        let name = dir.file_name().unwrap().to_string_lossy().into_owned();
-        fail::cfg("map-write", &format!("return({name},{site_part})")).unwrap();
         // A failed rewrite is not the open's error: the map is read from the files as they are.
-        let (data, log, _) = LocalJournal::open(&dir, 0).unwrap();
-        assert_eq!((&data, log.needs_upgrade()), (&expected, true), "the injected fault at {site_part}");
-        drop(log);
-        fail::remove("map-write");
+        let opened = open_while_writing_fails(&dir, site_part);
+        assert_eq!(opened, (expected.clone(), true), "the injected fault at {site_part}");
         assert_eq!(versions(&dir), after_crash, "after a crash at {site_part}");
         let (data, _, report) = LocalJournal::open(&dir, 0).unwrap();
         let replayed = if site_part == "snapshot.bin" { 2 } else { 0 };
