@@ -19,7 +19,7 @@ use tonic::transport::Channel;
 
 use crate::common::{fixture, temp_dir};
 use crate::object_store::{Moto, KEY_ID, PREFIX, SECRET};
-use crate::service::{add_keyframes_http, image_frame, keyframe_requests, multipart_keyframe};
+use crate::service::{add_keyframes_http, image_frame, keyframe_requests, localize_http, multipart_keyframe};
 
 /// The freshness bound the replicas run with (`store.cache.freshness_ms`).
 const FRESHNESS_MS: u64 = 2000;
@@ -225,14 +225,7 @@ async fn replicas_behind_nginx_share_maps_see_writes_survive_a_kill_and_evict() 
     assert_eq!(create(&proxy.http, "m", false).await.unwrap().status(), 400, "the proxy needs the header");
     assert_eq!(create(&proxy.http, "m", true).await.unwrap().status(), 201);
     add_keyframes_http(&http, &proxy.http, "m", &scene, &[0, 2, 4]).await;
-    let c = scene.camera;
-    let r = http
-        .post(format!("{}/v1/maps/m/localize?fx={}&fy={}&cx={}&cy={}", proxy.http, c.fx, c.fy, c.cx, c.cy))
-        .header("content-type", "image/png")
-        .body(std::fs::read(&scene.frames[3].rgb).unwrap())
-        .send()
-        .await
-        .unwrap();
+    let r = localize_http(&http, &proxy.http, "m", &scene, 3).await;
     assert_eq!(r.status(), 200);
     assert_eq!(r.json::<serde_json::Value>().await.unwrap()["localized"], true);
     let channel = Channel::from_shared(proxy.grpc.clone()).unwrap().connect().await.unwrap();
@@ -349,13 +342,7 @@ async fn replicas_behind_nginx_share_maps_see_writes_survive_a_kill_and_evict() 
     let after = metric(&http, &base, "scone_map_cache_events_total", "event=\"eviction\"").await;
     assert!(after >= evictions + 3.0, "evictions {evictions} -> {after}");
     assert!(metric(&http, &base, "scone_object_storage_requests_total", "operation=\"get\"").await > 0.0);
-    let r = http
-        .post(format!("{base}/v1/maps/direct/localize?fx={}&fy={}&cx={}&cy={}", c.fx, c.fy, c.cx, c.cy))
-        .header("content-type", "image/png")
-        .body(std::fs::read(&scene.frames[3].rgb).unwrap())
-        .send()
-        .await
-        .unwrap();
+    let r = localize_http(&http, &base, "direct", &scene, 3).await;
     assert_eq!(r.status(), 200, "a reloaded map localises");
     step("evicted and reloaded");
     drop(proxy);

@@ -261,6 +261,23 @@ pub(crate) async fn add_keyframes_http(http: &reqwest::Client, base: &str, map: 
     }
 }
 
+/// `POST {base}/v1/maps/{map}/localize` with frame `frame` of `scene` as a PNG and the scene's intrinsics.
+pub(crate) async fn localize_http(
+    http: &reqwest::Client,
+    base: &str,
+    map: &str,
+    scene: &Scene,
+    frame: usize,
+) -> reqwest::Response {
+    let c = scene.camera;
+    http.post(format!("{base}/v1/maps/{map}/localize?fx={}&fy={}&cx={}&cy={}", c.fx, c.fy, c.cx, c.cy))
+        .header("content-type", "image/png")
+        .body(std::fs::read(&scene.frames[frame].rgb).unwrap())
+        .send()
+        .await
+        .unwrap()
+}
+
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn http_mirror_builds_a_map_and_localises_a_raw_image() {
     let data = temp_dir("http");
@@ -271,17 +288,7 @@ async fn http_mirror_builds_a_map_and_localises_a_raw_image() {
     let r = http.post(format!("{base}/v1/maps")).json(&serde_json::json!({"map_id": "h"})).send().await.unwrap();
     assert_eq!(r.status(), 201);
     add_keyframes_http(&http, &base, "h", &scene, &[1, 3, 5, 7, 9]).await;
-    let c = scene.camera;
-    let r: serde_json::Value = http
-        .post(format!("{base}/v1/maps/h/localize?fx={}&fy={}&cx={}&cy={}", c.fx, c.fy, c.cx, c.cy))
-        .header("content-type", "image/png")
-        .body(std::fs::read(&scene.frames[6].rgb).unwrap())
-        .send()
-        .await
-        .unwrap()
-        .json()
-        .await
-        .unwrap();
+    let r: serde_json::Value = localize_http(&http, &base, "h", &scene, 6).await.json().await.unwrap();
     assert_eq!(r["localized"], true, "{r}");
     let pose: proto::Pose = proto::Pose {
         tx: r["pose"]["tx"].as_f64().unwrap(),
@@ -296,6 +303,7 @@ async fn http_mirror_builds_a_map_and_localises_a_raw_image() {
     assert!(dt < 0.05 && dr < 1.0, "pose off by {dt} m, {dr} deg");
 
     // MatchPair over multipart: two neighbouring frames give a relative pose close to the true one.
+    let c = scene.camera;
     let request = serde_json::json!({
         "frame1": {"intrinsics": {"fx": c.fx, "fy": c.fy, "cx": c.cx, "cy": c.cy}},
         "frame2": {"intrinsics": {"fx": c.fx, "fy": c.fy, "cx": c.cx, "cy": c.cy}},

@@ -19,7 +19,7 @@ use scone::offline::scene::Scene;
 use scone::settings::Settings;
 
 use crate::common::{fixture, temp_dir};
-use crate::service::{serve, settings};
+use crate::service::{localize_http, serve, settings};
 
 /// A data directory holding a copy of the fixture's map (`format3`).
 fn data_with_the_fixture(name: &str) -> crate::test_dir::TestDir {
@@ -57,17 +57,8 @@ async fn localize_frame_3(data: &Path) -> serde_json::Value {
 async fn localize_frame_3_with(settings: Settings) -> serde_json::Value {
     let server = serve(settings).await;
     let scene = Scene::load(&fixture("rendered")).unwrap();
-    let c = scene.camera;
-    let r = reqwest::Client::new()
-        .post(format!(
-            "http://{}/v1/maps/format3/localize?fx={}&fy={}&cx={}&cy={}",
-            server.http_addr, c.fx, c.fy, c.cx, c.cy
-        ))
-        .header("content-type", "image/png")
-        .body(std::fs::read(&scene.frames[3].rgb).unwrap())
-        .send()
-        .await
-        .unwrap();
+    let base = format!("http://{}", server.http_addr);
+    let r = localize_http(&reqwest::Client::new(), &base, "format3", &scene, 3).await;
     assert_eq!(r.status(), 200);
     let answer = r.json().await.unwrap();
     server.shutdown().await.unwrap();
