@@ -22,10 +22,8 @@ use scone::describe::embedding::{default_model_path, Embedder, EmbedderSettings}
 use scone::describe::features;
 use scone::describe::pipeline::{self, StageTimes};
 
-fn median(mut v: Vec<f64>) -> f64 {
-    v.sort_by(f64::total_cmp);
-    v[v.len() / 2]
-}
+mod common;
+use common::median;
 
 fn main() {
     features::set_opencv_threads(1).unwrap();

@@ -52,18 +52,13 @@ use scone::pose::rotation_error_deg;
 use scone::service::{FrameInput, FrameSource, Service};
 
 mod common;
-use common::rss_mb;
+use common::{median, rss_mb};
 
 /// Scenes the map is made of, in order: the training scenes.
 const MAP_SCENES: [&str; 5] =
     ["7scenes-redkitchen", "sun3d-studyroom", "strecha-castle-P30", "liberty-internet", "middlebury-templeRing"];
 /// Distance between the scenes' worlds, scene units.
 const SCENE_OFFSET: f64 = 10_000.0;
-
-fn median(mut v: Vec<f64>) -> f64 {
-    v.sort_by(f64::total_cmp);
-    v[v.len() / 2]
-}
 
 /// Frame `f` of `redkitchen` is a query (held out of every map).
 fn is_query(f: usize) -> bool {

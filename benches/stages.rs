@@ -23,6 +23,9 @@ use scone::describe::embedding::{default_model_path, Embedder, EmbedderSettings}
 use scone::describe::features::{self, ExtractorSettings, Features};
 use scone::describe::ring_context::RingSampler;
 
+mod common;
+use common::median;
+
 const STAGES: [&str; 11] = [
     "decode",
     "pyramid",
@@ -36,11 +39,6 @@ const STAGES: [&str; 11] = [
     "inference",
     "output",
 ];
-
-fn median(mut v: Vec<f64>) -> f64 {
-    v.sort_by(f64::total_cmp);
-    v[v.len() / 2]
-}
 
 fn ms(d: Duration) -> f64 {
     d.as_secs_f64() * 1e3
