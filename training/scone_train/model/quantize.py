@@ -104,7 +104,13 @@ def bits_int8(model):
 def ring_candidate(src: Path, out: Path, which: str, calibration: list[dict]) -> None:
     """`which` ("bits-int8" or "int8") of the fp32 ring graph `src`, written to `out`, declaring `scone.embeds_as`."""
     import onnx
-    from onnxruntime.quantization import CalibrationDataReader, CalibrationMethod, QuantFormat, QuantType, quantize_static
+    from onnxruntime.quantization import (
+        CalibrationDataReader,
+        CalibrationMethod,
+        QuantFormat,
+        QuantType,
+        quantize_static,
+    )
 
     fp32_id = "sha256:" + hashlib.sha256(src.read_bytes()).hexdigest()
     model = bits_int8(onnx.load(src))
