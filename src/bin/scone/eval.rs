@@ -87,7 +87,7 @@ pub enum EvalCommand {
         /// Scene directory in the TUM RGB-D layout.
         #[arg(long)]
         scene: PathBuf,
-        /// Methods to compare (scone, freak, sift).
+        /// Methods to compare (scone, freak, sift; dog-freak and fast-sift swap their detectors and descriptors).
         #[arg(long, value_delimiter = ',', default_value = "scone,freak,sift")]
         methods: Vec<Method>,
         /// Every S-th frame goes into the map.
@@ -370,8 +370,8 @@ pub fn run(cmd: EvalCommand) -> anyhow::Result<()> {
             anyhow::ensure!(also_caps.is_empty() || track < 2, "--also-caps is for single frames, not --track");
             for m in &methods {
                 anyhow::ensure!(
-                    matches!(m, Method::Scone | Method::Freak | Method::Sift),
-                    "eval reloc compares scone, freak and sift"
+                    matches!(m, Method::Scone | Method::Freak | Method::Sift | Method::DogFreak | Method::FastSift),
+                    "eval reloc compares scone, freak, sift, dog-freak and fast-sift"
                 );
             }
             let embedder = load_embedder(methods.contains(&Method::Scone), &out)?;

@@ -39,6 +39,12 @@ pub enum Method {
     Orb,
     /// OpenCV SIFT, 2,000 features (L2).
     Sift,
+    /// SIFT's keypoints (its detector, as [`Method::Sift`] finds them, one per place) described by FREAK as
+    /// [`Method::Freak`] describes its own (Hamming): SIFT's detector with FREAK's descriptor.
+    DogFreak,
+    /// [`Method::Freak`]'s keypoints (FAST, FREAK's orientation and border check) described by SIFT's
+    /// descriptor (L2): FREAK's keypoints with SIFT's descriptor.
+    FastSift,
 }
 
 impl Method {
@@ -50,7 +56,14 @@ impl Method {
             Method::FreakGms => "FREAK+GMS",
             Method::Orb => "ORB",
             Method::Sift => "SIFT",
+            Method::DogFreak => "DoG+FREAK",
+            Method::FastSift => "FAST+SIFT",
         }
+    }
+
+    /// Whether the descriptors are FREAK's bits (Hamming distance).
+    pub fn freak_bits(&self) -> bool {
+        matches!(self, Method::Freak | Method::FreakGms | Method::DogFreak)
     }
 }
 
@@ -74,6 +87,32 @@ fn cv_keypoints(kps: &[Keypoint]) -> Result<Vector<KeyPoint>, FeatureError> {
 
 fn from_cv(kps: &Vector<KeyPoint>) -> Vec<Keypoint> {
     kps.iter().map(|k| Keypoint::from_cv(&k)).collect()
+}
+
+/// OpenCV SIFT as the SIFT methods run it: 2,000 features, 3 layers an octave, contrast 0.04, edge 10, sigma 1.6.
+fn sift() -> opencv::Result<opencv::core::Ptr<SIFT>> {
+    SIFT::create(2000, 3, 0.04, 10.0, 1.6, false)
+}
+
+/// SIFT's keypoints, one per place: SIFT repeats a keypoint for each strong orientation, and FREAK, which
+/// assigns its own, would describe the copies alike (identical descriptors fail each other's ratio test).
+fn one_per_place(kps: &Vector<KeyPoint>) -> Vector<KeyPoint> {
+    let mut seen = std::collections::HashSet::new();
+    kps.iter().filter(|k| seen.insert((k.pt().x.to_bits(), k.pt().y.to_bits(), k.size().to_bits()))).collect()
+}
+
+/// SIFT's descriptors of the project's `keypoints` (position, size and angle as they are), each computed on
+/// the image of SIFT's Gaussian pyramid whose blur is nearest the FAST pyramid level it was found on (levels
+/// `scale_factor` apart; SIFT reads `octave` as its octave | layer << 8, three layers an octave).
+fn sift_descriptors(image: &GreyImage, keypoints: &[Keypoint], scale_factor: f64) -> Result<Mat, FeatureError> {
+    let mut kps = Vector::<KeyPoint>::with_capacity(keypoints.len());
+    for k in keypoints {
+        let steps = (3.0 * f64::from(k.octave) * scale_factor.log2()).round() as i32;
+        kps.push(Keypoint { octave: (steps / 3) | ((steps % 3) << 8), ..*k }.to_cv()?);
+    }
+    let mut d = Mat::default();
+    sift()?.detect_and_compute(image.mat(), &Mat::default(), &mut kps, &mut d, true)?;
+    Ok(d)
 }
 
 /// Describes an image with `method`. SConE needs the embedder.
@@ -106,11 +145,22 @@ pub fn describe(
             (from_cv(&kps), d, NORM_HAMMING)
         }
         Method::Sift => {
-            let mut sift = SIFT::create(2000, 3, 0.04, 10.0, 1.6, false)?;
             let mut kps = Vector::<KeyPoint>::new();
             let mut d = Mat::default();
-            sift.detect_and_compute(image.mat(), &Mat::default(), &mut kps, &mut d, false)?;
+            sift()?.detect_and_compute(image.mat(), &Mat::default(), &mut kps, &mut d, false)?;
             (from_cv(&kps), d, NORM_L2)
+        }
+        Method::DogFreak => {
+            let mut kps = Vector::<KeyPoint>::new();
+            sift()?.detect(image.mat(), &mut kps, &Mat::default())?;
+            let f = features::describe(image, &mut one_per_place(&kps))?;
+            let d = f.descriptor_mat()?;
+            (f.keypoints, d, NORM_HAMMING)
+        }
+        Method::FastSift => {
+            let f = features::extract(image, extractor)?;
+            let d = sift_descriptors(image, &f.keypoints, extractor.scale_factor)?;
+            (f.keypoints, d, NORM_L2)
         }
     };
     let seconds = t0.elapsed().as_secs_f64();
@@ -177,4 +227,42 @@ pub fn putative_matches(
         .iter()
         .map(|m| Match { query: m.query_idx as usize, train: m.train_idx as usize, distance: m.distance })
         .collect())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use opencv::core::{CV_32F, CV_8U};
+
+    fn coffee() -> GreyImage {
+        let bytes = std::fs::read(concat!(env!("CARGO_MANIFEST_DIR"), "/tests/fixtures/coffee-640x480.jpg")).unwrap();
+        crate::describe::decode::decode_grey(&bytes, &Default::default()).unwrap()
+    }
+
+    #[test]
+    fn swapped_detector_and_descriptor_describe_a_real_image() {
+        let (image, settings) = (coffee(), ExtractorSettings::default());
+        for (method, depth, cols) in [(Method::DogFreak, CV_8U, 64), (Method::FastSift, CV_32F, 128)] {
+            let d = describe(method, &image, &settings, None).unwrap();
+            assert!(!d.keypoints.is_empty(), "{method:?}");
+            assert_eq!(d.descriptors.rows() as usize, d.keypoints.len(), "{method:?}");
+            assert_eq!((d.descriptors.depth(), d.descriptors.cols()), (depth, cols), "{method:?}");
+            assert_eq!(d.norm, if method.freak_bits() { NORM_HAMMING } else { NORM_L2 });
+        }
+    }
+
+    #[test]
+    fn fast_sift_describes_freaks_keypoints() {
+        let (image, settings) = (coffee(), ExtractorSettings::default());
+        let detected: Vec<(f32, f32)> =
+            features::detect(&image, &settings).unwrap().iter().map(|k| (k.pt().x, k.pt().y)).collect();
+        let freak = describe(Method::Freak, &image, &settings, None).unwrap();
+        let fast_sift = describe(Method::FastSift, &image, &settings, None).unwrap();
+        assert_eq!(fast_sift.keypoints, freak.keypoints);
+        let described: Vec<(f32, f32)> = fast_sift.keypoints.iter().map(|k| (k.x, k.y)).collect();
+        // FREAK's own border check may drop a few of the detected keypoints, never reorder or add any.
+        let mut rest = detected.iter();
+        assert!(described.iter().all(|p| rest.any(|q| q == p)));
+        assert!(described.len() * 100 >= detected.len() * 99, "{} of {}", described.len(), detected.len());
+    }
 }

@@ -87,9 +87,10 @@ pub fn evaluate(
             .iter()
             .map(|h| local_geometry(h, images[0].width() as f64 / 2.0, images[0].height() as f64 / 2.0))
             .collect();
-        // The project's keypoints (SConE and FREAK share them): the neighbour share of every pair.
-        let uses_project_keypoints =
-            |m: Method| matches!(m, Method::Scone | Method::SconePlain | Method::Freak | Method::FreakGms);
+        // The project's keypoints (SConE, FREAK and FAST+SIFT share them): the neighbour share of every pair.
+        let uses_project_keypoints = |m: Method| {
+            matches!(m, Method::Scone | Method::SconePlain | Method::Freak | Method::FreakGms | Method::FastSift)
+        };
         let mut shares = vec![PairShares::default(); seq.homographies.len()];
         if cfg.methods.iter().any(|&m| uses_project_keypoints(m)) || !cfg.neighbour_rules.is_empty() {
             let (nearest, by_rule) = sequence_shares(seq, &images, &geometry, cfg)?;

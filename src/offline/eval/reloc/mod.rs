@@ -8,8 +8,8 @@
 //!
 //! Methods share the map code: SConE embeddings (L2), FREAK bits as ±1 vectors (L2 on them ranks exactly as
 //! Hamming, so the search is an exact popcount search; the ratio test is applied to Hamming distances by
-//! using sqrt(ratio) on L2), and SIFT (L2). All searches here are exact, so the comparison is about the
-//! descriptors, not the index.
+//! using sqrt(ratio) on L2), and SIFT (L2); DoG+FREAK as FREAK and FAST+SIFT as SIFT. All searches here are
+//! exact, so the comparison is about the descriptors, not the index.
 //!
 //! **Far maps and distractors** (the harder protocol; flags of `scone eval reloc`):
 //! * `map_block = (a, b)`: the map is the posed frames from fraction `a` to `b` of the sequence (a contiguous

@@ -200,7 +200,7 @@ impl RelocConfig {
     /// The map-building and localisation settings of `method`: every ratio test on distances, with FREAK's ±1
     /// vectors taking the square root (a ratio on Hamming distances).
     pub fn settings_for(&self, method: Method) -> (BuildSettings, LocalizeSettings) {
-        let ratio_scale = |r: f32| if method == Method::Freak { r.sqrt() } else { r };
+        let ratio_scale = |r: f32| if method.freak_bits() { r.sqrt() } else { r };
         let build = BuildSettings { ratio: ratio_scale(self.build.ratio), ..self.build };
         let localize = LocalizeSettings {
             ratio: ratio_scale(self.localize.ratio),

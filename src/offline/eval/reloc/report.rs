@@ -84,6 +84,9 @@ pub struct RelocSummary {
     /// Observations of distractor scenes in the map.
     #[serde(default)]
     pub distractor_observations: usize,
+    /// Landmarks of the evaluated scene (`landmarks` counts the distractors' too).
+    #[serde(default)]
+    pub scene_landmarks: usize,
     #[serde(default)]
     pub within_5cm_5deg: f64,
     /// The queries by viewing angle to the map.
@@ -130,6 +133,7 @@ pub(super) struct MapFigures {
     pub landmarks: usize,
     pub observations: usize,
     pub distractor_observations: usize,
+    pub scene_landmarks: usize,
     pub build_seconds: f64,
 }
 
@@ -170,6 +174,7 @@ pub(super) fn summarise(
         build_seconds: map.build_seconds,
         mean_query_ms: 1e3 * recs.iter().map(|r| r.seconds).sum::<f64>() / q,
         distractor_observations: map.distractor_observations,
+        scene_landmarks: map.scene_landmarks,
         within_5cm_5deg: within(0.05, 5.0),
         bins,
         covariance_coverage: {

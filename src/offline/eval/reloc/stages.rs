@@ -46,10 +46,10 @@ pub(super) fn features_of(d: &Described) -> Result<Features, BoxError> {
 pub(super) fn vectors(method: Method, d: &Described) -> Result<(Vec<f32>, usize), BoxError> {
     let rows = d.descriptors.rows() as usize;
     if rows == 0 {
-        return Ok((Vec::new(), if method == Method::Freak { 512 } else { d.descriptors.cols().max(1) as usize }));
+        return Ok((Vec::new(), if method.freak_bits() { 512 } else { d.descriptors.cols().max(1) as usize }));
     }
     match method {
-        Method::Freak => {
+        m if m.freak_bits() => {
             let mut out = Vec::with_capacity(rows * 512);
             for r in 0..rows as i32 {
                 for byte in d.descriptors.at_row::<u8>(r)? {
@@ -84,6 +84,8 @@ pub(super) struct BuiltMap {
     pub data: MapData,
     pub index: EmbeddingIndex,
     pub distractor_observations: usize,
+    /// Landmarks of the evaluated scene (before the distractors').
+    pub scene_landmarks: usize,
     /// Building the map and its index.
     pub build_seconds: f64,
 }
@@ -95,6 +97,7 @@ impl BuiltMap {
             landmarks: self.data.landmarks.len(),
             observations: self.data.observations.len(),
             distractor_observations: self.distractor_observations,
+            scene_landmarks: self.scene_landmarks,
             build_seconds: self.build_seconds,
         }
     }
@@ -161,7 +164,7 @@ impl<'a> MethodView<'a> {
             data.check(&record).map_err(|e| format!("frame {i}: {e}"))?;
             data.apply(&record).map_err(|e| format!("frame {i}: {e}"))?;
         }
-        let scene_observations = data.observations.len();
+        let (scene_observations, scene_landmarks) = (data.observations.len(), data.landmarks.len());
         for (si, dir) in cfg.distractors.iter().enumerate() {
             if data.observations.len() - scene_observations >= cfg.distractor_observations {
                 break;
@@ -178,7 +181,8 @@ impl<'a> MethodView<'a> {
         };
         let mut index = EmbeddingIndex::new(params);
         index.sync(&data);
-        Ok(BuiltMap { data, index, distractor_observations, build_seconds: t0.elapsed().as_secs_f64() })
+        let build_seconds = t0.elapsed().as_secs_f64();
+        Ok(BuiltMap { data, index, distractor_observations, scene_landmarks, build_seconds })
     }
 
     /// Every query frame localised against `map` (with or without its focal length, as `cfg` says) and measured
