@@ -96,10 +96,12 @@ pub fn sample_positions(k: &KeypointFrame) -> [(f64, f64); SAMPLES] {
 /// (`features::Features::sample_context` for a frame's keypoints).
 ///
 /// The integral image is 32-bit where its largest sum fits (255 x the pixel count below 2^31: up to 8.4 Mpx),
-/// half the memory of f64, whose sums are exact far beyond the largest image (255 x 12 Mpx < 2^53). Both are
-/// read as f64: every sum is an integer below 2^53, so the box sum is exact, and so is the rounded mean
-/// `floor((S + floor(A / 2)) / A)` taken as one f64 division and a floor (a quotient below 256 that is not an
-/// integer lies at least 1 / A from one, far above the division's rounding error).
+/// half the memory of f64, whose sums are exact far beyond the largest image (255 x 12 Mpx < 2^53). Either is
+/// read as the integer it holds (every sum is an integer below 2^53), so the box sum S is exact, and so is the
+/// rounded mean `floor((S + floor(A / 2)) / A)`: for a box the border does not cut, whose area A is the same
+/// for a whole ring, a multiply and a shift (`Interior`); for one it cuts, one f64 division and a floor (a
+/// quotient below 256 that is not an integer lies at least 1 / A from one, far above the division's rounding
+/// error).
 pub fn sample(image: &GreyImage, keypoints: &[KeypointFrame]) -> Result<Vec<Context>, FeatureError> {
     if keypoints.is_empty() {
         return Ok(Vec::new());
@@ -143,11 +145,84 @@ impl<'a> RingSampler<'a> {
     }
 }
 
-/// `floor(v)` as an integer, for |v| < 2^63. `f64::floor` is a call into libm on the baseline x86-64 target (no
-/// SSE4.1 rounding instruction), which was a third of [`sample`]'s time.
-fn floor(v: f64) -> i64 {
-    let t = v as i64;
-    t - i64::from((t as f64) > v)
+/// An integral image's element (i32 or f64, see [`sample`]), read as the exact integer it holds.
+trait Integral: Copy + Sync {
+    /// The pixel sum of a box from its integral's corners: bottom right, top right, bottom left, top left.
+    fn total(d: Self, b: Self, c: Self, a: Self) -> i64;
+}
+
+impl Integral for i32 {
+    fn total(d: i32, b: i32, c: i32, a: i32) -> i64 {
+        i64::from(d) - i64::from(b) - i64::from(c) + i64::from(a)
+    }
+}
+
+impl Integral for f64 {
+    /// Exact: every sum is an integer below 2^53 (see [`sample`]).
+    fn total(d: f64, b: f64, c: f64, a: f64) -> i64 {
+        (d - b - c + a) as i64
+    }
+}
+
+/// Where a ring's boxes of half-width `hw` lie whole inside the image, and how their rounded mean is taken
+/// there: the box of side `side = 2 hw + 1` whose top-left pixel is (left, top) is whole where
+/// `left < columns` and `top < rows` (as `u64`, so that a negative one is not), its corners are that pixel's
+/// index in the integral plus 0, `side`, `down` and `down_right`, and its area is `A = side^2`.
+///
+/// The mean `floor(n / A)`, `n = S + floor(A / 2)`, is `(n * by) >> 55` with `by = ceil(2^55 / A)`, exact for
+/// `A^2 <= 2^47`: with `by * A = 2^55 + e`, `0 <= e < A`, and `n = q A + r`, `r < A`,
+/// `n * by / 2^55 = q + (r + n e / 2^55) / A`, whose floor is q when `n e < 2^55`; and `n < 256 A` (S is at most
+/// 255 A), so `n e < 256 A^2 <= 2^55`. The product stays below 2^64: `n * by < 256 A (2^55 / A + 1) <= 2^63 + 2^32`.
+/// Larger boxes (a side above 3,443 pixels, so only on an image of more than 8.4 Mpx, whose integral is f64)
+/// are left to the f64 division, as are the boxes the border cuts: `columns` and `rows` are 0 where no box of
+/// that side fits the image whole.
+struct Interior {
+    columns: u64,
+    rows: u64,
+    side: usize,
+    down: usize,
+    down_right: usize,
+    half: u64,
+    by: u64,
+}
+
+/// The shift of [`Interior`]'s reciprocal.
+const SHIFT: u32 = 55;
+/// The largest box area [`Interior`]'s multiply and shift divide by exactly: the largest A with `A^2 <= 2^47`.
+const LARGEST_AREA: i64 = 11_863_283;
+
+impl Interior {
+    /// For boxes of half-width `hw` on a `w` x `h` image whose integral rows are `stride` apart.
+    fn new(hw: i64, w: i64, h: i64, stride: usize) -> Self {
+        let side = 2 * hw.clamp(0, w.min(h)) + 1;
+        let area = side * side;
+        if hw < 0 || side > w.min(h) || area > LARGEST_AREA {
+            return Self { columns: 0, rows: 0, side: 0, down: 0, down_right: 0, half: 0, by: 0 };
+        }
+        let (area, side_u) = (area as u64, side as usize);
+        Self {
+            columns: (w - side + 1) as u64,
+            rows: (h - side + 1) as u64,
+            side: side_u,
+            down: side_u * stride,
+            down_right: side_u * stride + side_u,
+            half: area / 2,
+            by: (1u64 << SHIFT).div_ceil(area),
+        }
+    }
+
+    /// The rounded mean of a whole box of pixel sum `total`.
+    fn mean(&self, total: i64) -> u8 {
+        (((total as u64 + self.half) * self.by) >> SHIFT) as u8
+    }
+}
+
+/// A sample's pixel column (or row) from its position `v`: `floor(v)` clamped into `0..=max` (NaN to 0), as
+/// Rust's saturating conversion to `u32` gives it: NaN and anything below 0 to 0, anything from 2^32 on to
+/// `u32::MAX`, the rest truncated, which is the floor of a non-negative value. Three instructions on the
+/// baseline x86-64 target (no SSE4.1 rounding instruction, where `f64::floor` is a call into libm).
+fn floor_into(v: f64, max: u32) -> i64 {
+    i64::from((v as u32).min(max))
 }
 
 /// Keypoints below which [`sample`] stays on the calling thread.
@@ -158,7 +233,7 @@ const PARALLEL_FROM: usize = 500;
 /// are in cache. With `two_threads`, from [`PARALLEL_FROM`] keypoints on, the rows are split in two bands, the lower one on a
 /// scoped thread of its own (each core's cache then holds one band; a scoped thread ends with the call, so
 /// nothing spins afterwards beside ONNX Runtime's threads). Each context is written at its keypoint's place.
-fn sample_sums<T: Copy + Into<f64> + Sync>(
+fn sample_sums<T: Integral>(
     sums: &[T],
     stride: usize,
     image: &GreyImage,
@@ -166,9 +241,9 @@ fn sample_sums<T: Copy + Into<f64> + Sync>(
     two_threads: bool,
 ) -> Vec<Context> {
     let (w, h) = (image.width() as i64, image.height() as i64);
+    let (w_max, h_max) = (image.width() - 1, image.height() - 1);
     let table = &*TABLE;
     let one = |k: &KeypointFrame, out: &mut Context| {
-        let at = |x: i64, y: i64| -> f64 { sums[y as usize * stride + x as usize].into() };
         let a = angle_bin(k.angle);
         let (dx, dy) = (&table.dx[a], &table.dy[a]);
         let (x, y, s) = (f64::from(k.x), f64::from(k.y), f64::from(k.size));
@@ -176,15 +251,27 @@ fn sample_sums<T: Copy + Into<f64> + Sync>(
         for ring in 0..=RINGS {
             let samples = if ring == 0 { 0..1 } else { 1 + (ring - 1) * ANGLES..1 + ring * ANGLES };
             let hw = (table.half[samples.start] * s + 0.5) as i64;
+            let inner = Interior::new(hw, w, h, stride);
             for n in samples {
-                let cx = floor(x + s * dx[n] + 0.5).clamp(0, w - 1);
-                let cy = floor(y + s * dy[n] + 0.5).clamp(0, h - 1);
-                let (x0, x1) = ((cx - hw).max(0), (cx + hw + 1).min(w));
-                let (y0, y1) = ((cy - hw).max(0), (cy + hw + 1).min(h));
-                let total = at(x1, y1) - at(x1, y0) - at(x0, y1) + at(x0, y0);
-                let area = (x1 - x0) * (y1 - y0);
-                // Non-negative: truncation is the floor.
-                out[n] = ((total + (area / 2) as f64) / area as f64) as u8;
+                let cx = floor_into(x + s * dx[n] + 0.5, w_max);
+                let cy = floor_into(y + s * dy[n] + 0.5, h_max);
+                let (left, top) = (cx - hw, cy - hw);
+                out[n] = if (left as u64) < inner.columns && (top as u64) < inner.rows {
+                    let c = top as usize * stride + left as usize;
+                    let total =
+                        T::total(sums[c + inner.down_right], sums[c + inner.side], sums[c + inner.down], sums[c]);
+                    inner.mean(total)
+                } else {
+                    // A box the border cuts: the same sum of its corners, cut to the image, and one f64 division
+                    // (non-negative, so truncation is the floor).
+                    let (x0, x1) = ((cx - hw).max(0), (cx + hw + 1).min(w));
+                    let (y0, y1) = ((cy - hw).max(0), (cy + hw + 1).min(h));
+                    let (r0, r1) = (y0 as usize * stride, y1 as usize * stride);
+                    let (c0, c1) = (x0 as usize, x1 as usize);
+                    let total = T::total(sums[r1 + c1], sums[r0 + c1], sums[r1 + c0], sums[r0 + c0]);
+                    let area = (x1 - x0) * (y1 - y0);
+                    ((total as f64 + (area / 2) as f64) / area as f64) as u8
+                };
             }
         }
     };
@@ -319,10 +406,126 @@ mod tests {
         assert_eq!(sampler.sample(&kps, true), whole);
     }
 
+    /// The reference's `floor(v)` as an integer, for |v| < 2^63.
+    fn floor(v: f64) -> i64 {
+        let t = v as i64;
+        t - i64::from((t as f64) > v)
+    }
+
     #[test]
     fn floor_is_the_floor() {
         for v in [-2.5, -2.0, -1.999_999_9, -0.5, -0.0, 0.0, 0.3, 1.0, 2.5, 639.999_999, 1e12 + 0.5] {
             assert_eq!(floor(v), v.floor() as i64, "{v}");
+        }
+    }
+
+    #[test]
+    fn floor_into_is_the_clamped_floor() {
+        let max = 639u32;
+        let edges = [-9.2e18, -1e12, -2.5, -1.0, -0.5, -1e-300, -0.0, 0.0, 1e-300, 0.5, 0.999_999_9, 1.0, 2.5];
+        let more = [638.999_999, 639.0, 639.5, 640.0, 4_294_967_295.5, 4_294_967_296.0, 1e12, 9.2e18];
+        for v in edges.into_iter().chain(more) {
+            assert_eq!(floor_into(v, max), floor(v).clamp(0, i64::from(max)), "{v}");
+        }
+        for v in [f64::NAN, f64::NEG_INFINITY, -1e300] {
+            assert_eq!(floor_into(v, max), 0, "{v}");
+        }
+        for v in [1e300, f64::INFINITY] {
+            assert_eq!(floor_into(v, max), 639, "{v}");
+        }
+    }
+
+    /// The interior's multiply and shift is the integer division for every pixel sum a whole box can have (0 to
+    /// 255 A): all of them for the small boxes, the edges of every quotient for every side up to the largest.
+    #[test]
+    fn the_interior_mean_is_the_rounded_integer_mean() {
+        let big = 4000;
+        for side in (1..=3443i64).step_by(2) {
+            let inner = Interior::new(side / 2, big, big, big as usize + 1);
+            let area = side * side;
+            assert_eq!((inner.side as i64, inner.columns), (side, (big - side + 1) as u64));
+            let mut check =
+                |total: i64| assert_eq!(i64::from(inner.mean(total)), (total + area / 2) / area, "{total} / {area}");
+            if side <= 41 {
+                (0..=255 * area).for_each(&mut check);
+            } else {
+                // Each quotient's first dividends and last ones (the rounding adds A / 2 to the sum).
+                for q in 0..256 {
+                    for r in [0, 1, area / 2, area - 1] {
+                        let n = q * area + r;
+                        if n >= area / 2 && n - area / 2 <= 255 * area {
+                            check(n - area / 2);
+                        }
+                    }
+                }
+            }
+        }
+        // Past the largest area, and for boxes wider or taller than the image: no interior.
+        assert_eq!(Interior::new(1722, big, big, big as usize + 1).columns, 0);
+        assert_eq!(Interior::new(3, 6, 100, 7).columns, 0);
+        assert_eq!(Interior::new(3, 100, 6, 101).rows, 0);
+    }
+
+    /// The reference for one keypoint: `training/scone_train/data/ring_context.py`'s formula in f64 throughout
+    /// (the corners' sum, the rounding and the division), which the integer paths match byte for byte.
+    fn reference<T: Copy + Into<f64>>(sums: &[T], stride: usize, (w, h): (i64, i64), k: &KeypointFrame) -> Context {
+        let table = &*TABLE;
+        let at = |x: i64, y: i64| -> f64 { sums[y as usize * stride + x as usize].into() };
+        let a = angle_bin(k.angle);
+        let (x, y, s) = (f64::from(k.x), f64::from(k.y), f64::from(k.size));
+        std::array::from_fn(|n| {
+            let hw = (table.half[n] * s + 0.5) as i64;
+            let cx = floor(x + s * table.dx[a][n] + 0.5).clamp(0, w - 1);
+            let cy = floor(y + s * table.dy[a][n] + 0.5).clamp(0, h - 1);
+            let (x0, x1) = ((cx - hw).max(0), (cx + hw + 1).min(w));
+            let (y0, y1) = ((cy - hw).max(0), (cy + hw + 1).min(h));
+            let total = at(x1, y1) - at(x1, y0) - at(x0, y1) + at(x0, y0);
+            let area = (x1 - x0) * (y1 - y0);
+            ((total + (area / 2) as f64) / area as f64) as u8
+        })
+    }
+
+    /// The integer paths (the interior's multiply and shift, the border's division) give the f64 reference's
+    /// bytes, with either integral and either number of threads, for keypoints of every size and angle all over
+    /// a noisy image and past its edges, on positions that fall on pixel edges too, and on images narrower than
+    /// the largest boxes.
+    #[test]
+    fn the_integer_paths_give_the_f64_references_bytes() {
+        use rand::{Rng, SeedableRng};
+        let mut rng = rand::rngs::StdRng::seed_from_u64(61);
+        for (w, h) in [(640, 480), (97, 61), (23, 150), (9, 7)] {
+            let pixels: Vec<u8> = (0..w * h).map(|_| rng.random()).collect();
+            let img = image(w, h, |x, y| pixels[(y * w + x) as usize]);
+            let kps: Vec<KeypointFrame> = (0..2000)
+                .map(|i| {
+                    // Half on FAST's pyramid sizes with positions on pixel edges, half anywhere.
+                    let (x, y) = (rng.random_range(-20.0..w as f32 + 20.0), rng.random_range(-20.0..h as f32 + 20.0));
+                    if i % 2 == 0 {
+                        let size = 7.0 * 1.2f32.powi(rng.random_range(0..8));
+                        keypoint(x.round() + 0.5 * rng.random_range(0..2) as f32, y.round(), size, 22.5 * i as f32)
+                    } else {
+                        keypoint(x, y, rng.random_range(0.5..120.0), rng.random_range(-360.0..720.0))
+                    }
+                })
+                .collect();
+            for depth in [CV_32S, CV_64F] {
+                let mut integral = Mat::default();
+                imgproc::integral(img.mat(), &mut integral, depth).unwrap();
+                let stride = integral.cols() as usize;
+                let (got, want): (Vec<Context>, Vec<Context>) = if depth == CV_32S {
+                    let sums = integral.data_typed::<i32>().unwrap();
+                    let want = kps.iter().map(|k| reference(sums, stride, (w.into(), h.into()), k)).collect();
+                    (sample_sums(sums, stride, &img, &kps, false), want)
+                } else {
+                    let sums = integral.data_typed::<f64>().unwrap();
+                    let want = kps.iter().map(|k| reference(sums, stride, (w.into(), h.into()), k)).collect();
+                    assert_eq!(sample_sums(sums, stride, &img, &kps, true), want, "{w}x{h}, f64, two threads");
+                    (sample_sums(sums, stride, &img, &kps, false), want)
+                };
+                for (i, (g, r)) in got.iter().zip(&want).enumerate() {
+                    assert_eq!(g, r, "{w}x{h}, depth {depth}, keypoint {:?}", kps[i]);
+                }
+            }
         }
     }
 
