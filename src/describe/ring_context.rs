@@ -20,6 +20,8 @@ use opencv::core::{Mat, CV_32S, CV_64F};
 use opencv::imgproc;
 use opencv::prelude::*;
 
+use strength_reduce::StrengthReducedU32;
+
 use crate::describe::decode::GreyImage;
 use crate::error::FeatureError;
 
@@ -99,7 +101,7 @@ pub fn sample_positions(k: &KeypointFrame) -> [(f64, f64); SAMPLES] {
 /// half the memory of f64, whose sums are exact far beyond the largest image (255 x 12 Mpx < 2^53). Either is
 /// read as the integer it holds (every sum is an integer below 2^53), so the box sum S is exact, and so is the
 /// rounded mean `floor((S + floor(A / 2)) / A)`: for a box the border does not cut, whose area A is the same
-/// for a whole ring, a multiply and a shift (`Interior`); for one it cuts, one f64 division and a floor (a
+/// for a whole ring, a division by a divisor reduced once (`Interior`); for one it cuts, one f64 division and a floor (a
 /// quotient below 256 that is not an integer lies at least 1 / A from one, far above the division's rounding
 /// error).
 pub fn sample(image: &GreyImage, keypoints: &[KeypointFrame]) -> Result<Vec<Context>, FeatureError> {
@@ -169,27 +171,23 @@ impl Integral for f64 {
 /// `left < columns` and `top < rows` (as `u64`, so that a negative one is not), its corners are that pixel's
 /// index in the integral plus 0, `side`, `down` and `down_right`, and its area is `A = side^2`.
 ///
-/// The mean `floor(n / A)`, `n = S + floor(A / 2)`, is `(n * by) >> 55` with `by = ceil(2^55 / A)`, exact for
-/// `A^2 <= 2^47`: with `by * A = 2^55 + e`, `0 <= e < A`, and `n = q A + r`, `r < A`,
-/// `n * by / 2^55 = q + (r + n e / 2^55) / A`, whose floor is q when `n e < 2^55`; and `n < 256 A` (S is at most
-/// 255 A), so `n e < 256 A^2 <= 2^55`. The product stays below 2^64: `n * by < 256 A (2^55 / A + 1) <= 2^63 + 2^32`.
-/// Larger boxes (a side above 3,443 pixels, so only on an image of more than 8.4 Mpx, whose integral is f64)
-/// are left to the f64 division, as are the boxes the border cuts: `columns` and `rows` are 0 where no box of
-/// that side fits the image whole.
+/// The mean `floor(n / A)`, `n = S + floor(A / 2)`, is the `u32` division by A that `strength_reduce` makes a
+/// multiply and shifts (exact for every `u32`); `n < 256 A` (S is at most 255 A), so it fits 32 bits up to
+/// `A = 2^24`. Larger boxes (a side above 4,095 pixels, so only on an image of more than 8.4 Mpx, whose integral
+/// is f64) are left to the f64 division, as are the boxes the border cuts: `columns` and `rows` are 0 where no
+/// box of that side fits the image whole.
 struct Interior {
     columns: u64,
     rows: u64,
     side: usize,
     down: usize,
     down_right: usize,
-    half: u64,
-    by: u64,
+    half: u32,
+    by: StrengthReducedU32,
 }
 
-/// The shift of [`Interior`]'s reciprocal.
-const SHIFT: u32 = 55;
-/// The largest box area [`Interior`]'s multiply and shift divide by exactly: the largest A with `A^2 <= 2^47`.
-const LARGEST_AREA: i64 = 11_863_283;
+/// The largest box area whose rounded means [`Interior`] takes in 32 bits: 2^24, since `n < 256 A`.
+const LARGEST_AREA: i64 = 1 << 24;
 
 impl Interior {
     /// For boxes of half-width `hw` on a `w` x `h` image whose integral rows are `stride` apart.
@@ -197,9 +195,17 @@ impl Interior {
         let side = 2 * hw.clamp(0, w.min(h)) + 1;
         let area = side * side;
         if hw < 0 || side > w.min(h) || area > LARGEST_AREA {
-            return Self { columns: 0, rows: 0, side: 0, down: 0, down_right: 0, half: 0, by: 0 };
+            return Self {
+                columns: 0,
+                rows: 0,
+                side: 0,
+                down: 0,
+                down_right: 0,
+                half: 0,
+                by: StrengthReducedU32::new(1),
+            };
         }
-        let (area, side_u) = (area as u64, side as usize);
+        let (area, side_u) = (area as u32, side as usize);
         Self {
             columns: (w - side + 1) as u64,
             rows: (h - side + 1) as u64,
@@ -207,13 +213,13 @@ impl Interior {
             down: side_u * stride,
             down_right: side_u * stride + side_u,
             half: area / 2,
-            by: (1u64 << SHIFT).div_ceil(area),
+            by: StrengthReducedU32::new(area),
         }
     }
 
     /// The rounded mean of a whole box of pixel sum `total`.
     fn mean(&self, total: i64) -> u8 {
-        (((total as u64 + self.half) * self.by) >> SHIFT) as u8
+        ((total as u32 + self.half) / self.by) as u8
     }
 }
 
@@ -435,12 +441,12 @@ mod tests {
         }
     }
 
-    /// The interior's multiply and shift is the integer division for every pixel sum a whole box can have (0 to
-    /// 255 A): all of them for the small boxes, the edges of every quotient for every side up to the largest.
+    /// The interior's mean is the rounded integer mean for every pixel sum a whole box can have (0 to 255 A): all
+    /// of them for the small boxes, the edges of every quotient for every side up to the largest.
     #[test]
     fn the_interior_mean_is_the_rounded_integer_mean() {
-        let big = 4000;
-        for side in (1..=3443i64).step_by(2) {
+        let big = 4200;
+        for side in (1..=4095i64).step_by(2) {
             let inner = Interior::new(side / 2, big, big, big as usize + 1);
             let area = side * side;
             assert_eq!((inner.side as i64, inner.columns), (side, (big - side + 1) as u64));
@@ -461,7 +467,7 @@ mod tests {
             }
         }
         // Past the largest area, and for boxes wider or taller than the image: no interior.
-        assert_eq!(Interior::new(1722, big, big, big as usize + 1).columns, 0);
+        assert_eq!(Interior::new(2048, big, big, big as usize + 1).columns, 0);
         assert_eq!(Interior::new(3, 6, 100, 7).columns, 0);
         assert_eq!(Interior::new(3, 100, 6, 101).rows, 0);
     }
