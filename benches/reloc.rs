@@ -10,8 +10,9 @@
 //! The index of one point per landmark (`store.index.points = "landmarks"`) is measured in a process of its
 //! own on a copy of the level's map with its own dump (made once, in the build process): the same row and
 //! recall (against exact search over the same points) with the service's default stage 1 (since session 45,
-//! the strongest 100 query keypoints, every keypoint below 100 inliers), the row again with every query
-//! keypoint searched (the default before), and every query of the level with several caps.
+//! the strongest 100 query keypoints, every keypoint below 100 inliers), the row again with PnP by EPnP's
+//! RANSAC instead of USAC, the row with every query keypoint searched (the default before), and every query
+//! of the level with several caps.
 //! `SCONE_BENCH_ADD_ONLY=1` with `SCONE_BENCH_LEVEL=N` measures AddKeyframe alone at level N.
 //!
 //! Map: real, different frames, never repeated. The posed frames of the training scenes of `../shared/data`,
@@ -48,7 +49,7 @@ use scone::map::storage::format::FORMAT_VERSION;
 use scone::map::storage::snapshot::snapshot_version;
 use scone::map::store::{MapStore, ModelInfo, StoreSettings};
 use scone::offline::scene::Scene;
-use scone::pose::rotation_error_deg;
+use scone::pose::{rotation_error_deg, PnpMethod};
 use scone::service::{FrameInput, FrameSource, Service};
 
 mod common;
@@ -305,6 +306,7 @@ fn main() {
         let row_list = if per_landmark {
             vec![
                 (PER_LANDMARK, per_landmark_settings(), None),
+                (PER_LANDMARK_EPNP, per_landmark_settings(), None),
                 (PER_LANDMARK_EVERY, per_landmark_settings(), Some(usize::MAX)),
             ]
         } else {
@@ -316,7 +318,7 @@ fn main() {
             ]
         };
         for (label, index, cap) in row_list {
-            if label == PER_LANDMARK_EVERY {
+            if label == PER_LANDMARK_EVERY || label == PER_LANDMARK_EPNP {
                 // The same map directory: the first store lets go of it (its memory figure is the first open's).
                 open_maps.clear();
             }
@@ -335,6 +337,9 @@ fn main() {
             }
             if label.ends_with("stage 1 only") {
                 cfg.localize = cfg.localize.stage_one_only();
+            }
+            if label == PER_LANDMARK_EPNP {
+                cfg.localize.ransac.pnp = PnpMethod::Epnp;
             }
             let store = MapStore::open(cfg, info.clone()).unwrap();
             let ready = t.elapsed().as_secs_f64();
@@ -423,7 +428,7 @@ fn main() {
                 m("stages"),
                 median(totals),
                 match label {
-                    PER_OBSERVATION | PER_LANDMARK | PER_LANDMARK_EVERY => {
+                    PER_OBSERVATION | PER_LANDMARK | PER_LANDMARK_EVERY | PER_LANDMARK_EPNP => {
                         format!("{ready:.2}{}", if from_dump { "" } else { " (graph rebuilt)" })
                     }
                     "exact" => format!("{ready:.2} (map data only)"),
@@ -648,6 +653,9 @@ const PER_OBSERVATION: &str = "HNSW, one point per observation";
 const PER_LANDMARK: &str = "HNSW, one point per landmark";
 /// ...the same with every query keypoint searched (the default before session 45), ...
 const PER_LANDMARK_EVERY: &str = "HNSW, one point per landmark, every query keypoint searched";
+/// The default row with PnP by EPnP's RANSAC instead of USAC (the relocalisation default before USAC), on the
+/// same map in the same process: what the estimator costs or saves per query.
+const PER_LANDMARK_EPNP: &str = "HNSW, one point per landmark, EPnP's RANSAC";
 /// ...measured in a child process with this variable set.
 const PER_LANDMARK_ENV: &str = "SCONE_BENCH_PER_LANDMARK";
 
