@@ -299,9 +299,9 @@ fn main() {
         // The exact row comes right after the HNSW row, before much is allocated and freed, so its RSS growth
         // is the map data's. The last row is stage 1 alone (before issue 27), the defaults' latency baseline.
         // The per-landmark index is measured in a process of its own (`run_levels`), its map opened first, so
-        // neither row's memory is lowered by what the other freed; twice: with the service's default stage 1
-        // (capped since session 45, with the fallback), then every query keypoint searched on the map opened
-        // again. `None`: the service's default cap.
+        // neither row's memory is lowered by what the other freed; three times: with the service's default stage 1
+        // (capped since session 45, with the fallback), with EPnP instead of USAC, then every query keypoint
+        // searched, the map opened again for each. `None`: the service's default cap.
         let per_landmark = std::env::var_os(PER_LANDMARK_ENV).is_some();
         let row_list = if per_landmark {
             vec![

@@ -101,9 +101,9 @@ pub fn sample_positions(k: &KeypointFrame) -> [(f64, f64); SAMPLES] {
 /// half the memory of f64, whose sums are exact far beyond the largest image (255 x 12 Mpx < 2^53). Either is
 /// read as the integer it holds (every sum is an integer below 2^53), so the box sum S is exact, and so is the
 /// rounded mean `floor((S + floor(A / 2)) / A)`: for a box the border does not cut, whose area A is the same
-/// for a whole ring, a division by a divisor reduced once (`Interior`); for one it cuts, one f64 division and a floor (a
-/// quotient below 256 that is not an integer lies at least 1 / A from one, far above the division's rounding
-/// error).
+/// for a whole ring (up to 2^24 pixels), a division by a divisor reduced once (`Interior`); for one it cuts or a
+/// larger one, one f64 division and a floor (a quotient below 256 that is not an integer lies at least 1 / A from
+/// one, far above the division's rounding error).
 pub fn sample(image: &GreyImage, keypoints: &[KeypointFrame]) -> Result<Vec<Context>, FeatureError> {
     if keypoints.is_empty() {
         return Ok(Vec::new());
@@ -227,6 +227,7 @@ impl Interior {
 /// Rust's saturating conversion to `u32` gives it: NaN and anything below 0 to 0, anything from 2^32 on to
 /// `u32::MAX`, the rest truncated, which is the floor of a non-negative value. Three instructions on the
 /// baseline x86-64 target (no SSE4.1 rounding instruction, where `f64::floor` is a call into libm).
+/// A position below -2^63 (never a validated keypoint's) gives 0, as the Python reference's clamp does.
 fn floor_into(v: f64, max: u32) -> i64 {
     i64::from((v as u32).min(max))
 }

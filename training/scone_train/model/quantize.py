@@ -12,8 +12,9 @@ of issue 29 (`scone eval pairs` and NN precision on the validation scenes), not 
 `MatMulInteger` on the bits as exact 0/1 bytes with int8 weights, one scale per output, the ±1 of the fp32 graph
 folded into scale and bias; `int8` also makes the other matrix products static int8 (QDQ, per-channel weights
 with `reduce_range`, uint8 activations with MinMax ranges from the training frames of the five real training
-scenes at the E1 extraction). Both declare `scone.embeds_as`, the fp32 graph's id (`sha256:...` of its file): the
-service records that id in maps, so maps built with either graph are served by the other.
+scenes at the E1 extraction). Both declare `scone.embeds_as`, the fp32 graph's id (`sha256:...` of its file), as
+the way a map built with either graph could be served by the other; the service does not read it (no such graph
+ships). It prints the cosine to the fp32 embeddings on 4 selection frames of each of those scenes.
 """
 
 from __future__ import annotations
@@ -144,15 +145,15 @@ def ring_main(args) -> None:
     from ..data.splits import exported_frames
 
     cache = args.cache or prefix_dir() / "data" / RING_CACHE / "real"
-    pick = lambda per_scene, skip, which: [  # noqa: E731
+    pick = lambda per_scene, which, spread: [  # noqa: E731
         {"descriptors": f.descriptors, "context": f.context}
-        for frames in exported_frames(cache, which, per_scene, skip, spread=2).values() for f in frames]
-    ring_candidate(args.model, args.out, args.ring, pick(args.calibration_frames, 0, "train"))
+        for frames in exported_frames(cache, which, per_scene, 0, spread=spread).values() for f in frames]
+    ring_candidate(args.model, args.out, args.ring, pick(args.calibration_frames, "train", 2))
     opts = ort.SessionOptions()
     opts.intra_op_num_threads = 1
     fp32, cand = (ort.InferenceSession(str(p), opts, providers=["CPUExecutionProvider"]) for p in (args.model, args.out))
-    c = np.concatenate([(fp32.run(None, f)[0] * cand.run(None, f)[0]).sum(1) for f in pick(4, 1, "train")])
-    print(f"{args.out}: cosine to the fp32 embeddings on other training frames: min {c.min():.5f}, "
+    c = np.concatenate([(fp32.run(None, f)[0] * cand.run(None, f)[0]).sum(1) for f in pick(4, "select", 1)])
+    print(f"{args.out}: cosine to the fp32 embeddings on 4 selection frames per scene: min {c.min():.5f}, "
           f"1st percentile {np.percentile(c, 1):.5f}, mean {c.mean():.6f}")
 
 

@@ -51,7 +51,7 @@ def main():
     ax.set_ylim(0, None)
     ax.grid(alpha=0.3)
     ax.legend(frameon=False)
-    ax.set_title("Far-map protocol, 100k distractors: the descriptor sets the precision", fontsize=10)
+    ax.set_title("Far-map protocol, 100k distractors, training scenes: match precision", fontsize=10)
     fig.tight_layout()
     fig.savefig(out, dpi=120)
 
