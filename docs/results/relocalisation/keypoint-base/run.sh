@@ -15,14 +15,6 @@ out="${OUT:-$SCONE_PREFIX/work/i60-base}"
 methods=freak,sift,dog-freak,fast-sift
 model="$here/models/scone-ring-e1-real.onnx"
 METHODS=$methods OUT="$out/arcs" "$here/docs/results/training/orbits/run.sh" i60-base "$model"
-B="$CARGO_TARGET_DIR/release/scone"
 D=${SCONE_DATA:-$here/../shared/data}/scenes
-mkdir -p "$out/orbits-full"
-for scene in llff-ethiopianhead llff-lemontea-office; do
-  f="$out/orbits-full/far--$scene.json"
-  [ -s "$f" ] || "$B" eval reloc --scene "$D/$scene" --map-block 0:0.5 --methods "$methods" \
-    --model "$model" --distractors "$D/7scenes-redkitchen,$D/sun3d-studyroom" --distractor-observations 100000 \
-    --distractor-stride 5 --foreign "$D/strecha-castle-P30" --foreign-stride 3 --opencv-threads 1 --embed-threads 1 \
-    --json "$f" > "$out/orbits-full/far--$scene.md" 2> "$out/orbits-full/far--$scene.log" || echo "FAILED $scene"
-done
-echo "$out"
+SCENES="$D/llff-ethiopianhead $D/llff-lemontea-office" METHODS=$methods OUT="$out/orbits-full" \
+  "$here/docs/results/training/orbits/run.sh" i60-base "$model"

@@ -15,9 +15,11 @@ D=${SCONE_DATA:-$here/../shared/data}/scenes
 S=$SCONE_PREFIX/work/sel
 out="${OUT:-$SCONE_PREFIX/work/orbits/reloc-$name}"
 mkdir -p "$out"
-for arc in llff-ethiopianhead-sel llff-blowtorch-sel llff-lemontea-office-sel turntable-squirrel-sel; do
+# SCENES: other scene directories under the same protocol (default: the four arcs).
+for dir in ${SCENES:-$S/llff-ethiopianhead-sel $S/llff-blowtorch-sel $S/llff-lemontea-office-sel $S/turntable-squirrel-sel}; do
+  arc=$(basename "$dir")
   f="$out/far--$arc.json"
-  [ -s "$f" ] || "$B" eval reloc --scene "$S/$arc" --map-block 0:0.5 --methods "${METHODS:-scone,freak,sift}" \
+  [ -s "$f" ] || "$B" eval reloc --scene "$dir" --map-block 0:0.5 --methods "${METHODS:-scone,freak,sift}" \
     --model "$model" --distractors "$D/7scenes-redkitchen,$D/sun3d-studyroom" --distractor-observations 100000 \
     --distractor-stride 5 --foreign "$D/strecha-castle-P30" --foreign-stride 3 --opencv-threads 1 --embed-threads 1 \
     --json "$f" > "$out/far--$arc.md" 2> "$out/far--$arc.log" || echo "FAILED $arc"
