@@ -271,8 +271,8 @@ fn sample_sums<T: Integral>(
                 } else {
                     // A box the border cuts: the same sum of its corners, cut to the image, and one f64 division
                     // (non-negative, so truncation is the floor).
-                    let (x0, x1) = ((cx - hw).max(0), (cx + hw + 1).min(w));
-                    let (y0, y1) = ((cy - hw).max(0), (cy + hw + 1).min(h));
+                    let (x0, x1) = (left.max(0), (cx + hw + 1).min(w));
+                    let (y0, y1) = (top.max(0), (cy + hw + 1).min(h));
                     let (r0, r1) = (y0 as usize * stride, y1 as usize * stride);
                     let (c0, c1) = (x0 as usize, x1 as usize);
                     let total = T::total(sums[r1 + c1], sums[r0 + c1], sums[r1 + c0], sums[r0 + c0]);

@@ -37,6 +37,31 @@ def frames_for(cache: Path, per_scene: int, skip: int) -> list:
     return [f for frames in exported_frames(cache, "train", per_scene, skip, spread=2).values() for f in frames]
 
 
+def calibration_reader(calibration: list[dict]):
+    """onnxruntime's calibration reader over `calibration`, the graph's feeds."""
+    from onnxruntime.quantization import CalibrationDataReader
+
+    class Reader(CalibrationDataReader):
+        def __init__(self):
+            self.it = iter(calibration)
+
+        def get_next(self):
+            return next(self.it, None)
+
+    return Reader()
+
+
+def cosines(fp32: Path, candidate: Path, check: list[dict]) -> np.ndarray:
+    """The cosine of every keypoint's embedding by `candidate` to its fp32 one, over the feeds `check` (one
+    intra-op thread)."""
+    import onnxruntime as ort
+
+    opts = ort.SessionOptions()
+    opts.intra_op_num_threads = 1
+    a, b = (ort.InferenceSession(str(p), opts, providers=["CPUExecutionProvider"]) for p in (fp32, candidate))
+    return np.concatenate([(a.run(None, f)[0] * b.run(None, f)[0]).sum(1) for f in check])
+
+
 def feeds(frames: list, k: int) -> list[dict]:
     return [dict(zip(INPUT_NAMES, (t.numpy() for t in f.model_inputs(k)))) for f in frames]
 
@@ -105,13 +130,7 @@ def bits_int8(model):
 def ring_candidate(src: Path, out: Path, which: str, calibration: list[dict]) -> None:
     """`which` ("bits-int8" or "int8") of the fp32 ring graph `src`, written to `out`, declaring `scone.embeds_as`."""
     import onnx
-    from onnxruntime.quantization import (
-        CalibrationDataReader,
-        CalibrationMethod,
-        QuantFormat,
-        QuantType,
-        quantize_static,
-    )
+    from onnxruntime.quantization import CalibrationMethod, QuantFormat, QuantType, quantize_static
 
     fp32_id = "sha256:" + hashlib.sha256(src.read_bytes()).hexdigest()
     model = bits_int8(onnx.load(src))
@@ -120,13 +139,7 @@ def ring_candidate(src: Path, out: Path, which: str, calibration: list[dict]) ->
         stage = out.with_suffix(".bits.onnx")
         onnx.save(model, stage)
         gemms = [n.name for n in model.graph.node if n.op_type == "Gemm"]
-        feeds_ = iter(calibration)
-
-        class Reader(CalibrationDataReader):
-            def get_next(self):
-                return next(feeds_, None)
-
-        quantize_static(str(stage), str(out), Reader(), quant_format=QuantFormat.QDQ, per_channel=True,
+        quantize_static(str(stage), str(out), calibration_reader(calibration), quant_format=QuantFormat.QDQ, per_channel=True,
                         reduce_range=True, activation_type=QuantType.QUInt8, weight_type=QuantType.QInt8,
                         nodes_to_quantize=gemms, calibrate_method=CalibrationMethod.MinMax)
         stage.unlink()
@@ -140,8 +153,6 @@ def ring_candidate(src: Path, out: Path, which: str, calibration: list[dict]) ->
 
 
 def ring_main(args) -> None:
-    import onnxruntime as ort
-
     from ..data.splits import exported_frames
 
     cache = args.cache or prefix_dir() / "data" / RING_CACHE / "real"
@@ -149,10 +160,7 @@ def ring_main(args) -> None:
         {"descriptors": f.descriptors, "context": f.context}
         for frames in exported_frames(cache, which, per_scene, 0, spread=spread).values() for f in frames]
     ring_candidate(args.model, args.out, args.ring, pick(args.calibration_frames, "train", 2))
-    opts = ort.SessionOptions()
-    opts.intra_op_num_threads = 1
-    fp32, cand = (ort.InferenceSession(str(p), opts, providers=["CPUExecutionProvider"]) for p in (args.model, args.out))
-    c = np.concatenate([(fp32.run(None, f)[0] * cand.run(None, f)[0]).sum(1) for f in pick(4, "select", 1)])
+    c = cosines(args.model, args.out, pick(4, "select", 1))
     print(f"{args.out}: cosine to the fp32 embeddings on 4 selection frames per scene: min {c.min():.5f}, "
           f"1st percentile {np.percentile(c, 1):.5f}, mean {c.mean():.6f}")
 
@@ -170,36 +178,19 @@ def main() -> None:
         args.calibration_frames = args.calibration_frames or 6
         return ring_main(args)
     args.calibration_frames = args.calibration_frames or 8
-    import onnxruntime as ort
-    from onnxruntime.quantization import CalibrationDataReader, QuantFormat, QuantType, quantize_static
+    from onnxruntime.quantization import QuantFormat, QuantType, quantize_static
     from onnxruntime.quantization.shape_inference import quant_pre_process
 
     cache = args.cache or prefix_dir() / "data" / "cache" / "real"
     calib = feeds(frames_for(cache, args.calibration_frames, 0), args.k)
     check = feeds(frames_for(cache, 4, 1), args.k)
-
-    class Reader(CalibrationDataReader):
-        def __init__(self):
-            self.it = iter(calib)
-
-        def get_next(self):
-            return next(self.it, None)
-
     args.out.parent.mkdir(parents=True, exist_ok=True)
     pre = args.out.with_suffix(".pre.onnx")
     quant_pre_process(str(args.model), str(pre), skip_symbolic_shape=True)
-    quantize_static(str(pre), str(args.out), Reader(), quant_format=QuantFormat.QDQ, per_channel=True,
+    quantize_static(str(pre), str(args.out), calibration_reader(calib), quant_format=QuantFormat.QDQ, per_channel=True,
                     activation_type=QuantType.QUInt8, weight_type=QuantType.QInt8, op_types_to_quantize=["MatMul", "Gemm"])
     pre.unlink()
-    opts = ort.SessionOptions()
-    opts.intra_op_num_threads = 1
-    fp32 = ort.InferenceSession(str(args.model), opts)
-    int8 = ort.InferenceSession(str(args.out), opts)
-    cos = []
-    for f in check:
-        a, b = fp32.run(None, f)[0], int8.run(None, f)[0]
-        cos.append((a * b).sum(1))
-    c = np.concatenate(cos)
+    c = cosines(args.model, args.out, check)
     print(f"{args.out}: {len(check)} check frames, cosine int8 vs fp32 mean {c.mean():.4f}, 1st percentile "
           f"{np.percentile(c, 1):.4f}")
 
