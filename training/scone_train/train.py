@@ -131,6 +131,35 @@ class TensorCache:
         return self.cache[key]
 
 
+class Teacher:
+    """`train.teacher`: a frozen ring network (an exported graph, `model.network.ring_from_onnx`) whose similarities
+    between the keypoints of two frames the student is pulled towards, beside the labelled loss. Each frame's
+    teacher embeddings are computed once."""
+
+    def __init__(self, spec: dict, tensors: TensorCache):
+        path = Path(os.path.expandvars(str(spec["model"])))
+        if not path.is_absolute():
+            path = Path(__file__).resolve().parents[2] / path
+        from .model.network import ring_from_onnx
+
+        self.model, self.weight, self.tensors = ring_from_onnx(path), float(spec["weight"]), tensors
+        self.cache: dict[int, torch.Tensor] = {}
+
+    def embed(self, f: FrameFeatures) -> torch.Tensor:
+        key = id(f)
+        if key not in self.cache:
+            with torch.no_grad():
+                self.cache[key] = self.model(*self.tensors.get(f))
+        return self.cache[key]
+
+
+def relational_loss(sa: torch.Tensor, sb: torch.Tensor, ta: torch.Tensor, tb: torch.Tensor, anchors) -> torch.Tensor:
+    """Mean squared difference between the student's and the teacher's cosine similarities of the anchors of frame
+    a to every keypoint of frame b: what the nearest-neighbour and ratio tests read, in the teacher's geometry,
+    without asking the student for the teacher's embedding space."""
+    return F.mse_loss(sa[anchors] @ sb.T, ta[anchors] @ tb.T)
+
+
 def pair_distances(x: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
     sq = (x * x).sum(1, keepdim=True) - 2 * x @ y.T + (y * y).sum(1)[None, :]
     return torch.sqrt(sq.clamp_min(1e-12))
@@ -232,9 +261,10 @@ def augment_constellations(inputs: tuple, affine: float, drop: float, rng: np.ra
     return desc, kps, nbr, mask, rel
 
 
-def group_step(model: SconeNet, g, tensors: "TensorCache", t: dict) -> tuple[float, float, float]:
+def group_step(model: SconeNet, g, tensors: "TensorCache", t: dict, teacher: Teacher | None = None) -> tuple[float, float, float]:
     """Embeds every frame of the group once and backpropagates the whole-frame triplet loss of all its pairs,
-    each pair's anchors capped at `anchors` (drawn at random). Returns (loss, mean D+, mean D-)."""
+    each pair's anchors capped at `anchors` (drawn at random), plus, with a `teacher`, its weight times the
+    relational loss on the same anchors. Returns (loss, mean D+, mean D-)."""
     u = g.unit
     rng = np.random.default_rng(int(torch.randint(0, 2**31 - 1, (1,)).item()))
     aff, drop = t.get("augment_affine", 0.0), t.get("augment_drop", 0.0)
@@ -251,6 +281,9 @@ def group_step(model: SconeNet, g, tensors: "TensorCache", t: dict) -> tuple[flo
             emb[i], emb[j], u.frames[fa], u.frames[fb], ia, ib, shared, ida, idb, t["margin"], t.get("exclude_px", 2.0),
             t.get("frame_loss", "softmax"), t.get("tau", 0.05),
         )
+        if teacher is not None:
+            ta, tb = teacher.embed(u.frames[fa]), teacher.embed(u.frames[fb])
+            loss = loss + teacher.weight * relational_loss(emb[i], emb[j], ta, tb, torch.from_numpy(ia))
         losses.append(loss)
         dps.append(dp)
         dns.append(dn)
@@ -389,6 +422,9 @@ def train(cfg: dict, run_dir: Path, steps: int | None = None, units=None) -> Pat
         if start >= stop:
             print(f"{run_dir} already holds step {start}, at or past its stop at {stop}: nothing to train")
     tensors = TensorCache(model)
+    teacher = Teacher(t["teacher"], tensors) if t.get("teacher") else None
+    if teacher is not None and not grouped:
+        raise ValueError("train.teacher needs the whole-frame loss (train.loss: triplet_frames)")
     acc = {"loss": 0.0, "pos": 0.0, "neg": 0.0, "n": 0}
     t0 = time.time()
     bar = tqdm(range(start, stop), initial=start, total=stop, desc=cfg["name"], mininterval=1 if sys.stderr.isatty() else 60)
@@ -397,7 +433,7 @@ def train(cfg: dict, run_dir: Path, steps: int | None = None, units=None) -> Pat
         opt.zero_grad()
         total = 0.0
         if grouped:
-            total, dp, dn = group_step(model, sampler.sample(), tensors, t)
+            total, dp, dn = group_step(model, sampler.sample(), tensors, t, teacher)
             acc["pos"] += dp
             acc["neg"] += dn
         for _ in range(0 if grouped else t["pairs_per_step"]):

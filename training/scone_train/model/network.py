@@ -370,6 +370,23 @@ def build_model(m: dict):
     )
 
 
+def ring_from_onnx(path: Path) -> RingNet:
+    """The ring network an exported graph holds (`export_onnx` names its initializers by the PyTorch parameters,
+    `bits.0.weight` and so on, and keeps the [out, in] layout), in eval mode: a frozen teacher for a run whose
+    checkpoint is not at hand. The widths are read from the weights; a graph with the ring's invariants or
+    gradients fails to load (its first ring layer is wider than the 113 samples)."""
+    import onnx
+    from onnx import numpy_helper
+
+    weights = {i.name: torch.from_numpy(numpy_helper.to_array(i).copy()) for i in onnx.load(str(path)).graph.initializer}
+    widths = {name: [int(weights[f"{name}.{k}.weight"].shape[0]) for k in range(0, 8, 2) if f"{name}.{k}.weight" in weights]
+              for name in ("bits", "ring", "head")}
+    model = RingNet(embed_dim=widths["head"][-1], bits_hidden=tuple(widths["bits"][:-1]), bits_dim=widths["bits"][-1],
+                    ring_hidden=tuple(widths["ring"][:-1]), ring_dim=widths["ring"][-1], head_hidden=tuple(widths["head"][:-1]))
+    model.load_state_dict({k: weights[k] for k in model.state_dict()})
+    return model.eval()
+
+
 def load_checkpoint(path: Path) -> SconeNet:
     """The network of a training checkpoint (`best.pt`, `last.pt`), built from the config it holds, in eval mode."""
     ck = torch.load(path, weights_only=False)
