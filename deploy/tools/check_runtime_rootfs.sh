@@ -31,7 +31,8 @@ install -d "$root/opt/scone/bin" "$root/opt/scone/lib" "$root/opt/scone/models" 
 cp "$CARGO_TARGET_DIR/release/scone" "$root/opt/scone/bin/scone"
 cp -a "$SCONE_OPENCV_PREFIX"/lib/libopencv_*.so.* "$root$runpath/"
 cp -a "$SCONE_ORT_DIR"/lib/libonnxruntime.so* "$root/opt/scone/lib/"
-cp "$repo/models/scone-ring-e1-real.onnx" "$repo/models/scone-freak-k20.onnx" "$root/opt/scone/models/"
+cp "$repo"/models/scone-ring-e1-real-bits.onnx "$repo"/models/scone-ring-e1-real.onnx "$repo"/models/scone-freak-k20.onnx \
+  "$root/opt/scone/models/"
 cp "$repo/tests/fixtures/coffee-640x480.jpg" "$root/tmp/check/"
 # Directories on the way to the RUNPATH must be traversable by uid 10001 (in the image: /opt/scone-prefix).
 d="$runpath"; while [ "$d" != / ]; do chmod o+x "$root$d"; d="$(dirname "$d")"; done

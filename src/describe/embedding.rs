@@ -12,13 +12,22 @@
 //! | | `relative` | float32 | [N, k, 4] |
 //! | ring ([`crate::describe::ring_context`]) | `context` | uint8 | [N, 113] |
 //!
+//! A ring model may read the FREAK bits already unpacked instead of the bytes: `bits`, float32 [N, 512], bit i
+//! of byte i / 8 at position i % 8 (least significant first) as -1.0 or +1.0, which the service fills from the
+//! bytes. The graph then skips its own unpacking (a gather that takes about a tenth of the shipped network's
+//! inference); `scone_train.model.bits_input` writes such a graph from an exported one, with the same output
+//! bytes.
+//!
 //! Output `embeddings`, float32 [N, D] (D = 48 for the shipped models), L2-normalised. All normalisation of
 //! the raw values happens inside the graph.
 //!
 //! What a model declares (its ONNX metadata, written by `scone_train.model.export`): `scone.extraction`, the
 //! [`ExtractorSettings`] it was trained at, as JSON with every field; `scone.matcher`, the MatchPair matcher it
-//! ships with (a `SconeMatcher` name). The service runs the declared extraction unless `[extractor]` is set,
-//! and answers MatchPair's default with the declared matcher. A model that declares neither was made before
+//! ships with (a `SconeMatcher` name); `scone.embeds_as`, the id of the model whose embeddings the graph
+//! computes when that is not its own file (`sha256:` and 64 hex digits: a graph rewritten to give the same
+//! bytes, such as the bits-input graph above). The model's id ([`Embedder::model_id`], which maps record and
+//! check) is the declared one, else the file's sha256. The service runs the declared extraction unless
+//! `[extractor]` is set, and answers MatchPair's default with the declared matcher. A model that declares neither was made before
 //! models declared them (`scone-freak-k20`): it is served at the client contract's revision 2
 //! ([`ExtractorSettings::revision_2`]) and `scale-aware`. A declaration that does not parse fails the load.
 //!
@@ -36,7 +45,7 @@ use std::time::Instant;
 
 use ort::session::builder::GraphOptimizationLevel;
 use ort::session::Session;
-use ort::value::{Tensor, TensorElementType, ValueType};
+use ort::value::Tensor;
 use parking_lot::Mutex;
 use serde::{Deserialize, Serialize};
 use sha2::{Digest, Sha256};
@@ -45,6 +54,10 @@ use crate::describe::constellation::{self, Constellations, GEOMETRY_DIM};
 use crate::describe::features::{ExtractorSettings, Features, StageSink, DESCRIPTOR_BYTES};
 use crate::describe::ring_context::SAMPLES;
 use crate::error::EmbeddingError;
+
+mod contract;
+use contract::{check_contract, declaration, BitsInput, Declaration, BITS, BITS_INPUT};
+pub use contract::{ModelInputs, EMBEDS_AS_KEY, EXTRACTION_KEY, MATCHER_KEY};
 
 /// Settings of the embedding runtime.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -78,9 +91,10 @@ impl Default for EmbedderSettings {
     }
 }
 
-/// The committed model, next to the sources: the ring-context model (`models/scone-ring-e1-real.md`).
+/// The committed model, next to the sources: the ring-context model (`models/scone-ring-e1-real.md`) as the
+/// graph that reads unpacked bits (`models/scone-ring-e1-real-bits.onnx`: the same embeddings, the same id).
 pub fn default_model_path() -> PathBuf {
-    PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("models/scone-ring-e1-real.onnx")
+    PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("models/scone-ring-e1-real-bits.onnx")
 }
 
 /// The paper's constellation model (`models/scone-freak-k20.md`), kept for maps built with it, which the
@@ -93,12 +107,7 @@ pub fn constellation_model_path() -> PathBuf {
 /// is [`default_model_path`] and that file is gone (the checkout that built the binary was moved or removed), so
 /// the built-in default keeps working; any other missing model is an error.
 pub static BUILT_IN_MODEL: &[u8] =
-    include_bytes!(concat!(env!("CARGO_MANIFEST_DIR"), "/models/scone-ring-e1-real.onnx"));
-
-/// The metadata key of a model's extraction.
-pub const EXTRACTION_KEY: &str = "scone.extraction";
-/// The metadata key of a model's MatchPair matcher.
-pub const MATCHER_KEY: &str = "scone.matcher";
+    include_bytes!(concat!(env!("CARGO_MANIFEST_DIR"), "/models/scone-ring-e1-real-bits.onnx"));
 
 /// The model file's bytes, or the built-in copy when `path` is `default_path` and does not exist.
 fn model_bytes(path: &Path, default_path: &Path) -> Result<std::borrow::Cow<'static, [u8]>, EmbeddingError> {
@@ -124,19 +133,11 @@ fn environment(lib: &Path) -> Result<&'static ort::environment::Environment, Emb
         .map_err(|reason| EmbeddingError::Runtime { path: lib.to_path_buf(), reason: reason.clone() })
 }
 
-/// What a model reads besides each keypoint's FREAK bytes.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub enum ModelInputs {
-    /// The paper's constellation: each keypoint's `k` nearest keypoints with their relative geometry.
-    Constellation { k: usize },
-    /// The ring context: the image around each keypoint at fixed places in its frame ([`crate::describe::ring_context`]).
-    RingContext,
-}
-
 /// Loaded model with a pool of sessions.
 pub struct Embedder {
     sessions: Vec<Mutex<Session>>,
     inputs: ModelInputs,
+    bits: BitsInput,
     extraction: Option<ExtractorSettings>,
     matcher: Option<String>,
     dim: usize,
@@ -150,6 +151,7 @@ impl std::fmt::Debug for Embedder {
             .field("path", &self.path)
             .field("model_id", &self.model_id)
             .field("inputs", &self.inputs)
+            .field("bits", &self.bits)
             .field("extraction", &self.extraction)
             .field("matcher", &self.matcher)
             .field("dim", &self.dim)
@@ -158,118 +160,12 @@ impl std::fmt::Debug for Embedder {
     }
 }
 
-/// Dimensions of a tensor outlet, or a contract error naming it.
-fn tensor_spec(path: &Path, name: &str, ty: &ValueType) -> Result<(TensorElementType, Vec<i64>), EmbeddingError> {
-    match ty {
-        ValueType::Tensor { ty, shape, .. } => Ok((*ty, shape.iter().copied().collect())),
-        other => {
-            Err(EmbeddingError::Contract { path: path.into(), reason: format!("{name} is {other:?}, not a tensor") })
-        }
-    }
-}
-
-/// Checks names, element types and static dimensions; returns what the model reads and its embedding
-/// dimension.
-fn check_contract(path: &Path, session: &Session) -> Result<(ModelInputs, usize), EmbeddingError> {
-    let err = |reason: String| EmbeddingError::Contract { path: path.into(), reason };
-    let inputs: Vec<(String, TensorElementType, Vec<i64>)> = session
-        .inputs()
-        .iter()
-        .map(|o| tensor_spec(path, o.name(), o.dtype()).map(|(t, s)| (o.name().to_string(), t, s)))
-        .collect::<Result<_, _>>()?;
-    let find = |name: &str| {
-        inputs.iter().find(|i| i.0 == name).ok_or_else(|| {
-            err(format!("missing input '{name}' (inputs: {:?})", inputs.iter().map(|i| &i.0).collect::<Vec<_>>()))
-        })
-    };
-    let expect = |name: &str, ty: TensorElementType, rank: usize| -> Result<Vec<i64>, EmbeddingError> {
-        let (_, t, s) = find(name)?;
-        if *t != ty {
-            return Err(err(format!("input '{name}' has element type {t:?}, expected {ty:?}")));
-        }
-        if s.len() != rank {
-            return Err(err(format!("input '{name}' has rank {} ({s:?}), expected {rank}", s.len())));
-        }
-        Ok(s.clone())
-    };
-    let fixed = |name: &str, s: &[i64], axis: usize, want: i64| -> Result<(), EmbeddingError> {
-        if s[axis] != want {
-            return Err(err(format!("input '{name}' has dimension {axis} = {}, expected {want}", s[axis])));
-        }
-        Ok(())
-    };
-    let d = expect("descriptors", TensorElementType::Uint8, 2)?;
-    fixed("descriptors", &d, 1, DESCRIPTOR_BYTES as i64)?;
-    let kind = if inputs.iter().any(|i| i.0 == "context") {
-        if inputs.len() != 2 {
-            return Err(err(format!("a ring-context model has 2 inputs, found {}", inputs.len())));
-        }
-        let c = expect("context", TensorElementType::Uint8, 2)?;
-        fixed("context", &c, 1, SAMPLES as i64)?;
-        ModelInputs::RingContext
-    } else {
-        if inputs.len() != 5 {
-            return Err(err(format!("expected 5 inputs, found {}", inputs.len())));
-        }
-        let kp = expect("keypoints", TensorElementType::Float32, 2)?;
-        fixed("keypoints", &kp, 1, 2)?;
-        let nb = expect("neighbours", TensorElementType::Int64, 2)?;
-        if nb[1] < 1 {
-            return Err(err(format!("input 'neighbours' needs a static k, found {}", nb[1])));
-        }
-        let k = nb[1];
-        let m = expect("mask", TensorElementType::Float32, 2)?;
-        fixed("mask", &m, 1, k)?;
-        let rel = expect("relative", TensorElementType::Float32, 3)?;
-        fixed("relative", &rel, 1, k)?;
-        fixed("relative", &rel, 2, GEOMETRY_DIM as i64)?;
-        ModelInputs::Constellation { k: k as usize }
-    };
-    let out = session.outputs();
-    if out.len() != 1 || out[0].name() != "embeddings" {
-        return Err(err(format!(
-            "expected one output 'embeddings', found {:?}",
-            out.iter().map(|o| o.name()).collect::<Vec<_>>()
-        )));
-    }
-    let (ty, shape) = tensor_spec(path, "embeddings", out[0].dtype())?;
-    if ty != TensorElementType::Float32 || shape.len() != 2 || shape[1] < 1 {
-        return Err(err(format!("output 'embeddings' is {ty:?} {shape:?}, expected float32 [N, D]")));
-    }
-    Ok((kind, shape[1] as usize))
-}
-
-/// The model's declared extraction and matcher ([`EXTRACTION_KEY`], [`MATCHER_KEY`]); an extraction that does
-/// not parse or validate is a contract error.
-fn declaration(path: &Path, session: &Session) -> Result<(Option<ExtractorSettings>, Option<String>), EmbeddingError> {
-    let err = |reason: String| EmbeddingError::Contract { path: path.into(), reason };
-    let meta = session.metadata().map_err(|e| err(format!("reading the model's metadata: {e}")))?;
-    let extraction = match meta.custom(EXTRACTION_KEY) {
-        None => None,
-        Some(text) => {
-            let bad = |why: String| err(format!("metadata '{EXTRACTION_KEY}' is not an extraction ({why}): {text}"));
-            // Every field, so that a default of this build cannot stand in for what the model was trained at.
-            let value: serde_json::Value = serde_json::from_str(&text).map_err(|e| bad(e.to_string()))?;
-            let fields = |v: &serde_json::Value| v.as_object().map_or(0, |o| o.len());
-            let given = fields(&value);
-            let all = serde_json::to_value(ExtractorSettings::default()).map_or(0, |v| fields(&v));
-            if given != all {
-                return Err(bad(format!("{given} fields, every field of the extraction is needed")));
-            }
-            let e: ExtractorSettings = serde_json::from_value(value).map_err(|e| bad(e.to_string()))?;
-            e.validate().map_err(|e| err(format!("metadata '{EXTRACTION_KEY}': {e}")))?;
-            Some(e)
-        }
-    };
-    Ok((extraction, meta.custom(MATCHER_KEY)))
-}
-
 impl Embedder {
     /// Loads the runtime and the model, checks the contract and runs one warm-up inference per session.
     pub fn load(config: &EmbedderSettings) -> Result<Self, EmbeddingError> {
         let path = config.model.clone();
         let bytes = model_bytes(&path, &default_model_path())?;
-        let model_id = format!("sha256:{:x}", Sha256::digest(&bytes));
+        let file_id = format!("sha256:{:x}", Sha256::digest(&bytes));
         let env = environment(&config.runtime_library)?;
         let model_err = |e: ort::Error| EmbeddingError::Model { path: path.clone(), reason: e.to_string() };
         let mut sessions = Vec::new();
@@ -290,10 +186,17 @@ impl Embedder {
             dims = Some(check_contract(&path, &session)?);
             sessions.push(Mutex::new(session));
         }
-        let (inputs, dim) = dims.expect("at least one session");
+        let (inputs, bits, dim) = dims.expect("at least one session");
         // One read of the metadata: every session holds the same model.
-        let (extraction, matcher) = declaration(&path, &sessions[0].lock())?;
-        let embedder = Self { sessions, inputs, extraction, matcher, dim, model_id, path };
+        let Declaration { extraction, matcher, embeds_as } = declaration(&path, &sessions[0].lock())?;
+        let model_id = match embeds_as {
+            Some(id) => {
+                tracing::info!(file = %file_id, model_id = %id, "the model declares the embeddings of another file");
+                id
+            }
+            None => file_id,
+        };
+        let embedder = Self { sessions, inputs, bits, extraction, matcher, dim, model_id, path };
         embedder.warm_up()?;
         Ok(embedder)
     }
@@ -319,7 +222,7 @@ impl Embedder {
         let context = self.context_of(&features)?;
         for s in &self.sessions {
             let mut session = s.lock();
-            run(&mut session, &features, &context, self.dim)?;
+            run(&mut session, &features, &context, self.bits, self.dim)?;
         }
         Ok(())
     }
@@ -404,11 +307,12 @@ impl Embedder {
             if features.len() >= SPLIT_FROM && crate::cpu_pool::cores() > 1 {
                 if let Some(mut second) = self.try_lease() {
                     let descriptors = features.descriptors.as_flattened();
-                    return run_split(&mut first.session, &mut second.session, descriptors, rings, self.dim);
+                    let (a, b) = (&mut first.session, &mut second.session);
+                    return run_split(a, b, descriptors, rings, self.bits, self.dim);
                 }
             }
         }
-        run(&mut first.session, features, &context, self.dim)
+        run(&mut first.session, features, &context, self.bits, self.dim)
     }
 
     /// Sessions in the pool.
@@ -455,7 +359,7 @@ impl Lease<'_> {
         if features.is_empty() {
             return Ok(Vec::new());
         }
-        run(&mut self.session, features, &context, e.dim)
+        run(&mut self.session, features, &context, e.bits, e.dim)
     }
 
     /// [`Lease::embed`] for a ring model, telling `stage` the time of building the input tensors
@@ -466,11 +370,10 @@ impl Lease<'_> {
         let Context::Rings(rings) = self.embedder.context_of(features)? else {
             return Err(EmbeddingError::Input { reason: "not a ring-context model".into() });
         };
-        let (descriptors, context) = ring_inputs(features.descriptors.as_flattened(), rings)?;
+        let inputs = ring_inputs(features.descriptors.as_flattened(), rings, self.embedder.bits)?;
         stage("assembly", t.elapsed());
         let t = Instant::now();
-        let outputs =
-            self.session.run(ort::inputs!["descriptors" => descriptors, "context" => context]).map_err(inference)?;
+        let outputs = self.session.run(inputs).map_err(inference)?;
         stage("inference", t.elapsed());
         let t = Instant::now();
         let embeddings = embeddings_of(&outputs, features.len(), self.embedder.dim);
@@ -498,10 +401,16 @@ fn inference(e: ort::Error) -> EmbeddingError {
     EmbeddingError::Inference(e.to_string())
 }
 
-fn run(session: &mut Session, f: &Features, context: &Context, dim: usize) -> Result<Vec<f32>, EmbeddingError> {
+fn run(
+    session: &mut Session,
+    f: &Features,
+    context: &Context,
+    bits: BitsInput,
+    dim: usize,
+) -> Result<Vec<f32>, EmbeddingError> {
     let n = f.len();
     let c = match context {
-        Context::Rings(rings) => return run_rings(session, f.descriptors.as_flattened(), rings, dim),
+        Context::Rings(rings) => return run_rings(session, f.descriptors.as_flattened(), rings, bits, dim),
         Context::Constellations(c) => c,
     };
     let descriptors =
@@ -525,20 +434,63 @@ fn run(session: &mut Session, f: &Features, context: &Context, dim: usize) -> Re
     embeddings_of(&outputs, n, dim)
 }
 
-/// A ring model's two input tensors, from `descriptors` (`DESCRIPTOR_BYTES` per keypoint) and `rings`
-/// (`SAMPLES` per keypoint).
-fn ring_inputs(descriptors: &[u8], rings: &[u8]) -> Result<(Tensor<u8>, Tensor<u8>), EmbeddingError> {
+/// Row v: the 8 bits of the byte value v as -1.0 or +1.0, least significant first (the `bits` input's order).
+static BIT_SIGNS: [[f32; 8]; 256] = {
+    let mut table = [[-1.0f32; 8]; 256];
+    let mut v = 0;
+    while v < 256 {
+        let mut i = 0;
+        while i < 8 {
+            if (v >> i) & 1 == 1 {
+                table[v][i] = 1.0;
+            }
+            i += 1;
+        }
+        v += 1;
+    }
+    table
+};
+
+/// FREAK bytes unpacked to the `bits` input: 8 floats of ±1 per byte, least significant bit first.
+pub fn unpack_bits(descriptors: &[u8]) -> Vec<f32> {
+    let mut out = Vec::with_capacity(descriptors.len() * 8);
+    for &byte in descriptors {
+        out.extend_from_slice(&BIT_SIGNS[byte as usize]);
+    }
+    out
+}
+
+/// A ring model's two inputs, from `descriptors` (`DESCRIPTOR_BYTES` per keypoint, unpacked when the model
+/// reads `bits`) and `rings` (`SAMPLES` per keypoint).
+fn ring_inputs<'v>(
+    descriptors: &[u8],
+    rings: &[u8],
+    bits: BitsInput,
+) -> Result<Vec<(std::borrow::Cow<'static, str>, ort::session::SessionInputValue<'v>)>, EmbeddingError> {
     let n = descriptors.len() / DESCRIPTOR_BYTES;
-    let descriptors = Tensor::from_array(([n, DESCRIPTOR_BYTES], descriptors.to_vec())).map_err(inference)?;
     let context = Tensor::from_array(([n, SAMPLES], rings.to_vec())).map_err(inference)?;
-    Ok((descriptors, context))
+    Ok(match bits {
+        BitsInput::Bytes => {
+            let descriptors = Tensor::from_array(([n, DESCRIPTOR_BYTES], descriptors.to_vec())).map_err(inference)?;
+            ort::inputs!["descriptors" => descriptors, "context" => context]
+        }
+        BitsInput::Unpacked => {
+            let unpacked = Tensor::from_array(([n, BITS], unpack_bits(descriptors))).map_err(inference)?;
+            ort::inputs![BITS_INPUT => unpacked, "context" => context]
+        }
+    })
 }
 
 /// A ring model on `descriptors` (`DESCRIPTOR_BYTES` per keypoint) and `rings` (`SAMPLES` per keypoint).
-fn run_rings(session: &mut Session, descriptors: &[u8], rings: &[u8], dim: usize) -> Result<Vec<f32>, EmbeddingError> {
+fn run_rings(
+    session: &mut Session,
+    descriptors: &[u8],
+    rings: &[u8],
+    bits: BitsInput,
+    dim: usize,
+) -> Result<Vec<f32>, EmbeddingError> {
     let n = descriptors.len() / DESCRIPTOR_BYTES;
-    let (descriptors, context) = ring_inputs(descriptors, rings)?;
-    let outputs = session.run(ort::inputs!["descriptors" => descriptors, "context" => context]).map_err(inference)?;
+    let outputs = session.run(ring_inputs(descriptors, rings, bits)?).map_err(inference)?;
     embeddings_of(&outputs, n, dim)
 }
 
@@ -549,19 +501,20 @@ fn run_split(
     second: &mut Session,
     descriptors: &[u8],
     rings: &[u8],
+    bits: BitsInput,
     dim: usize,
 ) -> Result<Vec<f32>, EmbeddingError> {
     let half = descriptors.len() / DESCRIPTOR_BYTES / 2 / ROW_GROUP * ROW_GROUP;
     let (d1, d2) = descriptors.split_at(half * DESCRIPTOR_BYTES);
     let (r1, r2) = rings.split_at(half * SAMPLES);
     std::thread::scope(|scope| {
-        let other = std::thread::Builder::new().spawn_scoped(scope, || run_rings(second, d2, r2, dim));
-        let a = run_rings(first, d1, r1, dim);
+        let other = std::thread::Builder::new().spawn_scoped(scope, || run_rings(second, d2, r2, bits, dim));
+        let a = run_rings(first, d1, r1, bits, dim);
         let b = match other {
             Ok(t) => t.join().expect("an embedding thread panicked"),
             Err(e) => {
                 tracing::debug!(error = %e, "no second thread for the embedding");
-                run_rings(first, d2, r2, dim)
+                run_rings(first, d2, r2, bits, dim)
             }
         };
         let (mut a, b) = (a?, b?);
@@ -581,6 +534,14 @@ fn embeddings_of(outputs: &ort::session::SessionOutputs, n: usize, dim: usize) -
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn bits_unpack_least_significant_first_as_plus_or_minus_one() {
+        let u = unpack_bits(&[0b0000_0101, 0xff, 0]);
+        assert_eq!(u.len(), 24);
+        assert_eq!(&u[..8], &[1.0, -1.0, 1.0, -1.0, -1.0, -1.0, -1.0, -1.0]);
+        assert!(u[8..16].iter().all(|&v| v == 1.0) && u[16..].iter().all(|&v| v == -1.0));
+    }
 
     #[test]
     fn built_in_model_is_the_committed_file() {

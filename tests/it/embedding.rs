@@ -10,10 +10,10 @@ use ndarray_npy::{NpzReader, ReadNpyExt};
 
 use scone::describe::constellation;
 use scone::describe::decode::{decode_grey, ImageLimitSettings};
-use scone::describe::embedding::{constellation_model_path, Embedder, EmbedderSettings};
+use scone::describe::embedding::{constellation_model_path, default_model_path, Embedder, EmbedderSettings};
 use scone::describe::features::{extract, ExtractorSettings};
 
-use crate::common::fixture;
+use crate::common::{fixture, temp_dir};
 
 fn golden_dir() -> PathBuf {
     std::env::var_os("SCONE_GOLDEN_DIR").map(PathBuf::from).unwrap_or_else(|| fixture("golden"))
@@ -139,6 +139,44 @@ fn a_file_that_is_not_a_model_is_refused_with_its_name() {
     let cfg = EmbedderSettings { model: fixture("astronaut.jpg"), ..EmbedderSettings::default() };
     let err = Embedder::load(&cfg).unwrap_err().to_string();
     assert!(err.contains("astronaut.jpg"), "{err}");
+}
+
+/// The embedded graph reads the FREAK bits unpacked (`models/scone-ring-e1-real-bits.onnx`, written from
+/// `models/scone-ring-e1-real.onnx` by `scone_train.model.bits_input`): on two images at the declared extraction
+/// it gives its source graph's embeddings bit for bit, and declares the source's id, which a map built with
+/// either records.
+#[test]
+fn the_bits_input_graph_gives_its_source_graphs_embeddings_bit_for_bit() {
+    let source = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("models/scone-ring-e1-real.onnx");
+    let bits = Embedder::load(&EmbedderSettings { sessions: 1, ..EmbedderSettings::default() }).unwrap();
+    let source =
+        Embedder::load(&EmbedderSettings { model: source, sessions: 1, ..EmbedderSettings::default() }).unwrap();
+    assert_eq!(bits.model_id(), source.model_id());
+    assert!(bits.model_id().starts_with("sha256:8cace533"), "{}", bits.model_id());
+    for name in ["astronaut.jpg", "coffee-640x480.jpg"] {
+        let image = decode_grey(&std::fs::read(fixture(name)).unwrap(), &ImageLimitSettings::default()).unwrap();
+        let mut features = extract(&image, &bits.extraction()).unwrap();
+        features.sample_context(&image).unwrap();
+        let (a, b) = (bits.embed(&features).unwrap(), source.embed(&features).unwrap());
+        let differ = a.iter().zip(&b).filter(|(x, y)| x.to_bits() != y.to_bits()).count();
+        assert!(a.len() == b.len() && a.len() == 48 * features.len() && differ == 0, "{name}: {differ} values differ");
+    }
+}
+
+/// A graph whose `scone.embeds_as` is not a model id is refused, naming it: the embedded graph with the hex digits
+/// of its declaration upper-cased (the same length, so the file stays a valid model).
+#[test]
+fn a_declared_embedding_id_that_is_not_a_model_id_is_refused_naming_it() {
+    let bytes = std::fs::read(default_model_path()).unwrap();
+    let needle = b"sha256:8cace533";
+    let at = bytes.windows(needle.len()).position(|w| w == needle).expect("the declaration");
+    let mut bad = bytes.clone();
+    bad[at + 7..at + 15].copy_from_slice(b"8CACE533");
+    let dir = temp_dir("embeds-as");
+    let path = dir.join("bad-embeds-as.onnx");
+    std::fs::write(&path, bad).unwrap();
+    let err = Embedder::load(&EmbedderSettings { model: path, ..EmbedderSettings::default() }).unwrap_err().to_string();
+    assert!(err.contains("scone.embeds_as") && err.contains("8CACE533") && err.contains("bad-embeds-as"), "{err}");
 }
 
 /// `bad-contract.onnx` is a valid ONNX graph whose `descriptors` input is float32 instead of uint8.
