@@ -7,7 +7,7 @@
 //! plain and the same-corner ratio test, and MatchPair's matchers (freak, rerank, scale-aware) between the
 //! photograph and a mild and a 2x zoomed view of it. Also the relative-pose estimators (plain RANSAC against
 //! USAC_ACCURATE) on 300 synthetic correspondences, 25 % outliers.
-//! Model: the embedded one (`models/scone-ring-e1-real.onnx`), or `$SCONE_MODEL`; extraction: the one the
+//! Model: the embedded one (`models/scone-ring-e1-real-bits.onnx`), or `$SCONE_MODEL`; extraction: the one the
 //! model declares (8 levels and 2,000 keypoints for the embedded model; revision 2's 6 and 1,500 for
 //! `models/scone-freak-k20.onnx`), with `$SCONE_BENCH_LEVELS` and `$SCONE_BENCH_KEYPOINTS` over it;
 //! `SCONE_BENCH_SPINNING=1` lets ONNX Runtime's idle threads spin (`[model] spinning`, off by default). The group's
