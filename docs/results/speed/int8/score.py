@@ -82,15 +82,16 @@ def judge(shipped, cand, validation):
     return failures
 
 
-def main():
+def run(judge_fn):
+    """The command line: `judge_fn(shipped, candidate, validation)` on each candidate directory, with its verdict."""
     args = sys.argv[1:]
     validation = "--validation" in args
     shipped, *candidates = (Path(a) for a in args if a != "--validation")
     for cand in candidates:
         print(f"## {cand.name} against {shipped}\n")
-        failures = judge(shipped, cand, validation)
+        failures = judge_fn(shipped, cand, validation)
         print("\n**passes**\n" if not failures else "\n**fails**: " + "; ".join(failures) + "\n")
 
 
 if __name__ == "__main__":
-    main()
+    run(judge)

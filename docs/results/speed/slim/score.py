@@ -11,7 +11,6 @@ figures and the verdicts; exits 0. Standard library only.
 
 import importlib.util
 import json
-import sys
 from pathlib import Path
 
 # The int8 rule's readers of the pair and warp reports (a file of the same name, so loaded by its path).
@@ -77,15 +76,5 @@ def judge(shipped, cand, validation):
     return failures
 
 
-def main():
-    args = sys.argv[1:]
-    validation = "--validation" in args
-    shipped, *candidates = (Path(a) for a in args if a != "--validation")
-    for cand in candidates:
-        print(f"## {cand.name} against {shipped}\n")
-        failures = judge(shipped, cand, validation)
-        print("\n**passes**\n" if not failures else "\n**fails**: " + "; ".join(failures) + "\n")
-
-
 if __name__ == "__main__":
-    main()
+    _int8.run(judge)
