@@ -1,8 +1,8 @@
 //! SConE embeddings with ONNX Runtime: one call per image (or per batch of keypoints) through `ort`.
 //!
 //! The model contract (checked when the model loads; any mismatch fails with a message naming it). Every
-//! model reads each keypoint's FREAK bytes, `descriptors` uint8 [N, 64], and one of two contexts
-//! ([`ModelInputs`]), told apart by its input names:
+//! model reads each keypoint's FREAK bits, as the bytes `descriptors` uint8 [N, 64] or, a ring model only,
+//! unpacked (below), and one of two contexts ([`ModelInputs`]), told apart by its input names:
 //!
 //! | context | input | dtype | shape |
 //! |---|---|---|---|
@@ -12,8 +12,8 @@
 //! | | `relative` | float32 | [N, k, 4] |
 //! | ring ([`crate::describe::ring_context`]) | `context` | uint8 | [N, 113] |
 //!
-//! A ring model may read the FREAK bits already unpacked instead of the bytes: `bits`, float32 [N, 512], bit i
-//! of byte i / 8 at position i % 8 (least significant first) as -1.0 or +1.0, which the service fills from the
+//! A ring model may read the FREAK bits unpacked instead of the bytes: `bits`, float32 [N, 512], whose element
+//! i is bit i % 8 of byte i / 8 (least significant first) as -1.0 or +1.0, which the service fills from the
 //! bytes. The graph then skips its own unpacking (a gather that takes about a tenth of the shipped network's
 //! inference); `scone_train.model.bits_input` writes such a graph from an exported one, with the same output
 //! bytes.
@@ -21,15 +21,18 @@
 //! Output `embeddings`, float32 [N, D] (D = 48 for the shipped models), L2-normalised. All normalisation of
 //! the raw values happens inside the graph.
 //!
-//! What a model declares (its ONNX metadata, written by `scone_train.model.export`): `scone.extraction`, the
-//! [`ExtractorSettings`] it was trained at, as JSON with every field; `scone.matcher`, the MatchPair matcher it
-//! ships with (a `SconeMatcher` name); `scone.embeds_as`, the id of the model whose embeddings the graph
-//! computes when that is not its own file (`sha256:` and 64 hex digits: a graph rewritten to give the same
-//! bytes, such as the bits-input graph above). The model's id ([`Embedder::model_id`], which maps record and
-//! check) is the declared one, else the file's sha256. The service runs the declared extraction unless
-//! `[extractor]` is set, and answers MatchPair's default with the declared matcher. A model that declares neither was made before
-//! models declared them (`scone-freak-k20`): it is served at the client contract's revision 2
-//! ([`ExtractorSettings::revision_2`]) and `scale-aware`. A declaration that does not parse fails the load.
+//! What a model declares (its ONNX metadata, written by `scone_train.model.export` and, for the last key,
+//! `scone_train.model.bits_input`): `scone.extraction`, the [`ExtractorSettings`] it was trained at, as JSON with
+//! every field; `scone.matcher`, the MatchPair matcher it ships with (a `SconeMatcher` name); `scone.embeds_as`,
+//! the id of another model file whose embeddings this graph gives byte for byte (`sha256:` and 64 hex digits; a
+//! graph rewritten without changing its output, such as the bits-input graph above). The model's id
+//! ([`Embedder::model_id`], which maps record and check) is the declared one, else the file's sha256; the
+//! service cannot check the claim without the other file (`bits_input` checks it when it writes one), and an
+//! approximate graph (int8) must not make it. The service runs the declared extraction unless `[extractor]` is
+//! set, and answers MatchPair's default with the declared matcher. A model that declares neither extraction
+//! nor matcher was made before models declared them (`scone-freak-k20`): it is served at the client contract's
+//! revision 2 ([`ExtractorSettings::revision_2`]) and `scale-aware`. A declaration that does not parse fails
+//! the load.
 //!
 //! Concurrency: `Session::run` needs exclusive access, so the embedder owns a small pool of sessions, one per
 //! CPU worker of the service, each with its own intra-op thread count. Workers take a free session without
@@ -265,7 +268,8 @@ impl Embedder {
         self.dim
     }
 
-    /// `sha256:<hex>` of the model file: maps record it, and refuse queries embedded by another model.
+    /// `sha256:<hex>` of the model file, or of the file whose embeddings it declares it gives (`scone.embeds_as`):
+    /// maps record it, and refuse queries embedded by another model.
     pub fn model_id(&self) -> &str {
         &self.model_id
     }

@@ -1,4 +1,4 @@
-//! The embedded model, the ring-context model of issue 39 (`models/scone-ring-e1-real-bits.onnx`, the graph of
+//! The embedded model, the ring-context model (`models/scone-ring-e1-real-bits.onnx`, the graph of
 //! `scone-ring-e1-real.onnx` that reads unpacked bits), served end to end
 //! with no `[extractor]` and no matcher set: the service runs the extraction the model declares (8 levels,
 //! 2,000 keypoints), Describe answers the context with the embeddings, a map built with it localises a held-out

@@ -82,6 +82,9 @@ pub(super) fn check_contract(
         Ok(())
     };
     let bits = if inputs.iter().any(|i| i.0 == BITS_INPUT) {
+        if inputs.iter().any(|i| i.0 == "descriptors") {
+            return Err(err(format!("inputs '{BITS_INPUT}' and 'descriptors' both read the FREAK bits: one of them")));
+        }
         if !inputs.iter().any(|i| i.0 == "context") {
             return Err(err(format!("input '{BITS_INPUT}' is read by ring-context models only (no input 'context')")));
         }

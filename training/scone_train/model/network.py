@@ -379,11 +379,15 @@ def ring_from_onnx(path: Path) -> RingNet:
     from onnx import numpy_helper
 
     weights = {i.name: torch.from_numpy(numpy_helper.to_array(i).copy()) for i in onnx.load(str(path)).graph.initializer}
-    widths = {name: [int(weights[f"{name}.{k}.weight"].shape[0]) for k in range(0, 8, 2) if f"{name}.{k}.weight" in weights]
+    widths = {name: [int(weights[f"{name}.{k}.weight"].shape[0]) for k in range(0, 16, 2) if f"{name}.{k}.weight" in weights]
               for name in ("bits", "ring", "head")}
     model = RingNet(embed_dim=widths["head"][-1], bits_hidden=tuple(widths["bits"][:-1]), bits_dim=widths["bits"][-1],
                     ring_hidden=tuple(widths["ring"][:-1]), ring_dim=widths["ring"][-1], head_hidden=tuple(widths["head"][:-1]))
-    model.load_state_dict({k: weights[k] for k in model.state_dict()})
+    own = set(model.state_dict())
+    unread = sorted(k for k in weights if k.split(".")[0] in widths and k not in own)
+    if unread:
+        raise ValueError(f"{path}: the ring network built from its widths leaves weights unread: {unread}")
+    model.load_state_dict({k: weights[k] for k in own})
     return model.eval()
 
 

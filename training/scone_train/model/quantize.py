@@ -12,9 +12,10 @@ of issue 29 (`scone eval pairs` and NN precision on the validation scenes), not 
 `MatMulInteger` on the bits as exact 0/1 bytes with int8 weights, one scale per output, the ±1 of the fp32 graph
 folded into scale and bias; `int8` also makes the other matrix products static int8 (QDQ, per-channel weights
 with `reduce_range`, uint8 activations with MinMax ranges from the training frames of the five real training
-scenes at the E1 extraction). Both declare `scone.embeds_as`, the fp32 graph's id (`sha256:...` of its file), as
-the way a map built with either graph could be served by the other; the service does not read it (no such graph
-ships). It prints the cosine to the fp32 embeddings on 4 selection frames of each of those scenes.
+scenes at the E1 extraction). Both declare `scone.approximates`, the fp32 graph's id (`sha256:...` of its file):
+what they stand for, which the service does not read. They must not declare `scone.embeds_as`, which tells the
+service that a graph's embeddings are another file's byte for byte and so takes that file's id (their embeddings
+differ from the fp32 graph's). It prints the cosine to the fp32 embeddings on 4 selection frames of each of those scenes.
 """
 
 from __future__ import annotations
@@ -66,7 +67,8 @@ def feeds(frames: list, k: int) -> list[dict]:
     return [dict(zip(INPUT_NAMES, (t.numpy() for t in f.model_inputs(k)))) for f in frames]
 
 
-EMBEDS_AS_KEY = "scone.embeds_as"
+#: What an approximate graph stands for (not `scone.embeds_as`, which claims the same bytes).
+APPROXIMATES_KEY = "scone.approximates"
 RING_CACHE = "cache-levels8max-keypoints2000"
 
 
@@ -128,7 +130,7 @@ def bits_int8(model):
 
 
 def ring_candidate(src: Path, out: Path, which: str, calibration: list[dict]) -> None:
-    """`which` ("bits-int8" or "int8") of the fp32 ring graph `src`, written to `out`, declaring `scone.embeds_as`."""
+    """`which` ("bits-int8" or "int8") of the fp32 ring graph `src`, written to `out`, declaring `scone.approximates`."""
     import onnx
     from onnxruntime.quantization import CalibrationMethod, QuantFormat, QuantType, quantize_static
 
@@ -145,7 +147,7 @@ def ring_candidate(src: Path, out: Path, which: str, calibration: list[dict]) ->
         stage.unlink()
         model = onnx.load(out)
     meta = {p.key: p.value for p in model.metadata_props if p.key != "onnx.infer"}
-    meta[EMBEDS_AS_KEY] = fp32_id
+    meta[APPROXIMATES_KEY] = fp32_id
     del model.metadata_props[:]
     for k, v in meta.items():
         model.metadata_props.add(key=k, value=v)

@@ -52,6 +52,9 @@ def judge(shipped, cand, validation):
     least = 1.0 if validation else 0.95
     print("| warps | pairs | within 5 px shipped | candidate | correct matches shipped | candidate |\n|---|---|---|---|---|---|")
     for k, (w, n, pairs) in sw.items():
+        if k not in cw:
+            failures.append(f"warps {k} not scored")
+            continue
         cwk, cnk, _ = cw[k]
         print(f"| {k} | {pairs} | {w:.3f} | {cwk:.3f} | {n:.1f} | {cnk:.1f} |")
         if k == "all" and not validation and cwk < w - 0.01 - 1e-9:
