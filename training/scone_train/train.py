@@ -30,8 +30,9 @@ from .data import correspondences as C
 from .data.features import FrameFeatures, extractor_args
 from .data.training_units import GroupSampler, PairSampler, Unit, build_unit, shared_anchors
 from .evaluation import nn_precision as E
-from .model.network import SconeNet, build_model
-from .paths import prefix_dir, shared_data
+from .model.distill import relational_loss
+from .model.network import SconeNet, build_model, ring_from_onnx
+from .paths import REPO, prefix_dir, shared_data
 
 
 def load_units(cfg: dict, rendered_root: Path | None = None) -> tuple[list[Unit], list[Unit]]:
@@ -139,8 +140,7 @@ class Teacher:
     def __init__(self, spec: dict, tensors: TensorCache):
         path = Path(os.path.expandvars(str(spec["model"])))
         if not path.is_absolute():
-            path = Path(__file__).resolve().parents[2] / path
-        from .model.network import ring_from_onnx
+            path = REPO / path
 
         self.model, self.weight, self.tensors = ring_from_onnx(path), float(spec["weight"]), tensors
         self.cache: dict[int, torch.Tensor] = {}
@@ -152,12 +152,6 @@ class Teacher:
                 self.cache[key] = self.model(*self.tensors.get(f))
         return self.cache[key]
 
-
-def relational_loss(sa: torch.Tensor, sb: torch.Tensor, ta: torch.Tensor, tb: torch.Tensor, anchors) -> torch.Tensor:
-    """Mean squared difference between the student's and the teacher's cosine similarities of the anchors of frame
-    a to every keypoint of frame b: what the nearest-neighbour and ratio tests read, in the teacher's geometry,
-    without asking the student for the teacher's embedding space."""
-    return F.mse_loss(sa[anchors] @ sb.T, ta[anchors] @ tb.T)
 
 
 def pair_distances(x: torch.Tensor, y: torch.Tensor) -> torch.Tensor:

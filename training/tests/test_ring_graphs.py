@@ -10,9 +10,9 @@ import torch
 
 from scone_train.model import bits_input as B
 from scone_train.model import export as X
+from scone_train.model.distill import relational_loss
 from scone_train.model.network import RingNet, ring_from_onnx, unpack_bits
 from scone_train.paths import REPO
-from scone_train.train import relational_loss
 
 SHIPPED = REPO / "models" / "scone-ring-e1-real.onnx"
 

@@ -27,7 +27,8 @@ import numpy as np
 import onnx
 from onnx import TensorProto, helper
 
-from .export import OUTPUT_NAME, session, sha256
+from .export import OUTPUT_NAME, declare, session, sha256
+from .network import _BIT_TABLE
 
 #: The metadata key of the embedding space a graph computes when it is not its own file's (the service's model id).
 EMBEDS_AS_KEY = "scone.embeds_as"
@@ -68,8 +69,8 @@ def rewrite(model: onnx.ModelProto) -> onnx.ModelProto:
     return model
 
 
-#: Row v holds the 8 bits of byte value v as ±1, least significant first (`network._BIT_TABLE`).
-_TABLE = (((np.arange(256)[:, None] >> np.arange(8)) & 1) * 2 - 1).astype(np.float32)
+#: Row v holds the 8 bits of byte value v as ±1, least significant first: the network's own table.
+_TABLE = _BIT_TABLE.numpy()
 
 
 def unpack(descriptors: np.ndarray) -> np.ndarray:
@@ -83,12 +84,8 @@ def write(source: Path, out: Path) -> dict:
     model = onnx.load(str(source))
     props = {p.key: p.value for p in model.metadata_props}
     props.setdefault(EMBEDS_AS_KEY, f"sha256:{sha256(source)}")
-    model = rewrite(model)
-    del model.metadata_props[:]
-    for key, value in sorted(props.items()):
-        entry = model.metadata_props.add()
-        entry.key, entry.value = key, value
-    onnx.save(model, str(out))
+    onnx.save(rewrite(model), str(out))
+    declare(out, props)
     rng = np.random.default_rng(0)
     descriptors = rng.integers(0, 256, (3000, 64), dtype=np.uint8)
     context = rng.integers(0, 256, (3000, 113), dtype=np.uint8)

@@ -62,6 +62,13 @@ def nn_agreement(student, pairs: list[tuple[Embedded, Embedded]]) -> tuple[float
     return float(np.mean(cos)), agree / max(total, 1)
 
 
+def relational_loss(sa: torch.Tensor, sb: torch.Tensor, ta: torch.Tensor, tb: torch.Tensor, anchors) -> torch.Tensor:
+    """Mean squared difference between the student's and the teacher's cosine similarities of the anchors of frame
+    a to every keypoint of frame b: what the nearest-neighbour and ratio tests read, in the teacher's geometry,
+    without asking the student for the teacher's embedding space."""
+    return F.mse_loss(sa[anchors] @ sb.T, ta[anchors] @ tb.T)
+
+
 def start_from_teacher(student, teacher) -> int:
     """Copy every teacher parameter whose name and shape the student shares; returns how many were copied."""
     own = student.state_dict()
@@ -151,7 +158,7 @@ def main() -> None:
         sa, sb = student(*fa.inputs), student(*fb.inputs)
         loss = ((sa - fa.teacher) ** 2).sum(1).mean() / 2 + ((sb - fb.teacher) ** 2).sum(1).mean() / 2
         anchors = torch.from_numpy(rng.choice(len(sa), min(a.anchors, len(sa)), replace=False))
-        rel = F.mse_loss(sa[anchors] @ sb.T, fa.teacher[anchors] @ fb.teacher.T)
+        rel = relational_loss(sa, sb, fa.teacher, fb.teacher, anchors)
         total = loss + a.relational * rel
         opt.zero_grad()
         total.backward()

@@ -31,18 +31,13 @@ def reloc(directory):
 
 
 def judge(shipped, cand, validation):
-    failures = []
     sa, ca, spread = aucs(shipped), aucs(cand), seed_spread(shipped)
-    print("| part | shipped AUC@10 | candidate | difference | allowed shortfall |\n|---|---|---|---|---|")
-    for part, a in sa.items():
-        c = ca.get(part)
-        if c is None:
-            failures.append(f"{part} not scored")
-            continue
-        allowed = 0.005 if validation else max(0.005, 2 * 2 ** 0.5 * spread[part][1])
-        print(f"| {part} | {a:.4f} | {c:.4f} | {c - a:+.4f} | {allowed:.4f} |")
-        if c < a - allowed - 1e-9:
-            failures.append(f"{part} AUC@10 {c:.4f} < shipped {a:.4f} - {allowed:.4f}")
+
+    def allowed(part):
+        tolerance = 0.005 if validation else max(0.005, 2 * 2 ** 0.5 * spread[part][1])
+        return tolerance, f"{tolerance:.4f}"
+
+    failures = _int8.part_failures(sa, ca, allowed, "allowed shortfall", lambda part: f"{allowed(part)[0]:.4f}")
     ms, mc = sum(sa.values()) / len(sa), sum(ca.get(p, 0.0) for p in sa) / len(sa)
     print(f"| **mean** | {ms:.4f} | {mc:.4f} | {mc - ms:+.4f} | {'' if validation else '0.0050'} |\n")
     if not validation and mc < ms - 0.005 - 1e-9:
