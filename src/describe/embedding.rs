@@ -48,7 +48,7 @@ use std::time::Instant;
 
 use ort::session::builder::GraphOptimizationLevel;
 use ort::session::Session;
-use ort::value::Tensor;
+use ort::value::{Tensor, TensorRef};
 use parking_lot::Mutex;
 use serde::{Deserialize, Serialize};
 use sha2::{Digest, Sha256};
@@ -136,9 +136,17 @@ fn environment(lib: &Path) -> Result<&'static ort::environment::Environment, Emb
         .map_err(|reason| EmbeddingError::Runtime { path: lib.to_path_buf(), reason: reason.clone() })
 }
 
+/// One session of the pool and the buffer a ring model's `bits` input is unpacked into, kept between calls
+/// (4 MB for 2,000 keypoints, up to [`UNPACKED_KEPT`]: a fresh one per call cost its allocation and page faults
+/// every time).
+struct Slot {
+    session: Session,
+    unpacked: Vec<f32>,
+}
+
 /// Loaded model with a pool of sessions.
 pub struct Embedder {
-    sessions: Vec<Mutex<Session>>,
+    sessions: Vec<Mutex<Slot>>,
     inputs: ModelInputs,
     bits: BitsInput,
     extraction: Option<ExtractorSettings>,
@@ -187,11 +195,11 @@ impl Embedder {
                 .commit_from_memory(&bytes)
                 .map_err(model_err)?;
             dims = Some(check_contract(&path, &session)?);
-            sessions.push(Mutex::new(session));
+            sessions.push(Mutex::new(Slot { session, unpacked: Vec::new() }));
         }
         let (inputs, bits, dim) = dims.expect("at least one session");
         // One read of the metadata: every session holds the same model.
-        let Declaration { extraction, matcher, embeds_as } = declaration(&path, &sessions[0].lock())?;
+        let Declaration { extraction, matcher, embeds_as } = declaration(&path, &sessions[0].lock().session)?;
         let model_id = match embeds_as {
             Some(id) => {
                 tracing::info!(file = %file_id, model_id = %id, "the model declares the embeddings of another file");
@@ -205,27 +213,10 @@ impl Embedder {
     }
 
     fn warm_up(&self) -> Result<(), EmbeddingError> {
-        let n = 64usize;
-        let features = Features {
-            width: 640,
-            height: 480,
-            keypoints: (0..n)
-                .map(|i| crate::describe::features::Keypoint {
-                    x: 10.0 + (i % 8) as f32 * 20.0,
-                    y: 10.0 + (i / 8) as f32 * 20.0,
-                    size: 7.0,
-                    angle: (i * 37 % 360) as f32,
-                    response: 1.0,
-                    octave: 0,
-                })
-                .collect(),
-            descriptors: (0..n).map(|i| [i as u8; DESCRIPTOR_BYTES]).collect(),
-            context: (0..n).map(|i| [(i * 3) as u8; SAMPLES]).collect(),
-        };
+        let features = synthetic_features(64);
         let context = self.context_of(&features)?;
         for s in &self.sessions {
-            let mut session = s.lock();
-            run(&mut session, &features, &context, self.bits, self.dim)?;
+            run(&mut s.lock(), &features, &context, self.bits, self.dim)?;
         }
         Ok(())
     }
@@ -311,12 +302,12 @@ impl Embedder {
             if features.len() >= SPLIT_FROM && crate::cpu_pool::cores() > 1 {
                 if let Some(mut second) = self.try_lease() {
                     let descriptors = features.descriptors.as_flattened();
-                    let (a, b) = (&mut first.session, &mut second.session);
+                    let (a, b) = (&mut first.slot, &mut second.slot);
                     return run_split(a, b, descriptors, rings, self.bits, self.dim);
                 }
             }
         }
-        run(&mut first.session, features, &context, self.bits, self.dim)
+        run(&mut first.slot, features, &context, self.bits, self.dim)
     }
 
     /// Sessions in the pool.
@@ -326,14 +317,14 @@ impl Embedder {
 
     /// An idle session, without waiting; `None` when every session is in use.
     pub fn try_lease(&self) -> Option<Lease<'_>> {
-        self.sessions.iter().find_map(|s| s.try_lock()).map(|session| Lease { embedder: self, session })
+        self.sessions.iter().find_map(|s| s.try_lock()).map(|slot| Lease { embedder: self, slot })
     }
 
     /// An idle session, or else the one this thread hashes to, once it is free.
     pub fn lease(&self) -> Lease<'_> {
         self.try_lease().unwrap_or_else(|| {
             let slot = thread_slot() % self.sessions.len();
-            Lease { embedder: self, session: self.sessions[slot].lock() }
+            Lease { embedder: self, slot: self.sessions[slot].lock() }
         })
     }
 }
@@ -352,7 +343,7 @@ pub const ROW_GROUP: usize = 64;
 /// (the pipelined describe, `crate::describe::pipeline`) holds one per thread.
 pub struct Lease<'a> {
     embedder: &'a Embedder,
-    session: parking_lot::MutexGuard<'a, Session>,
+    slot: parking_lot::MutexGuard<'a, Slot>,
 }
 
 impl Lease<'_> {
@@ -363,7 +354,7 @@ impl Lease<'_> {
         if features.is_empty() {
             return Ok(Vec::new());
         }
-        run(&mut self.session, features, &context, e.bits, e.dim)
+        run(&mut self.slot, features, &context, e.bits, e.dim)
     }
 
     /// [`Lease::embed`] for a ring model, telling `stage` the time of building the input tensors
@@ -374,16 +365,39 @@ impl Lease<'_> {
         let Context::Rings(rings) = self.embedder.context_of(features)? else {
             return Err(EmbeddingError::Input { reason: "not a ring-context model".into() });
         };
-        let inputs = ring_inputs(features.descriptors.as_flattened(), rings, self.embedder.bits)?;
-        stage("assembly", t.elapsed());
-        let t = Instant::now();
-        let outputs = self.session.run(inputs).map_err(inference)?;
-        stage("inference", t.elapsed());
-        let t = Instant::now();
-        let embeddings = embeddings_of(&outputs, features.len(), self.embedder.dim);
-        drop(outputs);
-        stage("output", t.elapsed());
-        embeddings
+        let Slot { session, unpacked } = &mut *self.slot;
+        let dim = self.embedder.dim;
+        with_ring_inputs(features.descriptors.as_flattened(), rings, self.embedder.bits, unpacked, |inputs| {
+            stage("assembly", t.elapsed());
+            let t = Instant::now();
+            let outputs = session.run(inputs).map_err(inference)?;
+            stage("inference", t.elapsed());
+            let t = Instant::now();
+            let embeddings = embeddings_of(&outputs, features.len(), dim);
+            drop(outputs);
+            stage("output", t.elapsed());
+            embeddings
+        })
+    }
+}
+
+/// `n` made-up keypoints on a grid with their descriptors and ring contexts (the warm-up's inputs).
+fn synthetic_features(n: usize) -> Features {
+    Features {
+        width: 640,
+        height: 480,
+        keypoints: (0..n)
+            .map(|i| crate::describe::features::Keypoint {
+                x: 10.0 + (i % 8) as f32 * 20.0,
+                y: 10.0 + (i / 8) as f32 * 20.0,
+                size: 7.0,
+                angle: (i * 37 % 360) as f32,
+                response: 1.0,
+                octave: 0,
+            })
+            .collect(),
+        descriptors: (0..n).map(|i| [(i * 7) as u8; DESCRIPTOR_BYTES]).collect(),
+        context: (0..n).map(|i| [(i * 3) as u8; SAMPLES]).collect(),
     }
 }
 
@@ -406,7 +420,7 @@ fn inference(e: ort::Error) -> EmbeddingError {
 }
 
 fn run(
-    session: &mut Session,
+    slot: &mut Slot,
     f: &Features,
     context: &Context,
     bits: BitsInput,
@@ -414,7 +428,7 @@ fn run(
 ) -> Result<Vec<f32>, EmbeddingError> {
     let n = f.len();
     let c = match context {
-        Context::Rings(rings) => return run_rings(session, f.descriptors.as_flattened(), rings, bits, dim),
+        Context::Rings(rings) => return run_rings(slot, f.descriptors.as_flattened(), rings, bits, dim),
         Context::Constellations(c) => c,
     };
     let descriptors =
@@ -426,7 +440,8 @@ fn run(
         Tensor::from_array(([n, k], c.neighbours.iter().map(|&j| j as i64).collect::<Vec<_>>())).map_err(inference)?;
     let mask = Tensor::from_array(([n, k], c.mask.iter().map(|&m| m as f32).collect::<Vec<_>>())).map_err(inference)?;
     let relative = Tensor::from_array(([n, k, GEOMETRY_DIM], c.relative.as_flattened().to_vec())).map_err(inference)?;
-    let outputs = session
+    let outputs = slot
+        .session
         .run(ort::inputs![
             "descriptors" => descriptors,
             "keypoints" => keypoints,
@@ -457,52 +472,79 @@ static BIT_SIGNS: [[f32; 8]; 256] = {
 
 /// FREAK bytes unpacked to the `bits` input: 8 floats of ±1 per byte, least significant bit first.
 pub fn unpack_bits(descriptors: &[u8]) -> Vec<f32> {
-    let mut out = Vec::with_capacity(descriptors.len() * 8);
-    for &byte in descriptors {
-        out.extend_from_slice(&BIT_SIGNS[byte as usize]);
-    }
+    let mut out = Vec::new();
+    unpack_bits_into(descriptors, &mut out);
     out
 }
 
-/// A ring model's two inputs, from `descriptors` (`DESCRIPTOR_BYTES` per keypoint, unpacked when the model
-/// reads `bits`) and `rings` (`SAMPLES` per keypoint).
-fn ring_inputs<'v>(
+/// [`unpack_bits`] into `out`, whose allocation is reused.
+fn unpack_bits_into(descriptors: &[u8], out: &mut Vec<f32>) {
+    out.clear();
+    out.reserve_exact(descriptors.len() * 8);
+    for &byte in descriptors {
+        out.extend_from_slice(&BIT_SIGNS[byte as usize]);
+    }
+}
+
+/// The most a session keeps of its unpacking buffer between calls, in floats: 16 MB, the bits of 8,192
+/// keypoints.
+const UNPACKED_KEPT: usize = 8192 * BITS;
+
+/// A ring model's inputs, borrowed rather than copied.
+type RingInputs<'v> = Vec<(std::borrow::Cow<'static, str>, ort::session::SessionInputValue<'v>)>;
+
+/// Calls `f` with a ring model's two inputs, views of `descriptors` (`DESCRIPTOR_BYTES` per keypoint; when the
+/// model reads `bits`, unpacked into `unpacked`, a session's buffer, which keeps its allocation up to
+/// [`UNPACKED_KEPT`]) and of `rings` (`SAMPLES` per keypoint).
+fn with_ring_inputs<T>(
     descriptors: &[u8],
     rings: &[u8],
     bits: BitsInput,
-) -> Result<Vec<(std::borrow::Cow<'static, str>, ort::session::SessionInputValue<'v>)>, EmbeddingError> {
+    unpacked: &mut Vec<f32>,
+    f: impl for<'v> FnOnce(RingInputs<'v>) -> Result<T, EmbeddingError>,
+) -> Result<T, EmbeddingError> {
     let n = descriptors.len() / DESCRIPTOR_BYTES;
-    let context = Tensor::from_array(([n, SAMPLES], rings.to_vec())).map_err(inference)?;
-    Ok(match bits {
+    let context = TensorRef::from_array_view(([n, SAMPLES], rings)).map_err(inference)?;
+    match bits {
         BitsInput::Bytes => {
-            let descriptors = Tensor::from_array(([n, DESCRIPTOR_BYTES], descriptors.to_vec())).map_err(inference)?;
-            ort::inputs!["descriptors" => descriptors, "context" => context]
+            let descriptors = TensorRef::from_array_view(([n, DESCRIPTOR_BYTES], descriptors)).map_err(inference)?;
+            f(ort::inputs!["descriptors" => descriptors, "context" => context])
         }
         BitsInput::Unpacked => {
-            let unpacked = Tensor::from_array(([n, BITS], unpack_bits(descriptors))).map_err(inference)?;
-            ort::inputs![BITS_INPUT => unpacked, "context" => context]
+            unpack_bits_into(descriptors, unpacked);
+            let result = match TensorRef::from_array_view(([n, BITS], &unpacked[..])) {
+                Ok(view) => f(ort::inputs![BITS_INPUT => view, "context" => context]),
+                Err(e) => Err(inference(e)),
+            };
+            if unpacked.capacity() > UNPACKED_KEPT {
+                *unpacked = Vec::new();
+            }
+            result
         }
-    })
+    }
 }
 
 /// A ring model on `descriptors` (`DESCRIPTOR_BYTES` per keypoint) and `rings` (`SAMPLES` per keypoint).
 fn run_rings(
-    session: &mut Session,
+    slot: &mut Slot,
     descriptors: &[u8],
     rings: &[u8],
     bits: BitsInput,
     dim: usize,
 ) -> Result<Vec<f32>, EmbeddingError> {
     let n = descriptors.len() / DESCRIPTOR_BYTES;
-    let outputs = session.run(ring_inputs(descriptors, rings, bits)?).map_err(inference)?;
-    embeddings_of(&outputs, n, dim)
+    let Slot { session, unpacked } = slot;
+    with_ring_inputs(descriptors, rings, bits, unpacked, |inputs| {
+        let outputs = session.run(inputs).map_err(inference)?;
+        embeddings_of(&outputs, n, dim)
+    })
 }
 
 /// [`run_rings`] with the first half of the rows on `first` (this thread) and the second on `second` (a scoped
 /// thread); a thread the system refuses leaves both halves to this one.
 fn run_split(
-    first: &mut Session,
-    second: &mut Session,
+    first: &mut Slot,
+    second: &mut Slot,
     descriptors: &[u8],
     rings: &[u8],
     bits: BitsInput,
@@ -545,6 +587,28 @@ mod tests {
         assert_eq!(u.len(), 24);
         assert_eq!(&u[..8], &[1.0, -1.0, 1.0, -1.0, -1.0, -1.0, -1.0, -1.0]);
         assert!(u[8..16].iter().all(|&v| v == 1.0) && u[16..].iter().all(|&v| v == -1.0));
+    }
+
+    /// A session's unpacking buffer is reused: a dirty, longer buffer gives a fresh one's bits; a set beyond
+    /// [`UNPACKED_KEPT`] leaves it released; the embeddings are a fresh session's throughout.
+    #[test]
+    fn a_sessions_unpacking_buffer_is_reused_and_released_beyond_its_cap() {
+        let bytes = [0b0000_0101, 0xff, 0];
+        let mut buffer = vec![7.0f32; 1000];
+        unpack_bits_into(&bytes, &mut buffer);
+        assert_eq!(buffer, unpack_bits(&bytes));
+
+        let settings = EmbedderSettings { sessions: 1, ..EmbedderSettings::default() };
+        let (e, fresh) = (Embedder::load(&settings).unwrap(), Embedder::load(&settings).unwrap());
+        assert!(matches!(e.bits, BitsInput::Unpacked));
+        let capacity = || e.sessions[0].lock().unpacked.capacity();
+        let (small, large) = (synthetic_features(300), synthetic_features(UNPACKED_KEPT / BITS + 1));
+        let first = e.embed(&small).unwrap();
+        assert!((300 * BITS..=UNPACKED_KEPT).contains(&capacity()), "{}", capacity());
+        assert_eq!(e.embed(&large).unwrap(), fresh.embed(&large).unwrap());
+        assert_eq!(capacity(), 0);
+        let again = e.embed(&small).unwrap();
+        assert!(first == again && again == fresh.embed(&small).unwrap());
     }
 
     #[test]
