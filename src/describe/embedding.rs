@@ -470,14 +470,8 @@ static BIT_SIGNS: [[f32; 8]; 256] = {
     table
 };
 
-/// FREAK bytes unpacked to the `bits` input: 8 floats of ±1 per byte, least significant bit first.
-pub fn unpack_bits(descriptors: &[u8]) -> Vec<f32> {
-    let mut out = Vec::new();
-    unpack_bits_into(descriptors, &mut out);
-    out
-}
-
-/// [`unpack_bits`] into `out`, whose allocation is reused.
+/// FREAK bytes unpacked to the `bits` input into `out`, whose allocation is reused: 8 floats of ±1 per byte,
+/// least significant bit first.
 fn unpack_bits_into(descriptors: &[u8], out: &mut Vec<f32>) {
     out.clear();
     out.reserve_exact(descriptors.len() * 8);
@@ -580,6 +574,12 @@ fn embeddings_of(outputs: &ort::session::SessionOutputs, n: usize, dim: usize) -
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    fn unpack_bits(descriptors: &[u8]) -> Vec<f32> {
+        let mut out = Vec::new();
+        unpack_bits_into(descriptors, &mut out);
+        out
+    }
 
     #[test]
     fn bits_unpack_least_significant_first_as_plus_or_minus_one() {

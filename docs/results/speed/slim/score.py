@@ -30,11 +30,16 @@ def reloc(directory):
     return out
 
 
+def selection_tolerance(spread, part):
+    """RULE.md's allowed shortfall of a selection part: max(0.005, 2 sqrt(2) se), `spread` from `seed_spread`."""
+    return max(0.005, 2 * 2 ** 0.5 * spread[part][1])
+
+
 def judge(shipped, cand, validation):
     sa, ca, spread = aucs(shipped), aucs(cand), seed_spread(shipped)
 
     def allowed(part):
-        tolerance = 0.005 if validation else max(0.005, 2 * 2 ** 0.5 * spread[part][1])
+        tolerance = 0.005 if validation else selection_tolerance(spread, part)
         return tolerance, f"{tolerance:.4f}"
 
     failures = _int8.part_failures(sa, ca, allowed, "allowed shortfall", lambda part: f"{allowed(part)[0]:.4f}")

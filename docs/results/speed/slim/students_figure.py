@@ -35,7 +35,7 @@ def main() -> None:
     shipped = WORK / "shipped"
     sa, spread = _score.aucs(shipped), _score.seed_spread(shipped)
     parts = sorted(sa)
-    allowed = [max(0.005, 2 * 2**0.5 * spread[p][1]) for p in parts]
+    allowed = [_score.selection_tolerance(spread, p) for p in parts]
     arcs_shipped = sum(c for c, _ in _score.reloc(WORK / "reloc-shipped").values())
 
     fig, (ax, bx) = plt.subplots(1, 2, figsize=(12, 4.8), gridspec_kw={"width_ratios": [4, 1]})
